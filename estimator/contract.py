@@ -1,0 +1,131 @@
+"""The model contract: what a model folder promises, carried inside both ONNX graphs.
+
+A model is a folder with ``backbone.onnx`` and ``aggregator.onnx`` and nothing executable. Each
+graph stores the contract as JSON under the metadata key ``sunrig.contract`` and its role under
+``sunrig.graph``. The runtime reads both back with onnxruntime alone, checks they agree with each
+other and with the graphs' own inputs, and refuses a model that does not fit, naming what differs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+from rig.errors import ContractMismatch
+
+CONTRACT_VERSION = 1
+METADATA_CONTRACT_KEY = "sunrig.contract"
+METADATA_GRAPH_KEY = "sunrig.graph"
+
+BACKBONE_FILE = "backbone.onnx"
+AGGREGATOR_FILE = "aggregator.onnx"
+
+# Graph input and output names, part of the contract.
+BACKBONE_INPUT = "crops"  # [N, 3, S, S] float32, normalised as input_norm says
+BACKBONE_OUTPUT = "embeddings"  # [N, D] float32
+AGG_INPUT_EMBEDDINGS = "embeddings"  # [B, T, D] float32
+AGG_INPUT_ANGLES = "angles"  # [B, T, 3] float32: yaw, horizontal, vertical view angle (rad)
+AGG_INPUT_MASK = "mask"  # [B, T] bool: True where the token is real
+AGG_OUTPUT = "sun_heading"  # [B, T, 3] float32: per-token sun vector in its heading frame
+
+# KITTI's image_02 (fx = 721.5377) cropped at 224 px native: the paper's angular coverage per crop.
+PAPER_CROP_FOV_DEG = math.degrees(2.0 * math.atan(112.0 / 721.5377))
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def _encoding_default() -> dict[str, Any]:
+    return {"kind": "cyclic-nested-sine", "alpha": 32.0, "base": 10000.0, "depth_per_angle": 170}
+
+
+def _input_norm_default() -> dict[str, Any]:
+    return {"color_order": "RGB", "scale": 1.0 / 255.0, "mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD)}
+
+
+@dataclass(frozen=True)
+class ModelContract:
+    """Everything the runtime must know to feed a model and read its answer.
+
+    ``crop_fov_deg`` is the horizontal angle a crop spans in the source image: the runtime cuts
+    ``2 fx tan(fov / 2)`` pixels and resizes to ``crop_size_px``, so a model sees the same angular
+    detail whatever the camera's resolution or focal length.
+    """
+
+    crop_size_px: int
+    embedding_dim: int
+    crop_fov_deg: float = PAPER_CROP_FOV_DEG
+    crops_per_frame: int = 4
+    frames_per_window: int = 8
+    encoding: dict[str, Any] = field(default_factory=_encoding_default)
+    input_norm: dict[str, Any] = field(default_factory=_input_norm_default)
+    architecture: dict[str, Any] = field(default_factory=dict)
+    training: dict[str, Any] = field(default_factory=dict)
+    version: int = CONTRACT_VERSION
+
+    def __post_init__(self) -> None:
+        problems = []
+        for name in ("crop_size_px", "embedding_dim", "crops_per_frame", "frames_per_window"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                problems.append(f"{name}: expected a positive integer, got {v!r}")
+        if not (isinstance(self.crop_fov_deg, int | float) and 0.0 < self.crop_fov_deg < 180.0):
+            problems.append(f"crop_fov_deg: expected within (0, 180) deg, got {self.crop_fov_deg!r}")
+        if self.version != CONTRACT_VERSION:
+            problems.append(f"version: this runtime reads contract version {CONTRACT_VERSION}, got {self.version!r}")
+        enc = self.encoding
+        for key in ("alpha", "base", "depth_per_angle"):
+            if key not in enc:
+                problems.append(f"encoding.{key}: missing")
+        if enc.get("kind") != "cyclic-nested-sine":
+            problems.append(f"encoding.kind: expected 'cyclic-nested-sine', got {enc.get('kind')!r}")
+        depth = enc.get("depth_per_angle")
+        if isinstance(depth, int) and depth % 2:
+            problems.append(f"encoding.depth_per_angle: expected an even number, got {depth}")
+        norm = self.input_norm
+        if norm.get("color_order") not in ("RGB", "BGR"):
+            problems.append(f"input_norm.color_order: expected 'RGB' or 'BGR', got {norm.get('color_order')!r}")
+        for key in ("mean", "std"):
+            if len(norm.get(key, ())) != 3:
+                problems.append(f"input_norm.{key}: expected 3 values, got {norm.get(key)!r}")
+        if problems:
+            raise ContractMismatch("invalid model contract: " + "; ".join(problems))
+
+    @property
+    def tokens_per_window(self) -> int:
+        return self.crops_per_frame * self.frames_per_window
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str, where: str = "model") -> ModelContract:
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ContractMismatch(f"{where}: the contract metadata is not JSON ({exc}); re-export the model") from None
+        if not isinstance(raw, dict):
+            raise ContractMismatch(f"{where}: the contract metadata is not a JSON object; re-export the model")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(raw) - known)
+        if unknown:
+            raise ContractMismatch(
+                f"{where}: the contract has fields this runtime does not know ({', '.join(unknown)}); "
+                "upgrade sunrig or re-export the model"
+            )
+        try:
+            return cls(**raw)
+        except TypeError as exc:
+            raise ContractMismatch(f"{where}: incomplete contract ({exc}); re-export the model") from None
+        except ContractMismatch as exc:
+            raise ContractMismatch(f"{where}: {exc}") from None
+
+    def differences(self, other: ModelContract) -> list[str]:
+        """Fields where two contracts disagree, as ``name: a != b`` strings (empty if identical)."""
+        out = []
+        a, b = asdict(self), asdict(other)
+        for key in sorted(a):
+            if a[key] != b[key]:
+                out.append(f"{key}: {a[key]!r} != {b[key]!r}")
+        return out

@@ -1,0 +1,1 @@
+"""Recorded sources: they yield the same :class:`rig.types.Frame` a camera driver yields."""

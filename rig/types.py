@@ -1,0 +1,339 @@
+"""The core value types every source, the estimator and every publisher share.
+
+All are frozen dataclasses validated once, when made, with messages that give expected vs actual.
+Arrays handed to them are made read-only, so a cached frame cannot change under the estimator.
+Radians inside; ``_deg`` only in the JSON views for humans and wires.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+
+import numpy as np
+
+from rig.errors import ValidationError
+from rig.geometry import angle_between, az_el_from_enu, wrap_2pi, wrap_pi
+
+_UNIT_TOL = 1e-3
+
+
+class HeadingRef(enum.StrEnum):
+    """What a heading of 0 points at."""
+
+    TRUE = "true"  # true (geographic) north
+    MAGNETIC = "magnetic"  # magnetic north; needs a declination to become true
+    RELATIVE = "relative"  # the source's own start heading (gyro, game rotation vector, VO)
+
+
+def _finite(name: str, value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValidationError(f"{name}: expected a real number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise ValidationError(f"{name}: expected a finite number, got {value}")
+    return value
+
+
+def _vector3(name: str, value, unit: bool) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,):
+        raise ValidationError(f"{name}: expected shape (3,), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValidationError(f"{name}: expected finite values, got {arr.tolist()}")
+    if unit and abs(np.linalg.norm(arr) - 1.0) > _UNIT_TOL:
+        raise ValidationError(
+            f"{name}: expected a unit vector (norm 1 +- {_UNIT_TOL}), got norm {np.linalg.norm(arr):.6f}"
+        )
+    arr = arr.copy()
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels of the image they describe (no distortion: rectified images)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy"):
+            v = _finite(name, getattr(self, name))
+            if v <= 0:
+                raise ValidationError(f"Intrinsics.{name}: expected > 0 pixels, got {v}")
+            object.__setattr__(self, name, v)
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if int(v) != v or v <= 0:
+                raise ValidationError(f"Intrinsics.{name}: expected a positive integer, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        for name, limit in (("cx", self.width), ("cy", self.height)):
+            v = _finite(name, getattr(self, name))
+            if not 0.0 <= v <= limit:
+                raise ValidationError(f"Intrinsics.{name}: expected within [0, {limit}] pixels, got {v}")
+            object.__setattr__(self, name, v)
+
+    @property
+    def hfov_rad(self) -> float:
+        """Horizontal field of view, edge to edge."""
+        return math.atan(self.cx / self.fx) + math.atan((self.width - self.cx) / self.fx)
+
+    @property
+    def vfov_rad(self) -> float:
+        """Vertical field of view, edge to edge."""
+        return math.atan(self.cy / self.fy) + math.atan((self.height - self.cy) / self.fy)
+
+    @classmethod
+    def from_hfov(cls, width: int, height: int, hfov_rad: float) -> Intrinsics:
+        """Square pixels, principal point at the centre, focal length from a horizontal FOV."""
+        fx = (width / 2.0) / math.tan(hfov_rad / 2.0)
+        return cls(fx=fx, fy=fx, cx=width / 2.0, cy=height / 2.0, width=width, height=height)
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """Camera heading (yaw, clockwise from the reference's north) and, where known, pitch/roll."""
+
+    heading_rad: float
+    reference: HeadingRef
+    pitch_rad: float | None = None
+    roll_rad: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "heading_rad", float(wrap_2pi(_finite("heading_rad", self.heading_rad))))
+        try:
+            object.__setattr__(self, "reference", HeadingRef(self.reference))
+        except ValueError:
+            raise ValidationError(
+                f"Attitude.reference: expected one of {[r.value for r in HeadingRef]}, got {self.reference!r}"
+            ) from None
+        for name in ("pitch_rad", "roll_rad"):
+            v = getattr(self, name)
+            if v is not None:
+                v = _finite(name, v)
+                if abs(v) > math.pi:
+                    raise ValidationError(f"Attitude.{name}: expected within [-pi, pi] rad, got {v}")
+                object.__setattr__(self, name, v)
+
+
+@dataclass(frozen=True)
+class GnssFix:
+    """A position fix with its UTC time (ns since the Unix epoch)."""
+
+    utc_ns: int
+    lat_deg: float
+    lon_deg: float
+    alt_m: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.utc_ns, int | np.integer):
+            raise ValidationError(f"GnssFix.utc_ns: expected integer ns since the epoch, got {self.utc_ns!r}")
+        object.__setattr__(self, "utc_ns", int(self.utc_ns))
+        lat = _finite("lat_deg", self.lat_deg)
+        lon = _finite("lon_deg", self.lon_deg)
+        if not -90.0 <= lat <= 90.0:
+            raise ValidationError(f"GnssFix.lat_deg: expected within [-90, 90] deg, got {lat}")
+        if not -180.0 <= lon <= 360.0:
+            raise ValidationError(f"GnssFix.lon_deg: expected within [-180, 360] deg, got {lon}")
+        object.__setattr__(self, "lat_deg", lat)
+        object.__setattr__(self, "lon_deg", lon)
+        if self.alt_m is not None:
+            object.__setattr__(self, "alt_m", _finite("alt_m", self.alt_m))
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One camera frame with everything known about it at capture. The one type every source yields.
+
+    ``t_mono_s`` is the monotonic pipeline clock (``time.monotonic()``, DepthAI's host clock) at
+    mid-exposure; ``seq`` counts frames from the source, strictly increasing.
+    """
+
+    t_mono_s: float
+    seq: int
+    image_bgr: np.ndarray
+    intrinsics: Intrinsics
+    attitude: Attitude | None = None
+    utc_ns: int | None = None
+    gnss: GnssFix | None = None
+    sun_enu_truth: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t_mono_s", _finite("t_mono_s", self.t_mono_s))
+        if not isinstance(self.seq, int | np.integer) or self.seq < 0:
+            raise ValidationError(f"Frame.seq: expected a non-negative integer, got {self.seq!r}")
+        object.__setattr__(self, "seq", int(self.seq))
+        img = self.image_bgr
+        if not isinstance(img, np.ndarray):
+            raise ValidationError(f"Frame.image_bgr: expected a numpy array, got {type(img).__name__}")
+        if img.dtype != np.uint8:
+            raise ValidationError(f"Frame.image_bgr: expected dtype uint8, got {img.dtype}")
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValidationError(f"Frame.image_bgr: expected shape (H, W, 3) BGR, got {img.shape}")
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise ValidationError(
+                f"Frame.intrinsics: expected Intrinsics, got {type(self.intrinsics).__name__}"
+            )
+        if img.shape[:2] != (self.intrinsics.height, self.intrinsics.width):
+            raise ValidationError(
+                "Frame.image_bgr: expected shape "
+                f"({self.intrinsics.height}, {self.intrinsics.width}, 3) to match the intrinsics, got {img.shape}"
+            )
+        if img.flags.writeable:
+            img = img.view()
+            img.setflags(write=False)
+            object.__setattr__(self, "image_bgr", img)
+        if self.attitude is not None and not isinstance(self.attitude, Attitude):
+            raise ValidationError(f"Frame.attitude: expected Attitude or None, got {type(self.attitude).__name__}")
+        if self.gnss is not None and not isinstance(self.gnss, GnssFix):
+            raise ValidationError(f"Frame.gnss: expected GnssFix or None, got {type(self.gnss).__name__}")
+        if self.utc_ns is not None:
+            if not isinstance(self.utc_ns, int | np.integer):
+                raise ValidationError(f"Frame.utc_ns: expected integer ns since the epoch, got {self.utc_ns!r}")
+            object.__setattr__(self, "utc_ns", int(self.utc_ns))
+        if self.sun_enu_truth is not None:
+            object.__setattr__(self, "sun_enu_truth", _vector3("Frame.sun_enu_truth", self.sun_enu_truth, unit=True))
+
+    @property
+    def heading_rad(self) -> float | None:
+        return None if self.attitude is None else self.attitude.heading_rad
+
+
+@dataclass(frozen=True, eq=False)
+class FrameFeatures:
+    """A frame with its crops' view angles and backbone embeddings, computed once when it arrives.
+
+    ``crop_boxes_px`` rows are (x0, y0, side_x, side_y) in image pixels; ``crop_angles_rad`` rows are
+    (horizontal, vertical) view angles of the crop centres; ``embeddings`` rows are the backbone's
+    output per crop. ``model_id`` names the backbone that made them, so a cache never mixes models.
+    """
+
+    frame: Frame
+    crop_boxes_px: np.ndarray
+    crop_angles_rad: np.ndarray
+    embeddings: np.ndarray
+    model_id: str
+
+    def __post_init__(self) -> None:
+        n = len(self.crop_boxes_px)
+        checks = (
+            ("crop_boxes_px", self.crop_boxes_px, (n, 4)),
+            ("crop_angles_rad", self.crop_angles_rad, (n, 2)),
+        )
+        for name, arr, shape in checks:
+            if np.shape(arr) != shape:
+                raise ValidationError(f"FrameFeatures.{name}: expected shape {shape}, got {np.shape(arr)}")
+        emb = self.embeddings
+        if not isinstance(emb, np.ndarray) or emb.ndim != 2 or emb.shape[0] != n:
+            raise ValidationError(f"FrameFeatures.embeddings: expected shape ({n}, D), got {np.shape(emb)}")
+        if emb.dtype != np.float32:
+            raise ValidationError(f"FrameFeatures.embeddings: expected dtype float32, got {emb.dtype}")
+        for name in ("crop_boxes_px", "crop_angles_rad", "embeddings"):
+            arr = np.array(getattr(self, name), copy=True)
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @property
+    def n_crops(self) -> int:
+        return len(self.crop_boxes_px)
+
+
+@dataclass(frozen=True, eq=False)
+class SunEstimate:
+    """The sun direction estimated from one window of frames.
+
+    ``sun_enu`` is a unit vector in the world frame of the window's heading reference (true north,
+    or the start heading when ``heading_ref`` is relative). ``t_mono_s``/``seq``/``heading_rad``
+    are those of the newest frame in the window. ``spread_rad`` is the RMS angle of the per-token
+    world vectors around the estimate: small when the tokens agree.
+    """
+
+    t_mono_s: float
+    seq: int
+    sun_enu: np.ndarray
+    heading_rad: float
+    heading_ref: HeadingRef
+    spread_rad: float
+    n_frames: int
+    n_tokens: int
+    aggregator: str
+    utc_ns: int | None = None
+    truth_enu: np.ndarray | None = None
+    token_enu: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t_mono_s", _finite("t_mono_s", self.t_mono_s))
+        object.__setattr__(self, "sun_enu", _vector3("SunEstimate.sun_enu", self.sun_enu, unit=True))
+        object.__setattr__(self, "heading_rad", float(wrap_2pi(_finite("heading_rad", self.heading_rad))))
+        object.__setattr__(self, "heading_ref", HeadingRef(self.heading_ref))
+        spread = _finite("spread_rad", self.spread_rad)
+        if not 0.0 <= spread <= math.pi:
+            raise ValidationError(f"SunEstimate.spread_rad: expected within [0, pi] rad, got {spread}")
+        if self.n_frames < 1 or self.n_tokens < 1:
+            raise ValidationError(
+                f"SunEstimate: expected at least one frame and token, got {self.n_frames} frames, {self.n_tokens} tokens"
+            )
+        if self.truth_enu is not None:
+            object.__setattr__(self, "truth_enu", _vector3("SunEstimate.truth_enu", self.truth_enu, unit=True))
+        if self.token_enu is not None:
+            tok = np.array(self.token_enu, dtype=np.float64)
+            if tok.shape != (self.n_tokens, 3):
+                raise ValidationError(f"SunEstimate.token_enu: expected shape ({self.n_tokens}, 3), got {tok.shape}")
+            tok.setflags(write=False)
+            object.__setattr__(self, "token_enu", tok)
+
+    @property
+    def azimuth_rad(self) -> float:
+        return float(az_el_from_enu(self.sun_enu)[0])
+
+    @property
+    def elevation_rad(self) -> float:
+        return float(az_el_from_enu(self.sun_enu)[1])
+
+    @property
+    def relative_bearing_rad(self) -> float:
+        """Sun azimuth relative to the newest frame's heading, in [-pi, pi): positive to the right."""
+        return float(wrap_pi(self.azimuth_rad - self.heading_rad))
+
+    @property
+    def error_rad(self) -> float | None:
+        if self.truth_enu is None:
+            return None
+        return float(angle_between(self.sun_enu, self.truth_enu))
+
+    def to_json_dict(self) -> dict:
+        """The JSONL view: degrees, plain lists, ``truth_enu``/``error_deg`` only when known."""
+        out = {
+            "t": self.t_mono_s,
+            "seq": self.seq,
+            "sun_enu": [round(float(x), 7) for x in self.sun_enu],
+            "azimuth_deg": math.degrees(self.azimuth_rad),
+            "elevation_deg": math.degrees(self.elevation_rad),
+            "heading_deg": math.degrees(self.heading_rad),
+            "heading_ref": self.heading_ref.value,
+            "relative_bearing_deg": math.degrees(self.relative_bearing_rad),
+            "spread_deg": math.degrees(self.spread_rad),
+            "n_frames": self.n_frames,
+            "n_tokens": self.n_tokens,
+            "aggregator": self.aggregator,
+        }
+        if self.utc_ns is not None:
+            out["utc"] = utc_iso(self.utc_ns)
+        if self.truth_enu is not None:
+            out["truth_enu"] = [round(float(x), 7) for x in self.truth_enu]
+            out["error_deg"] = math.degrees(self.error_rad)
+        return out
+
+
+def utc_iso(utc_ns: int) -> str:
+    """ISO 8601 UTC with microseconds and a Z, e.g. ``2011-09-26T13:02:25.964389Z``."""
+    dt = datetime.fromtimestamp(utc_ns // 1_000_000_000, tz=UTC).replace(microsecond=(utc_ns % 1_000_000_000) // 1000)
+    return dt.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
