@@ -1,0 +1,44 @@
+"""Calibration (paper Sec. 3.4): per-token sun vectors from their heading frames into the world.
+
+Each token's vector is rotated by its own frame's yaw (``R_f^-1 v``), and the normalised mean is
+the estimate. Pure numpy: the exactness of this step is what lets relative headings work.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rig.errors import SunrigError
+from rig.geometry import angle_between, normalize, world_from_heading
+
+
+class EstimationError(SunrigError):
+    """A window cannot give an estimate (no heading, mixed heading references, tokens cancel out)."""
+
+
+def world_from_tokens(v_heading: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
+    """Rotate per-token vectors (T, 3) in their heading frames into the world frame by yaw (T,)."""
+    v = np.asarray(v_heading, dtype=np.float64)
+    return np.einsum("tij,tj->ti", world_from_heading(np.asarray(yaw_rad, dtype=np.float64)), v)
+
+
+def spread_rad(v_world: np.ndarray, centre: np.ndarray) -> float:
+    """RMS angle between each vector and ``centre``: how much the tokens disagree."""
+    ang = angle_between(normalize(v_world), centre)
+    return float(np.sqrt(np.mean(ang**2)))
+
+
+def mean_direction(v_world: np.ndarray) -> tuple[np.ndarray, float]:
+    """The paper's final step: mean of the calibrated vectors, normalised; and their spread.
+
+    The mean is of the raw vectors (the loss trains their norm towards 1), as in the paper.
+    """
+    v = np.asarray(v_world, dtype=np.float64)
+    mean = v.mean(axis=0)
+    norm = np.linalg.norm(mean)
+    if not np.isfinite(norm) or norm < 1e-6:
+        raise EstimationError(
+            f"the {len(v)} token estimates cancel out (mean norm {norm:.2e}); no direction for this window"
+        )
+    unit = mean / norm
+    return unit, spread_rad(v, unit)

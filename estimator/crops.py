@@ -1,0 +1,72 @@
+"""Random square sub-image crops and their view angles (paper Sec. 3.2-3.3). Pure numpy + OpenCV.
+
+A crop spans a fixed horizontal angle (the contract's ``crop_fov_deg``), not a fixed number of
+pixels, so a model trained on one camera sees the same angular detail on another. Its centre is
+uniform over the positions that keep the crop inside the image, and its position enters the
+network only as two view angles computed from the intrinsics (never from a hard-coded FOV).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from rig.errors import ValidationError
+from rig.geometry import view_angles_rad
+from rig.types import Intrinsics
+
+
+def crop_side_px(intrinsics: Intrinsics, crop_fov_rad: float) -> int:
+    """Side in source pixels of a square crop spanning ``crop_fov_rad`` around the optical axis.
+
+    Clipped to the image's shorter side: a narrow-angle camera gets a crop that fills its height.
+    """
+    side = 2.0 * intrinsics.fx * math.tan(crop_fov_rad / 2.0)
+    return int(max(1, min(round(side), intrinsics.width, intrinsics.height)))
+
+
+def sample_crop_boxes(intrinsics: Intrinsics, n: int, side_px: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` square boxes (x0, y0, side, side) with top-left corners uniform over valid positions."""
+    if n <= 0:
+        raise ValidationError(f"crops per frame: expected a positive integer, got {n}")
+    if not 0 < side_px <= min(intrinsics.width, intrinsics.height):
+        raise ValidationError(
+            f"crop side: expected within (0, {min(intrinsics.width, intrinsics.height)}] px, got {side_px}"
+        )
+    x0 = rng.integers(0, intrinsics.width - side_px + 1, size=n)
+    y0 = rng.integers(0, intrinsics.height - side_px + 1, size=n)
+    side = np.full(n, side_px)
+    return np.stack([x0, y0, side, side], axis=1).astype(np.int64)
+
+
+def crop_angles_rad(boxes_px: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """(horizontal, vertical) view angles of each box's centre, shape (n, 2), radians."""
+    boxes = np.asarray(boxes_px, dtype=np.float64)
+    u = boxes[:, 0] + boxes[:, 2] / 2.0
+    v = boxes[:, 1] + boxes[:, 3] / 2.0
+    h, vert = view_angles_rad(u, v, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+    return np.stack([h, vert], axis=1)
+
+
+def cut_crops(image_bgr: np.ndarray, boxes_px: np.ndarray, size_px: int) -> np.ndarray:
+    """The boxes cut out of the image and resized to ``size_px``; shape (n, S, S, 3) uint8 BGR.
+
+    INTER_AREA when shrinking keeps fine shading and shadow edges without aliasing.
+    """
+    out = np.empty((len(boxes_px), size_px, size_px, 3), dtype=np.uint8)
+    for i, (x0, y0, w, h) in enumerate(np.asarray(boxes_px, dtype=np.int64)):
+        patch = image_bgr[y0 : y0 + h, x0 : x0 + w]
+        if patch.shape[:2] == (size_px, size_px):
+            out[i] = patch
+        else:
+            interp = cv2.INTER_AREA if w > size_px else cv2.INTER_LINEAR
+            out[i] = cv2.resize(patch, (size_px, size_px), interpolation=interp)
+    return out
+
+
+def frame_rng(seed: int, seq: int) -> np.random.Generator:
+    """The crop generator for one frame: reproducible from (seed, seq) alone, so a replay of the
+    same log gives the same crops whatever order or subset of frames is processed."""
+    return np.random.default_rng([int(seed), int(seq)])

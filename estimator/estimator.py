@@ -1,0 +1,198 @@
+"""From frames to a sun direction: crops and backbone once per frame, an aggregator per window.
+
+:class:`SunEstimator` is the one object the rig, replay, eval and the CLI use. It is not
+thread-safe by itself; the rig gives each stage its own.
+
+Aggregators (all behind :meth:`SunEstimator.estimate`):
+
+- ``transformer``: the paper. All tokens of the window attend to each other in one aggregator
+  run; per-token vectors are calibrated into the world frame and averaged.
+- ``mean``: each crop alone through the same aggregator graph (a window of one token), i.e.
+  independent per-crop estimates, calibrated and averaged.
+- ``meanshift``: the same independent estimates, outliers removed, mean shift on the sphere
+  (Lee et al. 2021, the paper's baseline).
+- ``single``: one crop of the newest frame alone: no aggregation at all.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from estimator.calibration import EstimationError, mean_direction, spread_rad, world_from_tokens
+from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes
+from estimator.meanshift import meanshift_aggregate
+from rig.errors import ValidationError
+from rig.geometry import wrap_pi
+from rig.types import Frame, FrameFeatures, HeadingRef, SunEstimate
+
+AGGREGATORS = ("transformer", "mean", "meanshift", "single")
+
+
+class SunModel(Protocol):
+    """What the estimator needs of a model (``estimator.runtime.OnnxModel`` is the real one)."""
+
+    contract: object
+    model_id: str
+
+    def embed(self, crops_bgr: np.ndarray) -> np.ndarray: ...
+
+    def aggregate(self, embeddings: np.ndarray, angles: np.ndarray, mask: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class WindowTokens:
+    """A window flattened to tokens: what the aggregator graph and the calibration need."""
+
+    embeddings: np.ndarray  # (T, D) float32
+    angles_rad: np.ndarray  # (T, 3) float32: yaw relative to the newest frame, horizontal, vertical
+    yaw_rad: np.ndarray  # (T,) absolute yaw of each token's frame, for calibration
+    newest: FrameFeatures
+    heading_ref: HeadingRef
+    n_frames: int
+
+
+def window_tokens(window: Sequence[FrameFeatures]) -> WindowTokens:
+    """Check a window and flatten it. The newest frame (largest t) is the window's reference.
+
+    Yaw enters the network relative to the newest frame, so the network's answer cannot depend
+    on a global yaw offset (as with the paper's SfM poses, whose world frame is arbitrary); the
+    absolute yaw is applied only in the calibration, where it is exact.
+    """
+    if not window:
+        raise EstimationError("empty window: at least one frame with a heading is needed")
+    missing = [f.frame.seq for f in window if f.frame.attitude is None]
+    if missing:
+        raise EstimationError(f"frames {missing[:5]} have no heading; drop them before forming a window")
+    refs = {f.frame.attitude.reference for f in window}
+    if len(refs) > 1:
+        raise EstimationError(f"window mixes heading references {sorted(r.value for r in refs)}")
+    models = {f.model_id for f in window}
+    if len(models) > 1:
+        raise EstimationError(f"window mixes embeddings of different models {sorted(models)}")
+    newest = max(window, key=lambda f: (f.frame.t_mono_s, f.frame.seq))
+    yaw_ref = newest.frame.attitude.heading_rad
+    emb, ang, yaw = [], [], []
+    for f in window:
+        psi = f.frame.attitude.heading_rad
+        emb.append(f.embeddings)
+        rel = np.full((f.n_crops, 1), wrap_pi(psi - yaw_ref))
+        ang.append(np.concatenate([rel, f.crop_angles_rad], axis=1))
+        yaw.append(np.full(f.n_crops, psi))
+    return WindowTokens(
+        embeddings=np.concatenate(emb).astype(np.float32, copy=False),
+        angles_rad=np.concatenate(ang).astype(np.float32),
+        yaw_rad=np.concatenate(yaw),
+        newest=newest,
+        heading_ref=refs.pop(),
+        n_frames=len(window),
+    )
+
+
+def _joint_tokens(model: SunModel, tokens: WindowTokens) -> np.ndarray:
+    """All tokens in one aggregator run: (T, 3) heading-frame vectors."""
+    t = len(tokens.embeddings)
+    out = model.aggregate(tokens.embeddings[None], tokens.angles_rad[None], np.ones((1, t), dtype=bool))
+    return np.asarray(out[0], dtype=np.float64)
+
+
+def _independent_tokens(model: SunModel, tokens: WindowTokens) -> np.ndarray:
+    """Each token alone (a batch of one-token windows): (T, 3) heading-frame vectors."""
+    t = len(tokens.embeddings)
+    out = model.aggregate(tokens.embeddings[:, None], tokens.angles_rad[:, None], np.ones((t, 1), dtype=bool))
+    return np.asarray(out[:, 0], dtype=np.float64)
+
+
+class SunEstimator:
+    """Crops + backbone per frame (:meth:`encode`), aggregator per window (:meth:`estimate`)."""
+
+    def __init__(self, model: SunModel, *, aggregator: str = "transformer", seed: int = 0,
+                 crops_per_frame: int | None = None) -> None:
+        if aggregator not in AGGREGATORS:
+            raise ValidationError(f"aggregator: expected one of {', '.join(AGGREGATORS)}, got {aggregator!r}")
+        self.model = model
+        self.aggregator = aggregator
+        self.seed = int(seed)
+        contract = model.contract
+        self.crops_per_frame = int(crops_per_frame or contract.crops_per_frame)
+        self.crop_size_px = int(contract.crop_size_px)
+        self.crop_fov_rad = math.radians(contract.crop_fov_deg)
+        self.frames_per_window = int(contract.frames_per_window)
+
+    # -- per frame ---------------------------------------------------------------------------
+    def _crops(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        side = crop_side_px(frame.intrinsics, self.crop_fov_rad)
+        boxes = sample_crop_boxes(frame.intrinsics, self.crops_per_frame, side, frame_rng(self.seed, frame.seq))
+        return boxes, crop_angles_rad(boxes, frame.intrinsics), cut_crops(frame.image_bgr, boxes, self.crop_size_px)
+
+    def encode(self, frame: Frame) -> FrameFeatures:
+        """Crops and backbone embeddings of one frame: done once, cached with the frame."""
+        return self.encode_batch([frame])[0]
+
+    def encode_batch(self, frames: Sequence[Frame]) -> list[FrameFeatures]:
+        """Several frames in one backbone run (replay and eval; live frames come one at a time)."""
+        if not frames:
+            return []
+        parts = [self._crops(f) for f in frames]
+        emb = self.model.embed(np.concatenate([p[2] for p in parts]))
+        out, start = [], 0
+        for frame, (boxes, angles, _) in zip(frames, parts, strict=True):
+            n = len(boxes)
+            out.append(FrameFeatures(frame, boxes, angles, emb[start : start + n], self.model.model_id))
+            start += n
+        return out
+
+    # -- per window --------------------------------------------------------------------------
+    def estimate(self, window: Sequence[FrameFeatures], aggregator: str | None = None) -> SunEstimate:
+        """The sun direction of one window with this estimator's (or the given) aggregator."""
+        return self.estimate_many(window, [aggregator or self.aggregator])[aggregator or self.aggregator]
+
+    def estimate_many(self, window: Sequence[FrameFeatures], aggregators: Sequence[str]) -> dict[str, SunEstimate]:
+        """Several aggregators on one window, sharing the independent per-crop run (for eval)."""
+        unknown = [a for a in aggregators if a not in AGGREGATORS]
+        if unknown:
+            raise ValidationError(f"aggregator: expected one of {', '.join(AGGREGATORS)}, got {unknown}")
+        tokens = window_tokens(window)
+        independent = None
+        results = {}
+        for name in aggregators:
+            if name == "transformer":
+                world = world_from_tokens(_joint_tokens(self.model, tokens), tokens.yaw_rad)
+                unit, spread = mean_direction(world)
+            else:
+                if independent is None:
+                    independent = world_from_tokens(_independent_tokens(self.model, tokens), tokens.yaw_rad)
+                world = independent
+                if name == "mean":
+                    unit, spread = mean_direction(world)
+                elif name == "meanshift":
+                    unit, inliers = meanshift_aggregate(world)
+                    spread = spread_rad(world[inliers], unit)
+                else:  # single: the first crop of the newest frame
+                    first = sum(f.n_crops for f in window[: window.index(tokens.newest)])
+                    world = world[first : first + 1]
+                    unit, spread = mean_direction(world)
+            results[name] = self._make_estimate(name, tokens, unit, spread, world)
+        return results
+
+    def _make_estimate(self, name: str, tokens: WindowTokens, unit: np.ndarray, spread: float,
+                       world: np.ndarray) -> SunEstimate:
+        frame = tokens.newest.frame
+        return SunEstimate(
+            t_mono_s=frame.t_mono_s,
+            seq=frame.seq,
+            sun_enu=unit,
+            heading_rad=frame.attitude.heading_rad,
+            heading_ref=tokens.heading_ref,
+            spread_rad=min(spread, math.pi),
+            n_frames=tokens.n_frames,
+            n_tokens=len(world),
+            aggregator=name,
+            utc_ns=frame.utc_ns,
+            truth_enu=frame.sun_enu_truth,
+            token_enu=world,
+        )

@@ -1,0 +1,71 @@
+"""Frames in, estimates out, as fast as the machine goes: the loop behind `sunrig replay` and eval.
+
+The live rig (threads, ring, drops) does the same per-frame work; this is its single-threaded
+form for logs, where nothing may be dropped. Frames are encoded in small batches because one
+backbone call over several frames costs less than several calls.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+
+from estimator.calibration import EstimationError
+from estimator.estimator import SunEstimator
+from rig.types import Frame, FrameFeatures, SunEstimate
+from rig.window import SpreadWindowPolicy
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class OfflineStats:
+    frames: int = 0
+    frames_without_heading: int = 0
+    windows: int = 0
+    windows_failed: int = 0
+    failures: list[str] = field(default_factory=list)
+
+
+def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: SpreadWindowPolicy,
+                    *, aggregators: Sequence[str] | None = None, encode_batch: int = 8,
+                    stats: OfflineStats | None = None) -> Iterator[dict[str, SunEstimate]]:
+    """One window per frame with a heading, estimated with each aggregator.
+
+    Yields ``{aggregator: SunEstimate}`` per window. Frames without heading are counted and left
+    out of windows (a frame's heading is never guessed). A window that cannot be estimated is
+    counted, logged and skipped: one bad window does not end a replay.
+    """
+    aggregators = list(aggregators or [estimator.aggregator])
+    stats = stats if stats is not None else OfflineStats()
+    # Frames older than the policy's span can never be chosen again.
+    recent: deque[FrameFeatures] = deque()
+    pending: list[Frame] = []
+
+    def flush() -> Iterator[dict[str, SunEstimate]]:
+        for feats in estimator.encode_batch(pending):
+            recent.append(feats)
+            while recent and recent[0].frame.t_mono_s < feats.frame.t_mono_s - policy.span_s:
+                recent.popleft()
+            window = policy.select(recent)
+            stats.windows += 1
+            try:
+                yield estimator.estimate_many(window, aggregators)
+            except EstimationError as exc:
+                stats.windows_failed += 1
+                if len(stats.failures) < 20:
+                    stats.failures.append(f"seq {feats.frame.seq}: {exc}")
+                log.warning("window ending at seq %d skipped: %s", feats.frame.seq, exc)
+        pending.clear()
+
+    for frame in frames:
+        stats.frames += 1
+        if frame.attitude is None:
+            stats.frames_without_heading += 1
+            continue
+        pending.append(frame)
+        if len(pending) >= encode_batch:
+            yield from flush()
+    yield from flush()

@@ -1,0 +1,75 @@
+"""Crop sampling and view angles against the intrinsics."""
+
+import math
+
+import numpy as np
+import pytest
+
+from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes
+from rig.errors import ValidationError
+from rig.types import Intrinsics
+
+KITTI = Intrinsics(fx=721.5377, fy=721.5377, cx=609.5593, cy=172.854, width=1242, height=375)
+
+
+def test_paper_crop_is_224_px_on_kitti():
+    from estimator.contract import PAPER_CROP_FOV_DEG
+
+    assert crop_side_px(KITTI, math.radians(PAPER_CROP_FOV_DEG)) == 224
+    # A crop never exceeds the image: a 120 deg crop on a 375 px tall image is 375 px.
+    assert crop_side_px(KITTI, math.radians(120)) == 375
+
+
+def test_boxes_inside_image_uniform_and_seeded():
+    boxes = sample_crop_boxes(KITTI, 4000, 224, np.random.default_rng(3))
+    x0, y0, w, h = boxes.T
+    assert (x0 >= 0).all() and (y0 >= 0).all()
+    assert (x0 + w <= KITTI.width).all() and (y0 + h <= KITTI.height).all()
+    # Uniform over valid top-left corners: the mean sits mid-range and both ends are reached.
+    assert x0.mean() == pytest.approx((KITTI.width - 224) / 2, rel=0.05)
+    assert x0.min() < 20 and x0.max() > KITTI.width - 224 - 20
+    a = sample_crop_boxes(KITTI, 4, 224, frame_rng(7, 12))
+    b = sample_crop_boxes(KITTI, 4, 224, frame_rng(7, 12))
+    c = sample_crop_boxes(KITTI, 4, 224, frame_rng(7, 13))
+    assert (a == b).all() and not (a == c).all()
+
+
+def test_sample_rejects_bad_sizes():
+    with pytest.raises(ValidationError, match="crop side"):
+        sample_crop_boxes(KITTI, 4, 400, np.random.default_rng(0))
+    with pytest.raises(ValidationError, match="crops per frame"):
+        sample_crop_boxes(KITTI, 0, 100, np.random.default_rng(0))
+
+
+def test_crop_angles_centre_zero_edges_half_fov():
+    k = Intrinsics(fx=100.0, fy=100.0, cx=200.0, cy=100.0, width=400, height=200)
+    centred = np.array([[150, 50, 100, 100]])  # centre (200, 100) = principal point
+    np.testing.assert_allclose(crop_angles_rad(centred, k), [[0.0, 0.0]], atol=1e-15)
+    # Degenerate 0-px boxes at the corners have their centres on the image edges.
+    corners = np.array([[0, 0, 0, 0], [400, 200, 0, 0]])
+    ang = crop_angles_rad(corners, k)
+    half_h, half_v = k.hfov_rad / 2, k.vfov_rad / 2
+    np.testing.assert_allclose(ang[0], [-half_h, half_v])  # top left: left and up
+    np.testing.assert_allclose(ang[1], [half_h, -half_v])  # bottom right: right and down
+
+
+def test_crop_then_reproject_round_trip():
+    """The angles of a crop point back at the crop: re-projecting them lands on its centre."""
+    boxes = sample_crop_boxes(KITTI, 50, 224, np.random.default_rng(5))
+    ang = crop_angles_rad(boxes, KITTI)
+    u = KITTI.cx + KITTI.fx * np.tan(ang[:, 0])
+    v = KITTI.cy - KITTI.fy * np.tan(ang[:, 1])
+    np.testing.assert_allclose(u, boxes[:, 0] + 112, atol=1e-9)
+    np.testing.assert_allclose(v, boxes[:, 1] + 112, atol=1e-9)
+
+
+def test_cut_crops_content_and_resize():
+    img = np.zeros((375, 1242, 3), np.uint8)
+    img[:, :, 2] = np.arange(1242, dtype=np.uint16)[None, :] % 256  # red ramp along x
+    boxes = np.array([[100, 10, 224, 224], [0, 0, 64, 64]])
+    crops = cut_crops(img, boxes, 112)
+    assert crops.shape == (2, 112, 112, 3) and crops.dtype == np.uint8
+    # INTER_AREA halves the ramp: crop 0 starts at x=100 and spans 224 px.
+    assert abs(int(crops[0, 0, 0, 2]) - 100) <= 1 and abs(int(crops[0, 0, -1, 2]) - 322 % 256) <= 1
+    same = cut_crops(img, np.array([[5, 5, 112, 112]]), 112)
+    assert (same[0] == img[5:117, 5:117]).all()

@@ -1,0 +1,100 @@
+"""Core types validate once, at the boundary, with messages that say expected vs actual."""
+
+import math
+
+import numpy as np
+import pytest
+
+from rig.errors import ValidationError
+from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
+
+INTR = Intrinsics(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
+
+
+def make_frame(**kw):
+    base = dict(t_mono_s=1.0, seq=0, image_bgr=np.zeros((48, 64, 3), np.uint8), intrinsics=INTR)
+    base.update(kw)
+    return Frame(**base)
+
+
+def test_frame_is_frozen_and_image_read_only():
+    img = np.zeros((48, 64, 3), np.uint8)
+    f = make_frame(image_bgr=img)
+    with pytest.raises(AttributeError):
+        f.seq = 3
+    with pytest.raises(ValueError):
+        f.image_bgr[0, 0, 0] = 1
+    img[0, 0, 0] = 7  # the caller's own array stays writable
+    assert f.image_bgr[0, 0, 0] == 7
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"image_bgr": np.zeros((48, 64, 3), np.float32)}, "expected dtype uint8, got float32"),
+        ({"image_bgr": np.zeros((48, 64), np.uint8)}, "expected shape (H, W, 3) BGR, got (48, 64)"),
+        ({"image_bgr": np.zeros((40, 64, 3), np.uint8)}, "expected shape (48, 64, 3) to match the intrinsics"),
+        ({"seq": -1}, "Frame.seq: expected a non-negative integer, got -1"),
+        ({"t_mono_s": float("nan")}, "expected a finite number"),
+        ({"sun_enu_truth": [0.0, 0.0, 2.0]}, "expected a unit vector"),
+        ({"sun_enu_truth": [0.0, 1.0]}, "expected shape (3,), got (2,)"),
+    ],
+)
+def test_frame_rejects_with_expected_vs_actual(kwargs, message):
+    with pytest.raises(ValidationError) as info:
+        make_frame(**kwargs)
+    assert message in str(info.value)
+
+
+def test_intrinsics_checks_and_fov():
+    with pytest.raises(ValidationError, match="fx: expected > 0 pixels, got -1"):
+        Intrinsics(fx=-1, fy=1, cx=1, cy=1, width=2, height=2)
+    with pytest.raises(ValidationError, match=r"cx: expected within \[0, 64\] pixels, got 65"):
+        Intrinsics(fx=50, fy=50, cx=65, cy=1, width=64, height=48)
+    k = Intrinsics.from_hfov(1242, 375, math.radians(81.4))
+    assert math.degrees(k.hfov_rad) == pytest.approx(81.4)
+    assert k.fx == k.fy and k.cx == 621.0
+
+
+def test_attitude_wraps_and_checks_reference():
+    a = Attitude(heading_rad=-math.pi / 2, reference="true")
+    assert a.heading_rad == pytest.approx(1.5 * math.pi) and a.reference is HeadingRef.TRUE
+    with pytest.raises(ValidationError, match="expected one of"):
+        Attitude(heading_rad=0.0, reference="north-ish")
+    with pytest.raises(ValidationError, match="pitch_rad"):
+        Attitude(heading_rad=0.0, reference="true", pitch_rad=4.0)
+
+
+def test_gnss_ranges():
+    with pytest.raises(ValidationError, match="lat_deg: expected within"):
+        GnssFix(utc_ns=0, lat_deg=91.0, lon_deg=0.0)
+    with pytest.raises(ValidationError, match="integer ns"):
+        GnssFix(utc_ns=1.5, lat_deg=0.0, lon_deg=0.0)
+
+
+def test_sun_estimate_json_view():
+    est = SunEstimate(
+        t_mono_s=2.0, seq=5, sun_enu=[0.0, math.cos(0.5), math.sin(0.5)], heading_rad=math.radians(350.0),
+        heading_ref="true", spread_rad=math.radians(3.0), n_frames=8, n_tokens=32, aggregator="transformer",
+        utc_ns=1_317_042_145_964_389_000, truth_enu=[0.0, 1.0, 0.0],
+    )
+    d = est.to_json_dict()
+    assert d["azimuth_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert d["elevation_deg"] == pytest.approx(math.degrees(0.5))
+    assert d["heading_deg"] == pytest.approx(350.0)
+    assert d["relative_bearing_deg"] == pytest.approx(10.0)  # sun 10 deg to the right
+    assert d["error_deg"] == pytest.approx(math.degrees(0.5))
+    assert d["spread_deg"] == pytest.approx(3.0)
+    assert d["utc"] == "2011-09-26T13:02:25.964389Z"
+    for key in ("t", "seq", "sun_enu", "heading_ref", "n_frames", "truth_enu"):
+        assert key in d
+
+
+def test_sun_estimate_without_truth_has_no_error_fields():
+    est = SunEstimate(t_mono_s=0.0, seq=0, sun_enu=[0, 0, 1], heading_rad=0.0, heading_ref="relative",
+                      spread_rad=0.0, n_frames=1, n_tokens=1, aggregator="single")
+    assert "error_deg" not in est.to_json_dict() and est.error_rad is None
+
+
+def test_utc_iso_epoch():
+    assert utc_iso(0) == "1970-01-01T00:00:00.000000Z"
