@@ -1,0 +1,1016 @@
+"""The native log: sunrig recordings as MCAP, the container of rosbag2 and Foxglove.
+
+``docs/log-format.md`` is the specification; this module is its only writer and reader.
+
+Shape: pure encoders/decoders (values <-> message bytes) and a pure :class:`_FrameAssembler`
+(message stream -> Frames) inside a thin I/O shell (:class:`LogWriter`, :class:`NativeLogSource`).
+
+Two choices carry the robustness:
+
+- The writer cuts chunks itself, only between frames, flushes each finished chunk to the OS and
+  repeats the camera calibration at the start of every chunk. A process killed mid-write
+  therefore leaves whole frames in whole chunks, and any chunk decodes without the ones before it
+  (apart from the schema and channel records, which MCAP stores once, in the first chunk).
+- The reader streams records front to back and never seeks, so a file without its summary and
+  footer (the usual state of a killed recording) replays up to its last complete chunk. A chunk
+  that fails its CRC or does not decompress is skipped and counted; a damaged record header, after
+  which nothing can be framed, ends the replay like a truncation.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import struct
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+from google.protobuf.message import DecodeError
+from google.protobuf.timestamp_pb2 import Timestamp
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import LIBRARY_IDENTIFIER as MCAP_LIBRARY
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import build_file_descriptor_set
+
+from rig.errors import LogError, ValidationError
+from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
+
+try:  # mcap depends on zstandard; kept optional here only so the error tuple can name it
+    from zstandard import ZstdError as _ZstdError
+except ImportError:  # pragma: no cover - depends on the environment
+    _ZstdError = McapError  # type: ignore[misc,assignment]
+
+logger = logging.getLogger(__name__)
+
+FORMAT_VERSION = "1"
+PROFILE = "sunrig"
+METADATA_NAME = "sunrig"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+TOPIC_IMAGE = "/camera/image"
+TOPIC_CALIBRATION = "/camera/calibration"
+TOPIC_HEADING = "/heading"
+TOPIC_GNSS = "/gnss/fix"
+TOPIC_UTC = "/time/utc"
+TOPIC_SUN_TRUTH = "/sun/truth"
+TOPIC_ESTIMATE = "/sun/estimate"
+
+CAMERA_FRAME_ID = "camera"
+GNSS_FRAME_ID = "gnss"
+DEFAULT_CHUNK_SIZE = 1 << 20  # ~10-20 JPEG frames of 640x480: at most about a second lost on a kill
+_MAX_SEQ = 1 << 32  # MCAP's message sequence is a uint32
+_MESSAGE_OVERHEAD = 31  # opcode, length, channel id, sequence, two times: bytes per message record
+_MAX_WARNINGS = 5  # per replay; the rest are only counted, so a damaged log cannot flood the log
+
+_COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
+
+# What a damaged or cut-off byte stream makes mcap, struct, zstandard and lz4 raise. lz4.frame
+# reports bad input as RuntimeError, so it is here, caught only around decoding calls.
+_DECODE_ERRORS: tuple[type[BaseException], ...] = (
+    McapError,
+    ValueError,  # includes CRC mismatches and bad UTF-8
+    struct.error,
+    EOFError,
+    _ZstdError,
+    RuntimeError,
+)
+# What a damaged message payload makes the decoders below raise.
+_MESSAGE_ERRORS = (DecodeError, ValueError, KeyError, TypeError, IndexError, cv2.error)
+
+
+def _sunrig_version() -> str:
+    try:
+        return version("sunrig")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "0+unknown"
+
+
+# ---------------------------------------------------------------------------------------------
+# Schemas
+
+
+def _json_schema(title: str, description: str, properties: dict, required: list[str]) -> bytes:
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": title,
+        "description": description,
+        "type": "object",
+        "properties": properties,
+        "required": required,
+    }
+    return json.dumps(schema, indent=1).encode()
+
+
+_SEQ = {"type": "integer", "minimum": 0, "description": "Frame.seq of the frame it belongs to"}
+_VEC3 = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+
+_ATTITUDE_SCHEMA = _json_schema(
+    "sunrig.Attitude",
+    "Camera heading (yaw) clockwise from the reference's north, and pitch/roll where known.",
+    {
+        "heading_deg": {"type": "number", "description": "clockwise from north, [0, 360)"},
+        "reference": {"type": "string", "enum": [r.value for r in HeadingRef]},
+        "pitch_deg": {"type": ["number", "null"], "description": "null when unknown"},
+        "roll_deg": {"type": ["number", "null"], "description": "null when unknown"},
+        "seq": _SEQ,
+    },
+    ["heading_deg", "reference", "pitch_deg", "roll_deg", "seq"],
+)
+_UTC_SCHEMA = _json_schema(
+    "sunrig.UtcTime",
+    "UTC time of the frame's mid-exposure; utc.sec/utc.nsec are exact, utc_iso is for humans.",
+    {
+        "utc": {
+            "type": "object",
+            "properties": {
+                "sec": {"type": "integer", "description": "seconds since the Unix epoch"},
+                "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999},
+            },
+            "required": ["sec", "nsec"],
+        },
+        "utc_iso": {"type": "string", "description": "ISO 8601, microseconds, Z"},
+        "seq": _SEQ,
+    },
+    ["utc", "seq"],
+)
+_SUN_TRUTH_SCHEMA = _json_schema(
+    "sunrig.SunTruth",
+    "Ground-truth sun direction: unit vector in East-North-Up, azimuth clockwise from north.",
+    {
+        "sun_enu": _VEC3,
+        "azimuth_deg": {"type": "number"},
+        "elevation_deg": {"type": "number"},
+        "seq": _SEQ,
+    },
+    ["sun_enu", "seq"],
+)
+_ESTIMATE_SCHEMA = _json_schema(
+    "sunrig.SunEstimate",
+    "One sun estimate, as SunEstimate.to_json_dict() plus utc_ns and token_enu when known.",
+    {
+        "t": {"type": "number", "description": "monotonic time (s) of the newest frame"},
+        "seq": _SEQ,
+        "sun_enu": _VEC3,
+        "azimuth_deg": {"type": "number"},
+        "elevation_deg": {"type": "number"},
+        "heading_deg": {"type": "number"},
+        "heading_ref": {"type": "string", "enum": [r.value for r in HeadingRef]},
+        "relative_bearing_deg": {"type": "number"},
+        "spread_deg": {"type": "number"},
+        "n_frames": {"type": "integer"},
+        "n_tokens": {"type": "integer"},
+        "aggregator": {"type": "string"},
+        "utc": {"type": "string"},
+        "utc_ns": {"type": "integer", "description": "exact UTC ns since the epoch"},
+        "truth_enu": _VEC3,
+        "error_deg": {"type": "number"},
+        "token_enu": {"type": "array", "items": _VEC3},
+    },
+    [
+        "t",
+        "seq",
+        "sun_enu",
+        "heading_deg",
+        "heading_ref",
+        "spread_deg",
+        "n_frames",
+        "n_tokens",
+        "aggregator",
+    ],
+)
+
+
+@dataclass(frozen=True)
+class _ChannelSpec:
+    schema_name: str
+    schema_encoding: str  # "protobuf" | "jsonschema"
+    message_encoding: str  # "protobuf" | "json"
+    schema_data: Any  # protobuf message class or JSON Schema bytes
+
+    def schema_bytes(self) -> bytes:
+        if self.schema_encoding == "protobuf":
+            return build_file_descriptor_set(self.schema_data).SerializeToString()
+        return self.schema_data
+
+
+def _proto(cls: Any) -> _ChannelSpec:
+    return _ChannelSpec(cls.DESCRIPTOR.full_name, "protobuf", "protobuf", cls)
+
+
+def _jsonspec(data: bytes) -> _ChannelSpec:
+    return _ChannelSpec(json.loads(data)["title"], "jsonschema", "json", data)
+
+
+CHANNELS: dict[str, _ChannelSpec] = {
+    TOPIC_IMAGE: _proto(CompressedImage),
+    TOPIC_CALIBRATION: _proto(CameraCalibration),
+    TOPIC_HEADING: _jsonspec(_ATTITUDE_SCHEMA),
+    TOPIC_GNSS: _proto(LocationFix),
+    TOPIC_UTC: _jsonspec(_UTC_SCHEMA),
+    TOPIC_SUN_TRUTH: _jsonspec(_SUN_TRUTH_SCHEMA),
+    TOPIC_ESTIMATE: _jsonspec(_ESTIMATE_SCHEMA),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure encoders and decoders: values <-> message bytes
+
+
+def ns_from_s(t_s: float) -> int:
+    """Monotonic seconds to MCAP's unsigned integer nanoseconds."""
+    ns = round(t_s * 1e9)
+    if ns < 0:
+        raise ValidationError(f"time: expected >= 0 s for an MCAP log time, got {t_s} s")
+    return ns
+
+
+def _timestamp(ns: int) -> Timestamp:
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return Timestamp(seconds=sec, nanos=nsec)
+
+
+def _ns_from_timestamp(ts: Timestamp) -> int:
+    return int(ts.seconds) * 1_000_000_000 + int(ts.nanos)
+
+
+def _dumps(obj: dict) -> bytes:
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _loads(data: bytes) -> dict:
+    obj = json.loads(data)
+    if not isinstance(obj, dict):
+        raise ValueError(f"expected a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def _deg(rad: float | None) -> float | None:
+    return None if rad is None else math.degrees(rad)
+
+
+def _rad(deg: float | None) -> float | None:
+    return None if deg is None else math.radians(float(deg))
+
+
+def encode_image(image_bgr: np.ndarray, t_ns: int, jpeg_quality: int) -> bytes:
+    ok, jpeg = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    if not ok:  # cannot happen for a validated Frame image; kept so a failure is not silent
+        raise LogError(f"OpenCV could not JPEG-encode an image of shape {image_bgr.shape}")
+    msg = CompressedImage(
+        timestamp=_timestamp(t_ns), frame_id=CAMERA_FRAME_ID, data=jpeg.tobytes(), format="jpeg"
+    )
+    return msg.SerializeToString()
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    msg = CompressedImage.FromString(data)
+    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    image = cv2.imdecode(buf, cv2.IMREAD_COLOR) if buf.size else None
+    if image is None:
+        raise ValueError(f"image ({msg.format or 'no format'}, {buf.size} bytes) does not decode")
+    return image
+
+
+def encode_calibration(intr: Intrinsics, t_ns: int) -> bytes:
+    fx, fy, cx, cy = intr.fx, intr.fy, intr.cx, intr.cy
+    msg = CameraCalibration(
+        timestamp=_timestamp(t_ns),
+        frame_id=CAMERA_FRAME_ID,
+        width=intr.width,
+        height=intr.height,
+        # Frames are rectified pinhole images: zero distortion, R = I, P = [K | 0].
+        distortion_model="plumb_bob",
+        D=[0.0] * 5,
+        K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        P=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+    )
+    return msg.SerializeToString()
+
+
+def decode_calibration(data: bytes) -> Intrinsics:
+    msg = CameraCalibration.FromString(data)
+    if len(msg.K) != 9:
+        raise ValueError(f"calibration K: expected 9 values, got {len(msg.K)}")
+    if any(d != 0.0 for d in msg.D):
+        # sunrig frames are rectified; a distorted calibration would need undistorting first.
+        raise ValueError(f"calibration D: expected zero distortion, got {list(msg.D)}")
+    k = msg.K
+    return Intrinsics(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=msg.width, height=msg.height)
+
+
+def encode_attitude(att: Attitude, seq: int) -> bytes:
+    return _dumps(
+        {
+            "heading_deg": math.degrees(att.heading_rad),
+            "reference": att.reference.value,
+            "pitch_deg": _deg(att.pitch_rad),
+            "roll_deg": _deg(att.roll_rad),
+            "seq": seq,
+        }
+    )
+
+
+def decode_attitude(data: bytes) -> Attitude:
+    d = _loads(data)
+    return Attitude(
+        heading_rad=_rad(d["heading_deg"]),  # type: ignore[arg-type]
+        reference=d["reference"],
+        pitch_rad=_rad(d.get("pitch_deg")),
+        roll_rad=_rad(d.get("roll_deg")),
+    )
+
+
+def encode_gnss(fix: GnssFix) -> bytes:
+    msg = LocationFix(
+        timestamp=_timestamp(fix.utc_ns),
+        frame_id=GNSS_FRAME_ID,
+        latitude=fix.lat_deg,
+        longitude=fix.lon_deg,
+        # NaN for an unknown altitude, as ROS NavSatFix does; Foxglove's map ignores altitude.
+        altitude=math.nan if fix.alt_m is None else fix.alt_m,
+        position_covariance_type=LocationFix.PositionCovarianceType.UNKNOWN,
+    )
+    return msg.SerializeToString()
+
+
+def decode_gnss(data: bytes) -> GnssFix:
+    msg = LocationFix.FromString(data)
+    if not msg.HasField("timestamp"):
+        raise ValueError("location fix without its UTC timestamp")
+    alt = None if math.isnan(msg.altitude) else msg.altitude
+    return GnssFix(
+        utc_ns=_ns_from_timestamp(msg.timestamp),
+        lat_deg=msg.latitude,
+        lon_deg=msg.longitude,
+        alt_m=alt,
+    )
+
+
+def encode_utc(utc_ns: int, seq: int) -> bytes:
+    sec, nsec = divmod(int(utc_ns), 1_000_000_000)
+    # sec/nsec rather than one ns integer: exact in JavaScript (Foxglove) too, where a 64-bit
+    # integer loses its last digits; Foxglove also shows a {sec, nsec} object as a time.
+    return _dumps({"utc": {"sec": sec, "nsec": nsec}, "utc_iso": utc_iso(int(utc_ns)), "seq": seq})
+
+
+def decode_utc(data: bytes) -> int:
+    utc = _loads(data)["utc"]
+    sec, nsec = utc["sec"], utc["nsec"]
+    if not (isinstance(sec, int) and isinstance(nsec, int) and 0 <= nsec < 1_000_000_000):
+        raise ValueError(f"utc: expected integer sec and nsec in [0, 1e9), got {utc!r}")
+    return sec * 1_000_000_000 + nsec
+
+
+def encode_sun_truth(sun_enu: np.ndarray, seq: int) -> bytes:
+    x, y, z = (float(v) for v in sun_enu)
+    return _dumps(
+        {
+            "sun_enu": [x, y, z],
+            "azimuth_deg": math.degrees(math.atan2(x, y)) % 360.0,
+            "elevation_deg": math.degrees(math.atan2(z, math.hypot(x, y))),
+            "seq": seq,
+        }
+    )
+
+
+def decode_sun_truth(data: bytes) -> np.ndarray:
+    vec = np.asarray(_loads(data)["sun_enu"], dtype=np.float64)
+    if vec.shape != (3,):
+        raise ValueError(f"sun_enu: expected 3 numbers, got shape {vec.shape}")
+    return vec
+
+
+def encode_estimate(est: SunEstimate) -> bytes:
+    d = est.to_json_dict()
+    # to_json_dict keeps only microseconds of UTC and drops the per-token vectors; add them so
+    # estimate_from_dict rebuilds the estimate.
+    if est.utc_ns is not None:
+        d["utc_ns"] = est.utc_ns
+    if est.token_enu is not None:
+        d["token_enu"] = est.token_enu.tolist()
+    return _dumps(d)
+
+
+def estimate_from_dict(d: dict) -> SunEstimate:
+    """Rebuild a :class:`SunEstimate` from a ``/sun/estimate`` message (``sun_enu`` to 1e-7)."""
+    try:
+        return SunEstimate(
+            t_mono_s=d["t"],
+            seq=int(d["seq"]),
+            sun_enu=d["sun_enu"],
+            heading_rad=math.radians(d["heading_deg"]),
+            heading_ref=HeadingRef(d["heading_ref"]),
+            # degrees and back can land one ulp past pi
+            spread_rad=min(math.radians(d["spread_deg"]), math.pi),
+            n_frames=int(d["n_frames"]),
+            n_tokens=int(d["n_tokens"]),
+            aggregator=str(d["aggregator"]),
+            utc_ns=d.get("utc_ns"),
+            truth_enu=d.get("truth_enu"),
+            token_enu=d.get("token_enu"),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValidationError(
+            f"/sun/estimate message: cannot rebuild a SunEstimate: {exc}"
+        ) from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# Writer
+
+
+class LogWriter:
+    """Writes Frames and SunEstimates to a native (MCAP) log. A context manager; ``close()`` is
+    idempotent and writes the summary that makes the file indexed. A writer never closed (a killed
+    process) still leaves a log that replays up to its last finished chunk.
+
+    ``target`` is a path or a binary stream with ``write``/``tell``/``flush`` (left open on close).
+    ``chunk_size`` is the uncompressed bytes per chunk: the most a kill can lose.
+    """
+
+    def __init__(
+        self,
+        target: str | os.PathLike[str] | IO[bytes],
+        *,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        compression: str = "zstd",
+    ) -> None:
+        if not isinstance(chunk_size, int) or chunk_size <= 0:
+            raise ValidationError(
+                f"LogWriter.chunk_size: expected a positive integer, got {chunk_size!r}"
+            )
+        if compression not in _COMPRESSION:
+            raise ValidationError(
+                f"LogWriter.compression: expected one of {sorted(_COMPRESSION)}, "
+                f"got {compression!r}"
+            )
+        self._owns_file = isinstance(target, str | os.PathLike)
+        self._detach = False
+        if self._owns_file:
+            try:
+                self._file: IO[bytes] = open(target, "wb")  # noqa: SIM115 - closed in close()
+            except OSError as exc:
+                raise LogError(
+                    f"cannot create log {_show(target)}: {exc.strerror}; "
+                    "check the folder exists and is writable"
+                ) from exc
+            self.path: Path | None = Path(target)  # type: ignore[arg-type]
+        else:
+            if not hasattr(target, "write") or not hasattr(target, "tell"):
+                raise ValidationError(
+                    "LogWriter.target: expected a path or a binary stream, "
+                    f"got {type(target).__name__}"
+                )
+            # mcap would buffer a raw stream in a writer of its own that close() cannot flush.
+            self._detach = isinstance(target, io.RawIOBase)
+            self._file = io.BufferedWriter(target) if self._detach else target  # type: ignore
+            self.path = None
+        # The mcap writer never cuts a chunk itself (chunk_size = max): we cut between frames.
+        self._mcap = McapWriter(
+            self._file, chunk_size=sys.maxsize, compression=_COMPRESSION[compression]
+        )
+        self._mcap.start(profile=PROFILE, library=f"sunrig/{_sunrig_version()} {MCAP_LIBRARY}")
+        # Metadata sits before the first chunk, so even a truncated log says what wrote it.
+        self._mcap.add_metadata(
+            METADATA_NAME,
+            {
+                "format_version": FORMAT_VERSION,
+                "sunrig_version": _sunrig_version(),
+                "log_time": "monotonic clock (time.monotonic) in ns at mid-exposure",
+                "image_encoding": "jpeg",
+            },
+        )
+        self._chunk_size = chunk_size
+        self._chunk_bytes = 0
+        self._channel_ids: dict[str, int] = {}
+        self._last_intrinsics: Intrinsics | None = None
+        self._calibration_in_chunk = False
+        self._closed = False
+        self.frames_written = 0
+        self.estimates_written = 0
+
+    # -- public
+
+    def write_frame(self, frame: Frame, *, jpeg_quality: int = 90) -> None:
+        """Write one frame: its calibration (when new or first in a chunk), heading, GNSS, UTC and
+        truth messages, then the image; all at ``log_time = frame.t_mono_s``, sequence ``seq``.
+        """
+        self._check_open()
+        if not isinstance(frame, Frame):
+            raise ValidationError(f"write_frame: expected a Frame, got {type(frame).__name__}")
+        if not isinstance(jpeg_quality, int) or not 1 <= jpeg_quality <= 100:
+            raise ValidationError(
+                f"write_frame.jpeg_quality: expected an integer in [1, 100], got {jpeg_quality!r}"
+            )
+        seq = self._check_seq(frame.seq)
+        t_ns = ns_from_s(frame.t_mono_s)
+        # Encode the image first: if that fails, no orphan per-frame messages are left behind.
+        image = encode_image(frame.image_bgr, t_ns, jpeg_quality)
+        if frame.intrinsics != self._last_intrinsics or not self._calibration_in_chunk:
+            self._add(TOPIC_CALIBRATION, t_ns, seq, encode_calibration(frame.intrinsics, t_ns))
+            self._last_intrinsics = frame.intrinsics
+            self._calibration_in_chunk = True
+        if frame.attitude is not None:
+            self._add(TOPIC_HEADING, t_ns, seq, encode_attitude(frame.attitude, seq))
+        if frame.gnss is not None:
+            self._add(TOPIC_GNSS, t_ns, seq, encode_gnss(frame.gnss))
+        if frame.utc_ns is not None:
+            self._add(TOPIC_UTC, t_ns, seq, encode_utc(frame.utc_ns, seq))
+        if frame.sun_enu_truth is not None:
+            self._add(TOPIC_SUN_TRUTH, t_ns, seq, encode_sun_truth(frame.sun_enu_truth, seq))
+        self._add(TOPIC_IMAGE, t_ns, seq, image)
+        self.frames_written += 1
+        self._maybe_end_chunk()
+
+    def write_estimate(self, est: SunEstimate) -> None:
+        """Write one estimate on ``/sun/estimate`` at ``log_time = est.t_mono_s``."""
+        self._check_open()
+        if not isinstance(est, SunEstimate):
+            raise ValidationError(
+                f"write_estimate: expected a SunEstimate, got {type(est).__name__}"
+            )
+        seq = self._check_seq(est.seq)
+        t_ns = ns_from_s(est.t_mono_s)
+        self._add(TOPIC_ESTIMATE, t_ns, seq, encode_estimate(est))
+        self.estimates_written += 1
+        self._maybe_end_chunk()
+
+    def flush(self) -> None:
+        """End the chunk in progress and hand it to the OS: what a crash can no longer lose."""
+        self._check_open()
+        self._end_chunk()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._mcap.finish()
+            self._file.flush()
+        finally:
+            if self._owns_file:
+                self._file.close()
+            elif self._detach:
+                self._file.detach()  # type: ignore[attr-defined] # leave the caller's stream open
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # -- internals
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise LogError(
+                f"the log writer for {self.path or 'a stream'} is closed; open a new LogWriter"
+            )
+
+    @staticmethod
+    def _check_seq(seq: int) -> int:
+        if not 0 <= seq < _MAX_SEQ:
+            raise ValidationError(
+                f"seq: expected within [0, 2**32) for an MCAP sequence, got {seq}"
+            )
+        return int(seq)
+
+    def _channel(self, topic: str) -> int:
+        cid = self._channel_ids.get(topic)
+        if cid is None:
+            spec = CHANNELS[topic]
+            sid = self._mcap.register_schema(
+                spec.schema_name, spec.schema_encoding, spec.schema_bytes()
+            )
+            cid = self._mcap.register_channel(topic, spec.message_encoding, sid)
+            self._channel_ids[topic] = cid
+        return cid
+
+    def _add(self, topic: str, t_ns: int, seq: int, data: bytes) -> None:
+        self._mcap.add_message(
+            self._channel(topic), log_time=t_ns, data=data, publish_time=t_ns, sequence=seq
+        )
+        self._chunk_bytes += len(data) + _MESSAGE_OVERHEAD
+
+    def _maybe_end_chunk(self) -> None:
+        if self._chunk_bytes >= self._chunk_size:
+            self._end_chunk()
+
+    def _end_chunk(self) -> None:
+        self._mcap.flush()  # finishes the chunk, writes it and its index, flushes the stream
+        self._chunk_bytes = 0
+        self._calibration_in_chunk = False
+
+
+# ---------------------------------------------------------------------------------------------
+# Reader: pure assembly
+
+
+class _CorruptMessage(LogError):
+    """One message could not be decoded; the replay skips it."""
+
+
+@dataclass
+class LogStats:
+    """Counters of one pass over a log (reset when a new pass starts)."""
+
+    frames_read: int = 0
+    corrupt_skipped: int = 0  # messages and chunks that did not decode
+    truncated: bool = False  # the log ended early: cut off mid-write, or unframeable after a point
+    bytes_read: int = 0  # where the pass stopped
+    bytes_total: int = 0
+
+
+_AUX_DECODERS = {
+    TOPIC_HEADING: decode_attitude,
+    TOPIC_GNSS: decode_gnss,
+    TOPIC_UTC: decode_utc,
+    TOPIC_SUN_TRUTH: decode_sun_truth,
+}
+
+
+class _FrameAssembler:
+    """Turns one log's messages, in file order, into Frames. Pure: no I/O, no clock.
+
+    The per-frame messages precede their image and carry the same sequence; the calibration holds
+    until the next one. A message whose sequence does not match the image belonged to a frame whose
+    image was lost, and is dropped.
+    """
+
+    def __init__(self) -> None:
+        self.intrinsics: Intrinsics | None = None
+        self._pending: dict[str, tuple[int, Any]] = {}
+
+    def gap(self) -> None:
+        """Messages were lost (a skipped chunk): forget state that may no longer be current."""
+        self.intrinsics = None
+        self._pending.clear()
+
+    def feed(self, topic: str, seq: int, log_time_ns: int, data: bytes) -> Frame | None:
+        if topic == TOPIC_CALIBRATION:
+            try:
+                self.intrinsics = decode_calibration(data)
+            except _MESSAGE_ERRORS as exc:
+                # Better no frames until the next calibration than frames with wrong intrinsics.
+                self.intrinsics = None
+                raise _CorruptMessage(f"calibration: {exc}") from exc
+            return None
+        decoder = _AUX_DECODERS.get(topic)
+        if decoder is not None:
+            try:
+                self._pending[topic] = (seq, decoder(data))
+            except _MESSAGE_ERRORS as exc:
+                raise _CorruptMessage(f"{topic}: {exc}") from exc
+            return None
+        if topic != TOPIC_IMAGE:
+            return None
+        pending, self._pending = self._pending, {}
+        if self.intrinsics is None:
+            raise _CorruptMessage("image without a valid calibration before it")
+        try:
+            image = decode_image(data)
+            aux = {t: v for t, (s, v) in pending.items() if s == seq}
+            return Frame(
+                t_mono_s=log_time_ns / 1e9,
+                seq=seq,
+                image_bgr=image,
+                intrinsics=self.intrinsics,
+                attitude=aux.get(TOPIC_HEADING),
+                utc_ns=aux.get(TOPIC_UTC),
+                gnss=aux.get(TOPIC_GNSS),
+                sun_enu_truth=aux.get(TOPIC_SUN_TRUTH),
+            )
+        except _MESSAGE_ERRORS as exc:  # ValidationError is a ValueError
+            raise _CorruptMessage(f"image: {exc}") from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# Reader: I/O shell
+
+
+def _show(path: Path | str) -> str:
+    """The path for a one-line message."""
+    return str(path).replace("\n", "\\n").replace("\r", "\\r")
+
+
+_HINT = "pass a file written by sunrig record/synth"
+_SIGNATURES = (
+    (b"\x89PNG\r\n\x1a\n", "a PNG signature"),
+    (b"\xff\xd8\xff", "a JPEG signature"),
+    (b"#ROSBAG", "a ROS 1 bag header; convert it with `mcap convert` first"),
+    (
+        b"SQLite format 3\x00",
+        "an SQLite header, perhaps a rosbag2 .db3; convert it with `mcap convert` first",
+    ),
+    (b"\x1f\x8b", "a gzip signature; decompress it first"),
+    (b"PK\x03\x04", "a ZIP signature; extract it first"),
+    (b"(\xb5/\xfd", "a zstd signature; decompress it first"),
+)
+
+
+def _open_log_file(path: Path) -> tuple[IO[bytes], int]:
+    """Open ``path`` and check the MCAP magic; one-line LogError for anything that is not a log."""
+    name = _show(path)
+    if not path.exists():
+        raise LogError(f"{name} does not exist; check the path and {_HINT}")
+    if path.is_dir():
+        raise LogError(f"{name} is a directory, not an MCAP log; pass the .mcap file itself")
+    try:
+        f = open(path, "rb")  # noqa: SIM115 - returned to the caller, who closes it
+    except OSError as exc:
+        raise LogError(f"cannot read {name}: {exc.strerror}; check its permissions") from exc
+    try:
+        size = os.fstat(f.fileno()).st_size
+        head = f.read(16)
+        f.seek(0)
+    except OSError as exc:
+        f.close()
+        raise LogError(f"cannot read {name}: {exc.strerror}; check the file and the disk") from exc
+    if head[:8] != MCAP_MAGIC:
+        f.close()
+        if size == 0:
+            raise LogError(
+                f"{name} is empty (0 bytes), not an MCAP log; the recording never started"
+            )
+        if MCAP_MAGIC.startswith(head):
+            raise LogError(
+                f"{name} is cut off inside the MCAP magic ({size} bytes); it holds no frames"
+            )
+        what = next((desc for sig, desc in _SIGNATURES if head.startswith(sig)), None)
+        if what is None:
+            what = f"bytes {head[:8].hex(' ')} where the MCAP magic {MCAP_MAGIC.hex(' ')} belongs"
+        raise LogError(f"{name} is not an MCAP log (it starts with {what}); {_HINT}")
+    return f, size
+
+
+@dataclass
+class _LogInfo:
+    profile: str = ""
+    library: str = ""
+    metadata: dict[str, str] = field(default_factory=dict)
+
+
+def _summary_topics(f: IO[bytes], size: int) -> dict[str, str] | None:
+    """Topic -> schema name from a finished log's summary, or None when it has none (truncated)."""
+    try:
+        summary = SeekingReader(f, record_size_limit=size).get_summary()
+    except (*_DECODE_ERRORS, OSError, KeyError, IndexError):
+        return None
+    finally:
+        f.seek(0)
+    if summary is None or not summary.channels:
+        return None
+    return {
+        c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "")
+        for c in summary.channels.values()
+    }
+
+
+def _check_image_channel(name: str, topics: dict[str, str]) -> None:
+    expected = CHANNELS[TOPIC_IMAGE].schema_name
+    if TOPIC_IMAGE not in topics:
+        listed = ", ".join(sorted(topics)) or "none"
+        raise LogError(
+            f"{name} is an MCAP log but not a sunrig log: it has no {TOPIC_IMAGE} channel "
+            f"(channels: {listed}); {_HINT}"
+        )
+    if topics[TOPIC_IMAGE] != expected:
+        raise LogError(
+            f"{name} has {TOPIC_IMAGE} as {topics[TOPIC_IMAGE] or 'schemaless'}, "
+            f"expected {expected}; {_HINT}"
+        )
+
+
+def _inspect(path: Path) -> _LogInfo:
+    """Eager checks, cheap on a sunrig log: magic, format version, a camera image channel."""
+    name = _show(path)
+    f, size = _open_log_file(path)
+    info = _LogInfo()
+    with f:
+        # A finished log lists its channels at the end: reject a foreign MCAP without decoding
+        # its data. A truncated one has no summary; the scan below then decides.
+        topics = _summary_topics(f, size)
+        if topics is not None:
+            _check_image_channel(name, topics)
+        schemas: dict[int, str] = {}
+        seen: dict[str, str] = {}
+        stats = LogStats(bytes_total=size)
+        for record in _records(f, stats, name, warn=False):
+            if isinstance(record, Header):
+                info.profile, info.library = record.profile, record.library
+            elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+                info.metadata = dict(record.metadata)
+                found = info.metadata.get("format_version")
+                if found != FORMAT_VERSION:
+                    raise LogError(
+                        f"{name} is in sunrig log format version {found}; this sunrig reads "
+                        f"version {FORMAT_VERSION}: use the sunrig that wrote it or upgrade"
+                    )
+            elif isinstance(record, Schema):
+                schemas[record.id] = record.name
+            elif isinstance(record, Channel):
+                seen[record.topic] = schemas.get(record.schema_id, "")
+                if record.topic == TOPIC_IMAGE:
+                    _check_image_channel(name, seen)
+                    return info  # the first chunk of a sunrig log: no need to read further
+        if stats.truncated and not seen:
+            raise LogError(
+                f"{name} is an MCAP log cut off before its first complete chunk; it holds no frames"
+            )
+        _check_image_channel(name, seen)
+    return info  # pragma: no cover - _check_image_channel raised
+
+
+def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> Iterator[Any]:
+    """Every record of the data section in file order, chunks opened; never seeks.
+
+    Stops at DataEnd (what follows repeats the data section's schemas and channels and indexes
+    it), at the end of the bytes (a truncated log: ``stats.truncated``) or at a record it cannot
+    frame. A chunk that fails its CRC or does not decompress is skipped, counted, and reported as
+    ``None`` so consumers can drop state that chunk may have changed.
+    """
+    size = stats.bytes_total
+    # A record cannot be longer than the file: a damaged length field must not allocate gigabytes.
+    reader = StreamReader(f, emit_chunks=True, record_size_limit=max(size, 1))
+    records = reader.records
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            break
+        except _DECODE_ERRORS as exc:
+            stats.truncated = True
+            stats.bytes_read = f.tell()
+            if warn:
+                at_end = stats.bytes_read >= size
+                why = "it was cut off mid-write" if at_end else f"a damaged record ({exc})"
+                logger.warning(
+                    "%s: the log ends early at byte %d of %d (%s); replayed what came before",
+                    name,
+                    stats.bytes_read,
+                    size,
+                    why,
+                )
+            return
+        if isinstance(record, Chunk):
+            try:
+                inner = breakup_chunk(record, validate_crc=True)
+            except _DECODE_ERRORS as exc:
+                if f.tell() >= size:  # the last chunk, partly written: a truncation
+                    stats.truncated = True
+                    stats.bytes_read = f.tell()
+                    if warn:
+                        logger.warning(
+                            "%s: the log was cut off mid-write in its last chunk (%d bytes); "
+                            "replayed the complete chunks before it",
+                            name,
+                            size,
+                        )
+                    return
+                stats.corrupt_skipped += 1
+                if warn:
+                    logger.warning(
+                        "%s: skipped a corrupt chunk before byte %d: %s", name, f.tell(), exc
+                    )
+                yield None
+                continue
+            yield from inner
+        elif isinstance(record, DataEnd | Footer):
+            break
+        else:
+            yield record
+    stats.bytes_read = f.tell()
+
+
+def _messages(f: IO[bytes], stats: LogStats, name: str) -> Iterator[tuple[str, Message] | None]:
+    """(topic, message) in file order; None where a chunk was lost."""
+    topics: dict[int, str] = {}
+    ignored: set[int] = set()
+    for record in _records(f, stats, name):
+        if isinstance(record, Message):
+            topic = topics.get(record.channel_id)
+            if topic is not None:
+                yield topic, record
+            elif record.channel_id not in ignored:
+                stats.corrupt_skipped += 1  # its channel record was in a lost chunk
+        elif isinstance(record, Channel):
+            spec = CHANNELS.get(record.topic)
+            # Only channels with sunrig's encoding; another tool's channels are left alone.
+            if spec is not None and record.message_encoding == spec.message_encoding:
+                topics[record.id] = record.topic
+            else:
+                ignored.add(record.id)
+        elif record is None:
+            yield None
+
+
+class NativeLogSource:
+    """A native log as a frame source, like any camera driver: iterate it for Frames in order.
+
+    Checks the file when made (raises :class:`LogError` with one line if it is not a sunrig log),
+    so a CLI fails before it loads a model. Each iteration replays the log from the start and
+    resets :attr:`stats`; a truncated log yields its complete frames and sets :attr:`truncated`.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.info = _inspect(self.path)
+        self.stats = LogStats()
+
+    @property
+    def truncated(self) -> bool:
+        return self.stats.truncated
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self._frames()
+
+    def _frames(self) -> Iterator[Frame]:
+        name = _show(self.path)
+        f, size = _open_log_file(self.path)
+        stats = self.stats = LogStats(bytes_total=size)
+        assembler = _FrameAssembler()
+        warned = 0
+        with f:
+            for item in _messages(f, stats, name):
+                if item is None:
+                    assembler.gap()
+                    continue
+                topic, msg = item
+                try:
+                    frame = assembler.feed(topic, msg.sequence, msg.log_time, msg.data)
+                except _CorruptMessage as exc:
+                    stats.corrupt_skipped += 1
+                    if warned < _MAX_WARNINGS:
+                        warned += 1
+                        logger.warning(
+                            "%s: skipped a corrupt message at seq %d: %s", name, msg.sequence, exc
+                        )
+                    continue
+                if frame is not None:
+                    stats.frames_read += 1
+                    yield frame
+        if stats.corrupt_skipped > warned:
+            logger.warning(
+                "%s: %d corrupt messages or chunks skipped in all", name, stats.corrupt_skipped
+            )
+
+    def __repr__(self) -> str:
+        return f"NativeLogSource({str(self.path)!r})"
+
+
+def open_log(path: str | os.PathLike[str]) -> NativeLogSource:
+    """Check ``path`` is a sunrig native log now, and return it as a frame source."""
+    return NativeLogSource(path)
+
+
+def read_frames(path: str | os.PathLike[str]) -> Iterator[Frame]:
+    """Frames of a native log in order (a generator; see :class:`NativeLogSource`)."""
+    yield from open_log(path)
+
+
+def read_estimates(path: str | os.PathLike[str]) -> Iterator[dict]:
+    """The ``/sun/estimate`` messages as dicts (rebuild with :func:`estimate_from_dict`).
+
+    Needs only an MCAP file: a log with no estimates yields nothing. Corrupt ones are skipped.
+    """
+    p = Path(path)
+    name = _show(p)
+    f, size = _open_log_file(p)
+    stats = LogStats(bytes_total=size)
+    with f:
+        for item in _messages(f, stats, name):
+            if item is None or item[0] != TOPIC_ESTIMATE:
+                continue
+            try:
+                d = _loads(item[1].data)
+            except ValueError as exc:
+                logger.warning(
+                    "%s: skipped a corrupt estimate at seq %d: %s", name, item[1].sequence, exc
+                )
+                continue
+            yield d

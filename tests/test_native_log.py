@@ -1,0 +1,749 @@
+"""Native log (MCAP): round trips, what other MCAP readers see, truncation, corruption, non-logs.
+
+Tolerances: images go through JPEG, so a round trip is checked against the original at quality 95
+with mean absolute difference < JPEG_MEAN_ABS; frames read from a cut or damaged log are checked
+against the same log read whole, where the decoded images must be identical. Everything else
+round-trips exactly, except degrees <-> radians (EXACT_F64) and seconds <-> integer ns (1 ns).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from mcap.decoder import DecoderFactory as McapDecoderFactory
+from mcap.reader import make_reader
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
+
+from replay import native
+from replay.native import (
+    FORMAT_VERSION,
+    TOPIC_CALIBRATION,
+    TOPIC_ESTIMATE,
+    TOPIC_GNSS,
+    TOPIC_HEADING,
+    TOPIC_IMAGE,
+    TOPIC_SUN_TRUTH,
+    TOPIC_UTC,
+    LogWriter,
+    NativeLogSource,
+    estimate_from_dict,
+    open_log,
+    read_estimates,
+    read_frames,
+)
+from rig.errors import LogError, ValidationError
+from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate
+from tests.tolerances import EXACT_F64, JPEG_MEAN_ABS
+
+ROOT = Path(__file__).resolve().parents[1]
+W, H = 64, 48
+INTR = Intrinsics(fx=50.0, fy=51.0, cx=31.5, cy=24.25, width=W, height=H)
+UTC0 = 1_317_042_145_964_389_123  # 2011-09-26T13:02:25.964389123Z, ns precision on purpose
+NS = 1e-9
+
+
+def make_image(i: int, rng: np.random.Generator, w: int = W, h: int = H) -> np.ndarray:
+    """Smooth gradients (JPEG-friendly) that differ per frame, with a seeded offset per channel."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    off = rng.uniform(0, 60, size=3)
+    img = np.stack([xx * 2.0 + off[0] + i, yy * 3.0 + off[1], (xx + yy) * 1.5 + off[2]], axis=-1)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def make_frames(n: int, seed: int = 0, *, full: bool = True, t0: float = 1234.5678) -> list[Frame]:
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i in range(n):
+        extra = {}
+        if full:
+            el, az = rng.uniform(0.1, 1.2), rng.uniform(0, 2 * math.pi)
+            extra = dict(
+                attitude=Attitude(
+                    heading_rad=rng.uniform(0, 2 * math.pi),
+                    reference=HeadingRef.TRUE if i % 2 else HeadingRef.MAGNETIC,
+                    pitch_rad=rng.uniform(-0.2, 0.2),
+                    roll_rad=None if i % 3 == 0 else rng.uniform(-0.1, 0.1),
+                ),
+                utc_ns=UTC0 + i * 33_333_333,
+                gnss=GnssFix(
+                    utc_ns=UTC0 + i * 33_333_333 - 7,
+                    lat_deg=49.011 + 1e-5 * i,
+                    lon_deg=8.4236 - 1e-5 * i,
+                    alt_m=None if i % 4 == 0 else 115.25 + i,
+                ),
+                sun_enu_truth=[
+                    math.cos(el) * math.sin(az),
+                    math.cos(el) * math.cos(az),
+                    math.sin(el),
+                ],
+            )
+        frames.append(
+            Frame(
+                t_mono_s=t0 + i / 30.0,
+                seq=10 + i,
+                image_bgr=make_image(i, rng),
+                intrinsics=INTR,
+                **extra,
+            )
+        )
+    return frames
+
+
+def write_log(path, frames, *, chunk_size=1 << 20, quality=95, estimates=()) -> Path:
+    with LogWriter(path, chunk_size=chunk_size) as w:
+        for f in frames:
+            w.write_frame(f, jpeg_quality=quality)
+        for e in estimates:
+            w.write_estimate(e)
+    return Path(path)
+
+
+def mean_abs(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a.astype(np.int16) - b.astype(np.int16)).mean())
+
+
+class JsonDecoderFactory(McapDecoderFactory):
+    """What Foxglove does with a json channel with a jsonschema schema: parse the JSON."""
+
+    def decoder_for(self, message_encoding, schema):
+        if message_encoding == "json" and schema is not None and schema.encoding == "jsonschema":
+            return json.loads
+        return None
+
+
+def assert_same_meta(got: Frame, want: Frame) -> None:
+    """Everything but the image, to the tolerances in the module docstring."""
+    assert got.seq == want.seq
+    assert got.t_mono_s == pytest.approx(want.t_mono_s, abs=NS)
+    assert got.intrinsics == want.intrinsics
+    assert got.utc_ns == want.utc_ns
+    assert got.gnss == want.gnss
+    if want.attitude is None:
+        assert got.attitude is None
+    else:
+        assert got.attitude.reference == want.attitude.reference
+        assert got.attitude.heading_rad == pytest.approx(want.attitude.heading_rad, abs=EXACT_F64)
+        for name in ("pitch_rad", "roll_rad"):
+            w = getattr(want.attitude, name)
+            g = getattr(got.attitude, name)
+            assert (g is None) == (w is None)
+            if w is not None:
+                assert g == pytest.approx(w, abs=EXACT_F64)
+    if want.sun_enu_truth is None:
+        assert got.sun_enu_truth is None
+    else:
+        np.testing.assert_array_equal(got.sun_enu_truth, want.sun_enu_truth)
+
+
+def assert_same_frames(got: list[Frame], want: list[Frame]) -> None:
+    """Frames read from one log vs another copy of it: metadata and decoded images identical."""
+    assert [f.seq for f in got] == [f.seq for f in want]
+    for g, w in zip(got, want, strict=True):
+        assert_same_meta(g, w)
+        np.testing.assert_array_equal(g.image_bgr, w.image_bgr)
+
+
+# ---------------------------------------------------------------------------------------------
+# Round trips
+
+
+def test_round_trip_all_fields(tmp_path):
+    frames = make_frames(12)
+    path = write_log(tmp_path / "a.mcap", frames)
+    src = open_log(path)
+    got = list(src)
+    assert len(got) == len(frames)
+    for g, w in zip(got, frames, strict=True):
+        assert_same_meta(g, w)
+        assert g.image_bgr.dtype == np.uint8 and g.image_bgr.shape == (H, W, 3)
+        assert mean_abs(g.image_bgr, w.image_bgr) < JPEG_MEAN_ABS
+    # a different frame's image is much further away than the JPEG error: the check can fail
+    assert mean_abs(got[0].image_bgr, frames[5].image_bgr) > 3 * JPEG_MEAN_ABS
+    assert src.stats.frames_read == 12 and src.stats.corrupt_skipped == 0
+    assert not src.truncated
+    assert src.info.metadata["format_version"] == FORMAT_VERSION
+
+
+def test_frames_without_attitude_gnss_utc_or_truth(tmp_path):
+    frames = make_frames(5, seed=3, full=False)
+    path = write_log(tmp_path / "bare.mcap", frames)
+    got = list(read_frames(path))
+    assert len(got) == 5
+    for g, w in zip(got, frames, strict=True):
+        assert_same_meta(g, w)
+        assert (
+            g.attitude is None and g.gnss is None and g.utc_ns is None and g.sun_enu_truth is None
+        )
+    with open(path, "rb") as f:
+        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    assert topics == {TOPIC_IMAGE, TOPIC_CALIBRATION}  # channels appear only when used
+
+
+def test_mixed_optional_fields_do_not_leak_between_frames(tmp_path):
+    full = make_frames(6, seed=4)
+    bare = make_frames(6, seed=4, full=False)
+    mixed = [full[i] if i % 2 else bare[i] for i in range(6)]
+    got = list(read_frames(write_log(tmp_path / "mixed.mcap", mixed)))
+    for g, w in zip(got, mixed, strict=True):
+        assert_same_meta(g, w)
+
+
+def test_intrinsics_change_mid_log(tmp_path):
+    other = Intrinsics(fx=70.0, fy=70.0, cx=40.0, cy=30.0, width=80, height=60)
+    rng = np.random.default_rng(7)
+    frames = make_frames(4, seed=5)
+    frames += [
+        Frame(
+            t_mono_s=2000.0 + i, seq=100 + i, image_bgr=make_image(i, rng, 80, 60), intrinsics=other
+        )
+        for i in range(3)
+    ]
+    frames.append(Frame(t_mono_s=2010.0, seq=200, image_bgr=make_image(9, rng), intrinsics=INTR))
+    path = write_log(tmp_path / "k.mcap", frames)
+    got = list(read_frames(path))
+    assert [g.intrinsics for g in got] == [f.intrinsics for f in frames]
+    assert [g.image_bgr.shape for g in got] == [f.image_bgr.shape for f in frames]
+    with open(path, "rb") as f:
+        calib = [m for _, _, m in make_reader(f).iter_messages(topics=[TOPIC_CALIBRATION])]
+    # first frame and each change, not every frame (one chunk here)
+    assert [m.sequence for m in calib] == [10, 100, 200]
+
+
+def test_estimates_round_trip(tmp_path):
+    rng = np.random.default_rng(11)
+    tokens = rng.normal(size=(4, 3))
+    tokens /= np.linalg.norm(tokens, axis=1, keepdims=True)
+    ests = [
+        SunEstimate(
+            t_mono_s=1235.0 + i,
+            seq=20 + i,
+            sun_enu=[0.0, 0.6, 0.8],
+            heading_rad=0.3 * i,
+            heading_ref=HeadingRef.RELATIVE,
+            spread_rad=0.05,
+            n_frames=8,
+            n_tokens=4,
+            aggregator="transformer",
+            utc_ns=UTC0 + i,
+            truth_enu=[0.6, 0.0, 0.8],
+            token_enu=tokens,
+        )
+        for i in range(3)
+    ]
+    ests.append(
+        SunEstimate(
+            t_mono_s=1240.0,
+            seq=30,
+            sun_enu=[1.0, 0.0, 0.0],
+            heading_rad=1.0,
+            heading_ref=HeadingRef.TRUE,
+            spread_rad=math.pi,
+            n_frames=1,
+            n_tokens=1,
+            aggregator="meanshift",
+        )
+    )
+    frames = make_frames(3)
+    path = write_log(tmp_path / "e.mcap", frames, estimates=ests)
+    dicts = list(read_estimates(path))
+    assert len(dicts) == len(ests)
+    for d, e in zip(dicts, ests, strict=True):
+        for key, value in e.to_json_dict().items():
+            assert d[key] == value, key
+        back = estimate_from_dict(d)
+        assert back.seq == e.seq and back.t_mono_s == e.t_mono_s
+        assert back.utc_ns == e.utc_ns
+        assert back.heading_ref == e.heading_ref and back.aggregator == e.aggregator
+        np.testing.assert_allclose(back.sun_enu, e.sun_enu, atol=1e-7)
+        assert back.heading_rad == pytest.approx(e.heading_rad, abs=EXACT_F64)
+        assert back.spread_rad == pytest.approx(e.spread_rad, abs=EXACT_F64)
+        if e.token_enu is not None:
+            np.testing.assert_array_equal(back.token_enu, e.token_enu)
+        if e.truth_enu is not None:
+            np.testing.assert_allclose(back.truth_enu, e.truth_enu, atol=1e-7)
+    # estimates on their own channel do not disturb frame replay
+    assert len(list(read_frames(path))) == 3
+
+
+def test_estimate_from_dict_names_a_missing_field():
+    with pytest.raises(ValidationError, match="seq"):
+        estimate_from_dict({"t": 1.0})
+
+
+# ---------------------------------------------------------------------------------------------
+# What other MCAP readers (Foxglove, the mcap library) see
+
+
+def test_layout_seen_by_the_mcap_library(tmp_path):
+    frames = make_frames(6)
+    path = write_log(tmp_path / "l.mcap", frames)
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[ProtobufDecoderFactory(), JsonDecoderFactory()])
+        header = reader.get_header()
+        assert header.profile == "sunrig" and header.library.startswith("sunrig/")
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        assert meta["sunrig"]["format_version"] == "1"
+        summary = reader.get_summary()
+        by_topic = {c.topic: c for c in summary.channels.values()}
+        expect = {
+            TOPIC_IMAGE: ("foxglove.CompressedImage", "protobuf"),
+            TOPIC_CALIBRATION: ("foxglove.CameraCalibration", "protobuf"),
+            TOPIC_GNSS: ("foxglove.LocationFix", "protobuf"),
+            TOPIC_HEADING: ("sunrig.Attitude", "json"),
+            TOPIC_UTC: ("sunrig.UtcTime", "json"),
+            TOPIC_SUN_TRUTH: ("sunrig.SunTruth", "json"),
+        }
+        assert set(by_topic) == set(expect)
+        for topic, (schema_name, encoding) in expect.items():
+            ch = by_topic[topic]
+            assert summary.schemas[ch.schema_id].name == schema_name
+            assert ch.message_encoding == encoding
+            want_schema_enc = "protobuf" if encoding == "protobuf" else "jsonschema"
+            assert summary.schemas[ch.schema_id].encoding == want_schema_enc
+        counts = {
+            by_topic[t].topic: summary.statistics.channel_message_counts[by_topic[t].id]
+            for t in by_topic
+        }
+        assert counts[TOPIC_IMAGE] == 6 and counts[TOPIC_CALIBRATION] == 1
+
+        by_seq: dict[int, list[str]] = {}
+        for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+            frame = next(fr for fr in frames if fr.seq == message.sequence)
+            t_ns = round(frame.t_mono_s * 1e9)
+            assert message.log_time == message.publish_time == t_ns
+            by_seq.setdefault(message.sequence, []).append(channel.topic)
+            if channel.topic == TOPIC_IMAGE:
+                assert decoded.format == "jpeg" and decoded.frame_id == "camera"
+                assert decoded.timestamp.seconds * 10**9 + decoded.timestamp.nanos == t_ns
+            elif channel.topic == TOPIC_GNSS:
+                assert (
+                    decoded.timestamp.seconds * 10**9 + decoded.timestamp.nanos == frame.gnss.utc_ns
+                )
+                assert decoded.latitude == frame.gnss.lat_deg
+            elif channel.topic == TOPIC_CALIBRATION:
+                assert list(decoded.K) == [50.0, 0, 31.5, 0, 51.0, 24.25, 0, 0, 1]
+                assert decoded.distortion_model == "plumb_bob" and list(decoded.D) == [0.0] * 5
+                assert (decoded.width, decoded.height) == (W, H)
+            elif channel.topic == TOPIC_HEADING:
+                assert decoded["heading_deg"] == pytest.approx(
+                    math.degrees(frame.attitude.heading_rad)
+                )
+                assert decoded["seq"] == frame.seq
+                if frame.attitude.roll_rad is None:
+                    assert decoded["roll_deg"] is None
+    # the image comes last in each frame, so a streaming reader can emit the frame on it
+    assert all(topics[-1] == TOPIC_IMAGE for topics in by_seq.values())
+    assert len(by_seq) == 6
+
+
+def test_calibration_repeats_at_each_chunk_and_chunks_hold_whole_frames(tmp_path):
+    frames = make_frames(20)
+    path = write_log(tmp_path / "c.mcap", frames, chunk_size=3000)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        n_chunks = len(reader.get_summary().chunk_indexes)
+        calib = [m.sequence for _, _, m in reader.iter_messages(topics=[TOPIC_CALIBRATION])]
+    assert n_chunks > 3
+    assert len(calib) == n_chunks  # once per chunk, constant intrinsics
+    assert len(list(read_frames(path))) == 20
+
+
+# ---------------------------------------------------------------------------------------------
+# Truncated logs
+
+
+def test_finished_log_cut_anywhere_replays_a_growing_prefix(tmp_path, caplog):
+    frames = make_frames(30)
+    path = write_log(tmp_path / "full.mcap", frames, chunk_size=2500)
+    whole = list(read_frames(path))
+    data = path.read_bytes()
+    counts = []
+    for frac in np.linspace(0.1, 0.95, 18):
+        cut = tmp_path / f"cut{frac:.3f}.mcap"
+        cut.write_bytes(data[: int(len(data) * frac)])
+        src = open_log(cut)
+        with caplog.at_level(logging.WARNING, logger="replay.native"):
+            caplog.clear()
+            got = list(src)
+        assert got, f"cut at {frac:.0%} replayed nothing"
+        assert_same_frames(got, whole[: len(got)])
+        if len(got) < len(whole):
+            assert src.truncated
+            assert any(
+                "ends early" in r.getMessage() or "cut off" in r.getMessage()
+                for r in caplog.records
+            )
+        counts.append(len(got))
+    assert counts == sorted(counts)  # the prefix grows with the cut point
+    assert counts[0] < counts[-1]
+    # at 50% about half of the frames survive (chunks hold ~2-3 frames here)
+    assert 0.3 * len(frames) < counts[len(counts) // 2] < 0.8 * len(frames)
+
+
+def test_cut_inside_the_first_chunk_is_a_clear_error(tmp_path):
+    path = write_log(tmp_path / "full.mcap", make_frames(5))
+    data = path.read_bytes()
+    cut = tmp_path / "early.mcap"
+    cut.write_bytes(data[:200])  # header and metadata only
+    with pytest.raises(LogError, match="cut off before its first complete chunk") as info:
+        open_log(cut)
+    assert "\n" not in str(info.value)
+
+
+def test_writer_never_closed_replays_its_finished_chunks(tmp_path):
+    frames = make_frames(25)
+    reference = list(read_frames(write_log(tmp_path / "ref.mcap", frames, chunk_size=2500)))
+    stream = io.BytesIO()
+    w = LogWriter(stream, chunk_size=2500)
+    snapshots = []
+    for i, f in enumerate(frames):
+        w.write_frame(f, jpeg_quality=95)
+        if i in (8, 16, 24):
+            snapshots.append(stream.getvalue())  # what a killed process leaves on disk
+    counts = []
+    for k, blob in enumerate(snapshots):
+        p = tmp_path / f"killed{k}.mcap"
+        p.write_bytes(blob)
+        src = open_log(p)
+        got = list(src)
+        assert src.truncated
+        assert got
+        assert_same_frames(got, reference[: len(got)])
+        counts.append(len(got))
+    assert counts == sorted(counts) and counts[0] < counts[-1]
+    assert counts[0] <= 9 and counts[-1] <= 25
+    w.close()
+    assert not stream.closed  # a stream handed in stays the caller's
+    p = tmp_path / "closed.mcap"
+    p.write_bytes(stream.getvalue())
+    src = open_log(p)
+    assert_same_frames(list(src), reference)
+    assert not src.truncated
+
+
+def test_process_killed_mid_recording(tmp_path):
+    path = tmp_path / "killed.mcap"
+    script = (
+        "import os, signal, sys\n"
+        f"sys.path.insert(0, {str(ROOT)!r})\n"
+        "from tests.test_native_log import make_frames\n"
+        "from replay.native import LogWriter\n"
+        "w = LogWriter(sys.argv[1], chunk_size=2500)\n"
+        "for f in make_frames(23):\n"
+        "    w.write_frame(f, jpeg_quality=95)\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script, str(path)], cwd=ROOT, timeout=120, capture_output=True
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+    reference = list(
+        read_frames(write_log(tmp_path / "ref.mcap", make_frames(23), chunk_size=2500))
+    )
+    src = open_log(path)
+    got = list(src)
+    assert src.truncated
+    assert 0 < len(got) <= 23
+    assert_same_frames(got, reference[: len(got)])
+
+
+# ---------------------------------------------------------------------------------------------
+# Corrupt messages and chunks
+
+
+def test_corrupt_jpeg_is_skipped_counted_and_warned(tmp_path, monkeypatch, caplog):
+    frames = make_frames(8)
+    bad = CompressedImage(data=b"\xff\xd8 definitely not a jpeg", format="jpeg").SerializeToString()
+    path = tmp_path / "badjpeg.mcap"
+    with LogWriter(path) as w:
+        for f in frames:
+            if f.seq == 13:
+                monkeypatch.setattr(native, "encode_image", lambda *a: bad)
+            w.write_frame(f, jpeg_quality=95)
+            monkeypatch.undo()
+    src = open_log(path)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        got = list(src)
+    assert [g.seq for g in got] == [f.seq for f in frames if f.seq != 13]
+    assert src.stats.corrupt_skipped == 1 and src.stats.frames_read == 7
+    assert not src.truncated
+    assert any("corrupt" in r.getMessage() and "seq 13" in r.getMessage() for r in caplog.records)
+    # the frame after the bad one did not inherit its heading
+    after = next(g for g in got if g.seq == 14)
+    assert_same_meta(after, frames[4])
+
+
+def test_messages_of_a_frame_whose_image_is_missing_stay_with_it(tmp_path, monkeypatch):
+    full = make_frames(4, seed=8)
+    bare = make_frames(4, seed=8, full=False)
+    frames = [full[0], full[1], bare[2], full[3]]  # seq 11 loses its image; seq 12 has no extras
+    path = tmp_path / "noimage.mcap"
+    real_add = LogWriter._add
+
+    def drop_image_11(self, topic, t_ns, seq, data):
+        if not (topic == TOPIC_IMAGE and seq == 11):
+            real_add(self, topic, t_ns, seq, data)
+
+    monkeypatch.setattr(LogWriter, "_add", drop_image_11)
+    write_log(path, frames)
+    monkeypatch.undo()
+    got = list(read_frames(path))
+    assert [g.seq for g in got] == [10, 12, 13]
+    for g, w in zip(got, [frames[0], frames[2], frames[3]], strict=True):
+        assert_same_meta(g, w)  # seq 12 did not pick up seq 11's heading, fix, UTC or truth
+
+
+def test_channels_of_other_tools_are_ignored_not_counted(tmp_path):
+    frames = make_frames(3)
+    path = tmp_path / "extra.mcap"
+    with LogWriter(path) as w:
+        # another recorder's channel in the same file (reaching into the writer is test-only)
+        sid = w._mcap.register_schema("other.Thing", "jsonschema", b"{}")
+        cid = w._mcap.register_channel("/other", "json", sid)
+        for f in frames:
+            w._mcap.add_message(cid, log_time=1, publish_time=1, data=b"{}", sequence=0)
+            w.write_frame(f, jpeg_quality=95)
+    src = open_log(path)
+    assert_same_frames(list(src), list(read_frames(write_log(tmp_path / "plain.mcap", frames))))
+    assert src.stats.corrupt_skipped == 0
+
+
+def test_corrupt_heading_drops_only_that_message(tmp_path, monkeypatch):
+    frames = make_frames(5)
+    path = tmp_path / "badjson.mcap"
+    with LogWriter(path) as w:
+        for f in frames:
+            if f.seq == 12:
+                monkeypatch.setattr(native, "encode_attitude", lambda *a: b"{not json")
+            w.write_frame(f)
+            monkeypatch.undo()
+    src = open_log(path)
+    got = list(src)
+    assert [g.seq for g in got] == [f.seq for f in frames]
+    assert got[2].attitude is None and got[2].gnss == frames[2].gnss
+    assert got[3].attitude is not None
+    assert src.stats.corrupt_skipped == 1
+
+
+def test_corrupt_chunk_in_the_middle_is_skipped(tmp_path, caplog):
+    frames = make_frames(24)
+    path = write_log(tmp_path / "chunks.mcap", frames, chunk_size=2500)
+    whole = list(read_frames(path))
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    victim = chunks[len(chunks) // 2]
+    data = bytearray(path.read_bytes())
+    mid = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2
+    data[mid : mid + 16] = bytes(b ^ 0x5A for b in data[mid : mid + 16])
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    src = open_log(damaged)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        got = list(src)
+    lost = {
+        fr.seq
+        for fr in whole
+        if victim.message_start_time <= round(fr.t_mono_s * 1e9) <= victim.message_end_time
+    }
+    assert lost
+    assert_same_frames(got, [fr for fr in whole if fr.seq not in lost])
+    assert src.stats.corrupt_skipped == 1
+    assert not src.truncated
+    assert any("corrupt chunk" in r.getMessage() for r in caplog.records)
+
+
+# ---------------------------------------------------------------------------------------------
+# Not a log
+
+
+def _png_bytes() -> bytes:
+    return cv2.imencode(".png", np.zeros((4, 4, 3), np.uint8))[1].tobytes()
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "needle"),
+    [
+        ("random.mcap", np.random.default_rng(0).bytes(4096), "not an MCAP log"),
+        ("empty.mcap", b"", "empty"),
+        ("foo.png", None, "PNG signature"),
+        ("notes.mcap", b'{"hello": "world"}\n', "not an MCAP log"),
+        ("stub.mcap", b"\x89MCA", "cut off inside the MCAP magic"),
+        ("dir.mcap", "dir", "is a directory"),
+        ("missing.mcap", "missing", "does not exist"),
+    ],
+)
+def test_not_a_log_raises_one_line_log_error(tmp_path, name, content, needle):
+    path = tmp_path / name
+    if content == "dir":
+        path.mkdir()
+    elif content != "missing":
+        path.write_bytes(_png_bytes() if content is None else content)
+    for call in (
+        open_log,
+        NativeLogSource,
+        lambda p: list(read_frames(p)),
+        lambda p: list(read_estimates(p)),
+    ):
+        with pytest.raises(LogError) as info:
+            call(path)
+        msg = str(info.value)
+        assert needle in msg
+        assert name in msg
+        assert "\n" not in msg and "\r" not in msg
+
+
+def _foreign_mcap(
+    path: Path, *, finish: bool, topic: str = "/foo", schema_name: str = "foo.Bar"
+) -> None:
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="someone-else")
+        sid = w.register_schema(schema_name, "jsonschema", b"{}")
+        cid = w.register_channel(topic, "json", sid)
+        for i in range(5):
+            w.add_message(cid, log_time=i, publish_time=i, data=b"{}", sequence=i)
+        if finish:
+            w.finish()
+        else:
+            w.flush()
+
+
+@pytest.mark.parametrize("finish", [True, False])
+def test_valid_mcap_without_sunrig_channels(tmp_path, finish):
+    path = tmp_path / "other.mcap"
+    _foreign_mcap(path, finish=finish)
+    with pytest.raises(LogError, match=f"no {TOPIC_IMAGE} channel") as info:
+        open_log(path)
+    assert "/foo" in str(info.value) and "\n" not in str(info.value)
+    assert list(read_estimates(path)) == []  # estimates need only an MCAP file
+
+
+def test_camera_image_channel_of_another_type_is_refused(tmp_path):
+    path = tmp_path / "ros.mcap"
+    _foreign_mcap(path, finish=True, topic=TOPIC_IMAGE, schema_name="sensor_msgs/msg/Image")
+    with pytest.raises(LogError, match="expected foxglove.CompressedImage"):
+        open_log(path)
+
+
+def test_newer_format_version_is_refused(tmp_path):
+    path = tmp_path / "v2.mcap"
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="sunrig", library="sunrig/9")
+        w.add_metadata("sunrig", {"format_version": "2"})
+        w.finish()
+    with pytest.raises(LogError, match="format version 2"):
+        open_log(path)
+
+
+def test_log_with_no_frames_is_refused(tmp_path):
+    path = tmp_path / "nothing.mcap"
+    with LogWriter(path):
+        pass
+    with pytest.raises(LogError, match=f"no {TOPIC_IMAGE} channel"):
+        open_log(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Writer contract
+
+
+def test_writer_close_is_idempotent_and_refuses_writes_after(tmp_path):
+    frames = make_frames(2)
+    w = LogWriter(tmp_path / "w.mcap")
+    w.write_frame(frames[0])
+    w.close()
+    w.close()
+    assert w.closed
+    with pytest.raises(LogError, match="closed"):
+        w.write_frame(frames[1])
+    assert len(list(read_frames(tmp_path / "w.mcap"))) == 1
+
+
+def test_writer_on_an_unbuffered_stream_flushes_everything_and_leaves_it_open(tmp_path):
+    path = tmp_path / "raw.mcap"
+    with open(path, "wb", buffering=0) as raw:
+        with LogWriter(raw) as w:
+            for f in make_frames(3):
+                w.write_frame(f)
+        assert not raw.closed
+        raw.write(b"")  # still usable by its owner
+    src = open_log(path)
+    assert len(list(src)) == 3 and not src.truncated
+    with open(path, "rb") as f:  # the summary and footer reached the file too
+        # one calibration, then heading, fix, UTC, truth and image per frame
+        assert make_reader(f).get_summary().statistics.message_count == 1 + 3 * 5
+
+
+def test_writer_closes_the_log_when_the_block_raises(tmp_path):
+    path = tmp_path / "raised.mcap"
+    with pytest.raises(ZeroDivisionError), LogWriter(path) as w:
+        w.write_frame(make_frames(1)[0])
+        1 / 0  # noqa: B018
+    src = open_log(path)
+    assert len(list(src)) == 1 and not src.truncated
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [({"compression": "gzip"}, "compression"), ({"chunk_size": 0}, "chunk_size")],
+)
+def test_writer_validates_its_options(tmp_path, kwargs, needle):
+    with pytest.raises(ValidationError, match=needle):
+        LogWriter(tmp_path / "x.mcap", **kwargs)
+
+
+def test_writer_validates_frames(tmp_path):
+    frame = make_frames(1)[0]
+    with LogWriter(tmp_path / "x.mcap") as w:
+        with pytest.raises(ValidationError, match="jpeg_quality"):
+            w.write_frame(frame, jpeg_quality=0)
+        with pytest.raises(ValidationError, match="2\\*\\*32"):
+            w.write_frame(
+                Frame(t_mono_s=1.0, seq=2**32, image_bgr=frame.image_bgr, intrinsics=INTR)
+            )
+        with pytest.raises(ValidationError, match=">= 0 s"):
+            w.write_frame(Frame(t_mono_s=-1.0, seq=1, image_bgr=frame.image_bgr, intrinsics=INTR))
+        with pytest.raises(ValidationError, match="expected a Frame"):
+            w.write_frame("frame")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_every_compression_round_trips(tmp_path, compression):
+    frames = make_frames(4)
+    path = tmp_path / f"{compression}.mcap"
+    with LogWriter(path, compression=compression, chunk_size=3000) as w:
+        for f in frames:
+            w.write_frame(f, jpeg_quality=95)
+    got = list(read_frames(path))
+    for g, want in zip(got, frames, strict=True):
+        assert_same_meta(g, want)
+    assert len(got) == 4
+
+
+def test_source_is_reiterable_and_resets_its_stats(tmp_path):
+    path = write_log(tmp_path / "r.mcap", make_frames(4))
+    src = NativeLogSource(path)
+    first = list(src)
+    assert src.stats.frames_read == 4
+    second = list(src)
+    assert src.stats.frames_read == 4
+    assert_same_frames(second, first)
+    assert src.path == path
+    assert (
+        json.loads(native.CHANNELS[TOPIC_ESTIMATE].schema_bytes())["title"] == "sunrig.SunEstimate"
+    )
+    assert os.path.getsize(path) > 0
