@@ -32,12 +32,21 @@ AGG_OUTPUT = "sun_heading"  # [B, T, 3] float32: per-token sun vector in its hea
 
 # KITTI's image_02 (fx = 721.5377) cropped at 224 px native: the paper's angular coverage per crop.
 PAPER_CROP_FOV_DEG = math.degrees(2.0 * math.atan(112.0 / 721.5377))
+YAW_INPUT = "relative-to-newest-frame"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def _encoding_default() -> dict[str, Any]:
-    return {"kind": "cyclic-nested-sine", "alpha": 32.0, "base": 10000.0, "depth_per_angle": 170}
+    # yaw_input: the yaw angle fed to the encoding is relative to the window's newest frame, so
+    # the network cannot depend on a global yaw offset (estimator.estimator.window_tokens).
+    return {
+        "kind": "cyclic-nested-sine",
+        "alpha": 32.0,
+        "base": 10000.0,
+        "depth_per_angle": 170,
+        "yaw_input": YAW_INPUT,
+    }
 
 
 def _input_norm_default() -> dict[str, Any]:
@@ -80,6 +89,8 @@ class ModelContract:
                 problems.append(f"encoding.{key}: missing")
         if enc.get("kind") != "cyclic-nested-sine":
             problems.append(f"encoding.kind: expected 'cyclic-nested-sine', got {enc.get('kind')!r}")
+        if enc.get("yaw_input") != YAW_INPUT:
+            problems.append(f"encoding.yaw_input: this runtime feeds {YAW_INPUT!r}, got {enc.get('yaw_input')!r}")
         depth = enc.get("depth_per_angle")
         if isinstance(depth, int) and depth % 2:
             problems.append(f"encoding.depth_per_angle: expected an even number, got {depth}")
@@ -129,3 +140,18 @@ class ModelContract:
             if a[key] != b[key]:
                 out.append(f"{key}: {a[key]!r} != {b[key]!r}")
         return out
+
+
+def input_affine(input_norm: dict[str, Any]) -> tuple[bool, list[float], list[float]]:
+    """The contract's input normalisation as ``x = raw * gain + offset`` per channel.
+
+    Returns (swap red and blue, gain[3], offset[3]) for uint8 BGR input, channels in the model's
+    order. Runtime and training both use this, so they cannot drift apart.
+    """
+    swap = input_norm["color_order"] == "RGB"
+    scale = float(input_norm["scale"])
+    mean = [float(m) for m in input_norm["mean"]]
+    std = [float(s) for s in input_norm["std"]]
+    gain = [scale / s for s in std]
+    offset = [-m / s for m, s in zip(mean, std, strict=True)]
+    return swap, gain, offset

@@ -16,7 +16,7 @@ import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-from estimator.contract import PAPER_CROP_FOV_DEG, ModelContract
+from estimator.contract import PAPER_CROP_FOV_DEG, YAW_INPUT, ModelContract
 from rig.errors import ValidationError, require_torch
 
 torch = require_torch()
@@ -33,7 +33,7 @@ MASK_NEGATIVE = -1.0e9
 
 # Below this norm a predicted vector has no direction; the cosine term uses it as a floor so a
 # zero prediction gives a finite loss and gradient instead of 0/0.
-_NORM_EPS = 1.0e-8
+_NORM_EPS = 1.0e-6
 
 
 def default_depth_per_angle(width: int) -> int:
@@ -48,24 +48,35 @@ def default_depth_per_angle(width: int) -> int:
 class CyclicPositionalEncoding(nn.Module):
     """Eq. (posenc): for each angle phi and i in [0, d/2),
 
-    PE(phi, 2i) = sin(sin(phi) * alpha / base^(2i/d)),  PE(phi, 2i+1) = sin(cos(phi) * alpha / base^(2i/d)).
+    PE(phi, 2i)     = sin(sin(phi) * alpha / base^(2i/d)),
+    PE(phi, 2i + 1) = sin(cos(phi) * alpha / base^(2i/d)).
 
     The inner sin/cos make it periodic in 2 pi; interlacing the two makes it unique per angle.
     The three angles (yaw, horizontal, vertical view angle; radians) are encoded alike, stacked
     to 3d values and zero-padded to ``width`` so the result can be added to a token.
+    ``depth_per_angle`` None means the largest even d that fits: 2 floor(width / 6).
     """
 
-    def __init__(self, alpha: float, base: float, depth_per_angle: int, width: int) -> None:
+    def __init__(self, alpha: float, base: float, depth_per_angle: int | None, width: int) -> None:
         super().__init__()
-        if not (isinstance(depth_per_angle, int) and depth_per_angle > 0 and depth_per_angle % 2 == 0):
-            raise ValidationError(f"depth_per_angle: expected a positive even integer, got {depth_per_angle!r}")
+        if depth_per_angle is None:
+            depth_per_angle = default_depth_per_angle(width)
+        if not (
+            isinstance(depth_per_angle, int) and depth_per_angle > 0 and depth_per_angle % 2 == 0
+        ):
+            raise ValidationError(
+                f"depth_per_angle: expected a positive even integer, got {depth_per_angle!r}"
+            )
         if 3 * depth_per_angle > width:
             raise ValidationError(
-                f"depth_per_angle: 3 x {depth_per_angle} encoding values do not fit a width of {width}; "
+                f"depth_per_angle: 3 x {depth_per_angle} encoding values do not fit "
+                f"a width of {width}; "
                 f"use at most {default_depth_per_angle(width)}"
             )
         if not (math.isfinite(alpha) and alpha > 0 and math.isfinite(base) and base > 1):
-            raise ValidationError(f"encoding: expected alpha > 0 and base > 1, got alpha={alpha}, base={base}")
+            raise ValidationError(
+                f"encoding: expected alpha > 0 and base > 1, got alpha={alpha}, base={base}"
+            )
         self.alpha = float(alpha)
         self.base = float(base)
         self.depth_per_angle = depth_per_angle
@@ -77,7 +88,12 @@ class CyclicPositionalEncoding(nn.Module):
 
     def params(self) -> dict[str, Any]:
         """The contract's ``encoding`` entry for this module."""
-        return {"kind": ENCODING_KIND, "alpha": self.alpha, "base": self.base, "depth_per_angle": self.depth_per_angle}
+        return {
+            "kind": ENCODING_KIND,
+            "alpha": self.alpha,
+            "base": self.base,
+            "depth_per_angle": self.depth_per_angle,
+        }
 
     def forward(self, angles: Tensor) -> Tensor:
         """angles [..., 3] (radians) -> [..., width]."""
@@ -129,7 +145,9 @@ class Backbone(nn.Module):
         if not (isinstance(base_width, int) and base_width > 0):
             raise ValidationError(f"base_width: expected a positive integer, got {base_width!r}")
         if not blocks or any(int(b) < 1 for b in blocks):
-            raise ValidationError(f"blocks: expected at least one stage of >= 1 block, got {blocks!r}")
+            raise ValidationError(
+                f"blocks: expected at least one stage of >= 1 block, got {blocks!r}"
+            )
         self.base_width = base_width
         self.blocks = tuple(int(b) for b in blocks)
         self.conv1 = nn.Conv2d(3, base_width, 7, stride=2, padding=3, bias=False)
@@ -190,7 +208,11 @@ class _EncoderLayer(nn.Module):
         self.drop1 = nn.Dropout(dropout)
         self.norm2 = nn.LayerNorm(width)
         self.mlp = nn.Sequential(
-            nn.Linear(width, mlp), nn.GELU(), nn.Dropout(dropout), nn.Linear(mlp, width), nn.Dropout(dropout)
+            nn.Linear(width, mlp),
+            nn.GELU(),
+            nn.Dropout(dropout),
+            nn.Linear(mlp, width),
+            nn.Dropout(dropout),
         )
 
     def forward(self, x: Tensor, key_bias: Tensor) -> Tensor:
@@ -220,8 +242,13 @@ class Aggregator(nn.Module):
         depth_per_angle: int | None = None,
     ) -> None:
         super().__init__()
-        for name, v in (("embedding_dim", embedding_dim), ("width", width), ("layers", layers),
-                        ("heads", heads), ("mlp", mlp)):
+        for name, v in (
+            ("embedding_dim", embedding_dim),
+            ("width", width),
+            ("layers", layers),
+            ("heads", heads),
+            ("mlp", mlp),
+        ):
             if not (isinstance(v, int) and v > 0):
                 raise ValidationError(f"Aggregator.{name}: expected a positive integer, got {v!r}")
         if width % heads:
@@ -234,14 +261,17 @@ class Aggregator(nn.Module):
         self.embed = nn.Linear(embedding_dim, width)
         self.encoding = CyclicPositionalEncoding(alpha, base, depth, width)
         self.drop = nn.Dropout(dropout)
-        self.layers = nn.ModuleList(_EncoderLayer(width, heads, mlp, dropout) for _ in range(layers))
+        self.layers = nn.ModuleList(
+            _EncoderLayer(width, heads, mlp, dropout) for _ in range(layers)
+        )
         self.norm = nn.LayerNorm(width)
         self.head = nn.Linear(width, 3)
 
     def forward(self, embeddings: Tensor, angles: Tensor, mask: Tensor) -> Tensor:
         x = self.drop(self.embed(embeddings) + self.encoding(angles))
         valid = mask.unsqueeze(-1)  # [B, T, 1]
-        key_bias = torch.where(valid, 0.0, MASK_NEGATIVE).to(x.dtype).transpose(1, 2).unsqueeze(1)  # [B,1,1,T]
+        # [B, 1, 1, T]: broadcast over heads and queries, so only keys are masked.
+        key_bias = torch.where(valid, 0.0, MASK_NEGATIVE).to(x.dtype).transpose(1, 2).unsqueeze(1)
         for layer in self.layers:
             x = layer(x, key_bias)
         out = self.head(self.norm(x))
@@ -260,14 +290,19 @@ def sun_loss(v_pred: Tensor, v_gt: Tensor, mask: Tensor | None = None) -> Tensor
     mean over vectors where ``mask`` (shape [...], True = valid) holds, or over all of them.
     """
     if v_pred.shape != v_gt.shape or v_pred.shape[-1] != 3:
-        raise ValidationError(f"sun_loss: expected matching shapes (..., 3), got {tuple(v_pred.shape)} and {tuple(v_gt.shape)}")
+        raise ValidationError(
+            "sun_loss: expected matching shapes (..., 3), "
+            f"got {tuple(v_pred.shape)} and {tuple(v_gt.shape)}"
+        )
     norm = torch.linalg.vector_norm(v_pred, dim=-1)
     cosine = 1.0 - (v_gt * v_pred).sum(-1) / norm.clamp_min(_NORM_EPS)
     per_vector = cosine + (1.0 - norm) ** 2 + torch.relu(-v_pred[..., 2])
     if mask is None:
         return per_vector.mean()
     if mask.shape != per_vector.shape:
-        raise ValidationError(f"sun_loss: expected mask shape {tuple(per_vector.shape)}, got {tuple(mask.shape)}")
+        raise ValidationError(
+            f"sun_loss: expected mask shape {tuple(per_vector.shape)}, got {tuple(mask.shape)}"
+        )
     weights = mask.to(per_vector.dtype)
     # clamp: an all-padding batch gives 0 loss, not NaN.
     return (per_vector * weights).sum() / weights.sum().clamp_min(1.0)
@@ -309,14 +344,24 @@ class NetConfig:
         if self.depth_per_angle is None:
             object.__setattr__(self, "depth_per_angle", default_depth_per_angle(self.width))
         if not (isinstance(self.crop_size, int) and self.crop_size >= 16):
-            raise ValidationError(f"NetConfig.crop_size: expected an integer >= 16 px, got {self.crop_size!r}")
+            raise ValidationError(
+                f"NetConfig.crop_size: expected an integer >= 16 px, got {self.crop_size!r}"
+            )
 
     @property
     def embedding_dim(self) -> int:
         return self.base_width * 2 ** (len(self.blocks) - 1)
 
     def encoding(self) -> dict[str, Any]:
-        return {"kind": ENCODING_KIND, "alpha": self.alpha, "base": self.base, "depth_per_angle": self.depth_per_angle}
+        """The contract's ``encoding`` entry. ``yaw_input`` is how callers must form the yaw angle
+        (relative to the window's newest frame); the graph itself encodes whatever yaw it is fed."""
+        return {
+            "kind": ENCODING_KIND,
+            "alpha": self.alpha,
+            "base": self.base,
+            "depth_per_angle": self.depth_per_angle,
+            "yaw_input": YAW_INPUT,
+        }
 
     def architecture(self) -> dict[str, Any]:
         """JSON-native description for the contract (lists, not tuples, so it round-trips)."""
@@ -342,8 +387,15 @@ class NetConfig:
             torch.manual_seed(seed)
         backbone = Backbone(self.base_width, self.blocks)
         aggregator = Aggregator(
-            backbone.embedding_dim, self.width, self.layers, self.heads, self.mlp, self.dropout,
-            self.alpha, self.base, self.depth_per_angle,
+            backbone.embedding_dim,
+            self.width,
+            self.layers,
+            self.heads,
+            self.mlp,
+            self.dropout,
+            self.alpha,
+            self.base,
+            self.depth_per_angle,
         )
         return backbone, aggregator
 
@@ -367,7 +419,8 @@ class NetConfig:
         )
 
 
-# Sec. 4.2: ResNet18 on 224 px crops; transformer of 4 layers, 4 heads, width 512, MLP 1024, dropout 0.2.
+# Sec. 4.2: ResNet18 on 224 px crops; transformer of 4 layers, 4 heads, width 512, MLP 1024,
+# dropout 0.2.
 PAPER = NetConfig(base_width=64, crop_size=224, width=512, layers=4, heads=4, mlp=1024, dropout=0.2)
 # Half-width ResNet18 on 128 px crops: ~10x the paper's training throughput on a CPU (DESIGN.md
 # budget table), the same transformer.

@@ -64,12 +64,12 @@ def _load_model(model_dir: str | None):
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from estimator.estimator import SunEstimator
-    from replay.native import open_log
+    from replay.sources import open_frames
     from rig.offline import OfflineStats, estimate_stream
     from rig.window import SpreadWindowPolicy
 
     # The log is checked before the model is loaded: a wrong path should fail in milliseconds.
-    source = open_log(Path(args.log))
+    source = open_frames(args.log)
     model = _load_model(args.model)
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
@@ -106,6 +106,95 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _expand_logs(items: list[str]) -> list[Path]:
+    """Log arguments: files, or folders whose *.mcap files are taken in name order."""
+    paths: list[Path] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir() and any(p.glob("*.mcap")):
+            paths.extend(sorted(p.glob("*.mcap")))
+        else:
+            paths.append(p)
+    return paths
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from estimator.estimator import AGGREGATORS, SunEstimator
+    from estimator.evaluate import evaluate, plot_eval
+    from replay.sources import open_frames
+    from rig.window import SpreadWindowPolicy
+
+    paths = _expand_logs(args.logs)
+    sources = [(str(p), open_frames(p)) for p in paths]  # every log checked before any work
+    model = _load_model(args.model)
+    estimator = SunEstimator(model, seed=args.seed)
+    policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
+    aggregators = args.aggregators.split(",") if args.aggregators else list(AGGREGATORS)
+    progress = Progress("eval", enabled=None if not args.quiet else False)
+    result = evaluate(sources, estimator, policy, aggregators=aggregators,
+                      progress=lambda n: progress.update(n, "windows"))
+    summary = result.summary()
+    summary["model"] = {"dir": str(model.model_dir), "id": model.model_id}
+    text = json.dumps(summary, indent=2)
+    if args.json and args.json != "-":
+        Path(args.json).write_text(text + "\n", encoding="utf-8")
+    else:
+        print(text)
+    if args.plot:
+        plot_eval(result, Path(args.plot))
+    lines = [f"{name}: mean {s['mean_deg']:.2f} deg, median {s['median_deg']:.2f}, max {s['max_deg']:.1f} "
+             f"over {s['n_windows']} windows" for name, s in summary["aggregators"].items() if s["n_windows"]]
+    if not args.quiet:
+        progress.close("; ".join(lines) if lines else "no full window with ground truth in these logs")
+    if not lines:
+        return EXIT_USER_ERROR
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from rig.errors import require_torch
+
+    require_torch()
+    from estimator.train import TrainConfig, command_line, data_fingerprint, train
+
+    paths = _expand_logs(args.logs)
+    from replay.sources import open_frames
+
+    for p in paths:  # fail on a bad log now, not after loading the others
+        open_frames(p)
+    cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
+                      batch_windows=args.batch, lr=args.lr, seed=args.seed, threads=args.threads,
+                      command=command_line(),
+                      data={"logs": len(paths), "fingerprint": data_fingerprint(paths),
+                            "source": args.data_note or ""})
+    bar = None
+    if not args.quiet:
+        try:
+            from tqdm import tqdm
+
+            bar = tqdm(total=0, unit="step", dynamic_ncols=True)
+        except ImportError:  # pragma: no cover
+            bar = None
+    progress_line = Progress("train", enabled=None if not args.quiet and bar is None else False)
+
+    def on_progress(p: dict) -> None:
+        if bar is not None:
+            bar.total = p["total"] if p["total"] < 10**9 else None
+            bar.n = p["step"]
+            bar.set_postfix(loss=f"{p['loss']:.3f}", err=f"{p['err_deg']:.1f}deg",
+                            min=f"{p['elapsed_s'] / 60:.0f}/{p['budget_s'] / 60:.0f}", refresh=False)
+            bar.refresh()
+        else:
+            progress_line.update(p["step"], f"loss {p['loss']:.3f} err {p['err_deg']:.1f} deg")
+
+    out = train(paths, Path(args.out), cfg, progress=on_progress)
+    if bar is not None:
+        bar.close()
+    if not args.quiet:
+        progress_line.close(f"model written to {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sunrig", description="Estimate the sun direction from a camera rig's images and heading."
@@ -123,6 +212,32 @@ def build_parser() -> argparse.ArgumentParser:
                    help="spread each window's frames over the last S seconds (default 4)")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("eval", help="angular error of every aggregator over logs with ground truth")
+    p.add_argument("logs", nargs="+", help="native logs, or folders of them")
+    p.add_argument("--json", metavar="OUT", help="write the summary here (default: stdout)")
+    p.add_argument("--plot", metavar="OUT.png", help="cumulative error curves (and OUT-tokens.png)")
+    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
+    p.add_argument("--aggregators", metavar="A,B", help="comma-separated subset (default: all)")
+    p.add_argument("--seed", type=int, default=0, help="crop sampling seed (default 0)")
+    p.add_argument("--window-span-s", type=float, default=4.0, metavar="S")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("train", help="train a model on logs with ground truth (needs sunrig[train])")
+    p.add_argument("logs", nargs="+", help="native logs, or folders of them")
+    p.add_argument("--out", required=True, metavar="MODEL_DIR",
+                   help="model folder; holds checkpoint.pt, and a run resumes from it")
+    p.add_argument("--preset", default="light", help="network preset: light (default), paper, ...")
+    p.add_argument("--minutes", type=float, default=80.0, help="training time budget (default 80)")
+    p.add_argument("--steps", type=int, default=0, help="stop after this many steps instead")
+    p.add_argument("--batch", type=int, default=6, help="windows per step (default 6)")
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
+    p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_train)
     return parser
 
 

@@ -1,0 +1,160 @@
+"""Evaluation: angular error of every aggregator over the windows of logs that carry the true sun.
+
+The windows are the ones the live rig would form (the spread window policy, one per frame), minus
+those formed while a log's buffer is still filling (fewer frames than a full window), so every
+aggregator is scored on the same full windows. Pure numbers here; plotting is in
+:func:`plot_eval`, which imports matplotlib only when called.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimator.estimator import AGGREGATORS, SunEstimator
+from rig.offline import OfflineStats, estimate_stream
+from rig.types import Frame, SunEstimate
+from rig.window import SpreadWindowPolicy
+
+THRESHOLDS_DEG = (5.0, 10.0, 20.0)
+
+
+def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int]:
+    """Mean, median, max and the share of windows under 5, 10 and 20 degrees."""
+    e = np.asarray(errors_deg, dtype=np.float64)
+    if e.size == 0:
+        return {"n_windows": 0}
+    out: dict[str, float | int] = {
+        "mean_deg": float(e.mean()),
+        "median_deg": float(np.median(e)),
+        "max_deg": float(e.max()),
+        "n_windows": int(e.size),
+    }
+    for th in THRESHOLDS_DEG:
+        out[f"under_{th:g}_deg"] = float((e < th).mean())
+    return out
+
+
+@dataclass
+class EvalResult:
+    errors_deg: dict[str, list[float]] = field(default_factory=dict)
+    samples: list[dict[str, SunEstimate]] = field(default_factory=list)  # a few windows, for plots
+    logs: list[str] = field(default_factory=list)
+    frames: int = 0
+    windows_skipped_filling: int = 0
+    windows_failed: int = 0
+    windows_without_truth: int = 0
+
+    def summary(self) -> dict:
+        return {
+            "aggregators": {name: error_summary(e) for name, e in self.errors_deg.items()},
+            "logs": self.logs,
+            "frames": self.frames,
+            "windows_skipped_filling": self.windows_skipped_filling,
+            "windows_failed": self.windows_failed,
+            "windows_without_truth": self.windows_without_truth,
+        }
+
+
+def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstimator, policy: SpreadWindowPolicy,
+             aggregators: Sequence[str] = AGGREGATORS, n_samples: int = 6,
+             progress: Callable[[int], None] | None = None) -> EvalResult:
+    """Every full window of every source, estimated by each aggregator on the same crops."""
+    result = EvalResult(errors_deg={a: [] for a in aggregators})
+    n_done = 0
+    for name, frames in sources:
+        result.logs.append(name)
+        stats = OfflineStats()
+        for estimates in estimate_stream(frames, estimator, policy, aggregators=aggregators, stats=stats):
+            first = next(iter(estimates.values()))
+            if first.n_frames < policy.n_frames:
+                result.windows_skipped_filling += 1
+                continue
+            if first.truth_enu is None:
+                result.windows_without_truth += 1
+                continue
+            for agg, est in estimates.items():
+                result.errors_deg[agg].append(math.degrees(est.error_rad))
+            # Keep a few windows spread over the run for the scatter figure.
+            if len(result.samples) < n_samples and n_done % 97 == 0:
+                result.samples.append(estimates)
+            n_done += 1
+            if progress:
+                progress(n_done)
+        result.frames += stats.frames
+        result.windows_failed += stats.windows_failed
+    return result
+
+
+def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
+    """Two figures: cumulative angular error per aggregator (``out_png``, as the paper's result
+    figures) and per-token estimates with their aggregate for a few windows (``<stem>-tokens.png``,
+    as the paper's calibration figure). Returns the paths written."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display on a rig or in CI
+    import matplotlib.pyplot as plt
+
+    out_png = Path(out_png)
+    written = []
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    for name, errs in result.errors_deg.items():
+        if not errs:
+            continue
+        e = np.sort(np.asarray(errs))
+        frac = np.arange(1, e.size + 1) / e.size
+        ax.plot(e, frac, label=f"{name} (mean {e.mean():.2f}, max {e.max():.1f} deg)")
+    ax.set_xlim(0, 60)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("angular error (deg)")
+    ax.set_ylabel("share of windows")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    n = max((len(v) for v in result.errors_deg.values()), default=0)
+    ax.set_title(title or f"cumulative angular error, {n} windows")
+    fig.tight_layout()
+    fig.savefig(out_png)
+    plt.close(fig)
+    written.append(out_png)
+
+    if result.samples:
+        tokens_png = out_png.with_name(out_png.stem + "-tokens" + out_png.suffix)
+        shown = [a for a in ("transformer", "meanshift") if a in result.samples[0]] or list(result.samples[0])
+        cols = len(result.samples)
+        fig, axes = plt.subplots(len(shown), cols, figsize=(2.6 * cols, 2.8 * len(shown)), dpi=110,
+                                 subplot_kw={"projection": "polar"}, squeeze=False)
+        for r, agg in enumerate(shown):
+            for c, sample in enumerate(result.samples):
+                _polar_window(axes[r][c], sample[agg])
+                if c == 0:
+                    axes[r][c].set_ylabel(agg, labelpad=24)
+        fig.suptitle("per-token estimates (dots), aggregate (x) and truth (*); radius = zenith angle")
+        fig.tight_layout()
+        fig.savefig(tokens_png)
+        plt.close(fig)
+        written.append(tokens_png)
+    return written
+
+
+def _polar_window(ax, est: SunEstimate) -> None:
+    from rig.geometry import az_el_from_enu
+
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)  # clockwise azimuth, as the conventions
+    if est.token_enu is not None:
+        az, el = az_el_from_enu(est.token_enu)
+        ax.scatter(az, 90.0 - np.degrees(el), s=8, alpha=0.35)
+    az, el = az_el_from_enu(est.sun_enu)
+    ax.scatter([az], [90.0 - math.degrees(el)], marker="x", s=60, color="k")
+    if est.truth_enu is not None:
+        az, el = az_el_from_enu(est.truth_enu)
+        ax.scatter([az], [90.0 - math.degrees(el)], marker="*", s=90, color="tab:red")
+    ax.set_ylim(0, 90)
+    ax.set_yticklabels([])
+    ax.set_xticklabels([])
+    err = "" if est.error_rad is None else f"{math.degrees(est.error_rad):.1f} deg"
+    ax.set_title(f"seq {est.seq} {err}", fontsize=8)

@@ -1,0 +1,376 @@
+"""Training: backbone and transformer end to end on any logs that carry the true sun.
+
+Train extra only (torch). The recipe follows the paper (Sec. 3-4): random 8-frame windows from one
+drive, n random crops per frame, the cyclic encoding of (yaw, view angles), per-token vectors
+calibrated by each frame's yaw, and L = cosine + norm + hemisphere. What differs, and why:
+
+- Frames are stored pre-scaled so that a crop of the contract's angular size is exactly
+  ``crop_size`` pixels: cutting a crop is then a slice, not a resize, and a drive of 1242 x 375
+  frames fits in memory at 128 px crops (scale 0.57).
+- The loss is taken on every token's calibrated vector and on the window mean: the mean is the
+  paper's estimate, the per-token terms keep each token a usable estimate on its own.
+- A share of windows keeps only a random subset of tokens (down to one): live windows while the
+  ring fills are short, and the `single`/`mean`/`meanshift` baselines run tokens alone.
+- A random global yaw offset per window rotates the truth and every heading together. With yaw
+  fed relative to the newest frame (docs/conventions.md) the network's input is unchanged by it,
+  so this only guards the calibration path; it costs nothing.
+- The backbone starts from scratch (no ImageNet weights can be downloaded here) with a higher
+  learning rate than the paper's fine-tuning rate of 2e-5.
+
+Checkpoints (``checkpoint.pt`` in the output folder, written atomically every few minutes and at
+the end) hold weights, optimiser, step and random state: a run that is killed resumes where it
+stopped when started again with the same ``--out``. The final model is exported as the two ONNX
+graphs with the contract, including the command and data that produced it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from estimator.contract import PAPER_CROP_FOV_DEG, input_affine
+from estimator.crops import crop_side_px
+from rig.errors import SunrigError, ValidationError, require_torch
+from rig.geometry import view_angles_rad, wrap_pi
+from rig.types import Frame
+
+torch = require_torch()
+
+from estimator import nets  # noqa: E402  (needs torch, checked just above)
+from estimator.export import export_model  # noqa: E402
+
+log = logging.getLogger(__name__)
+CHECKPOINT = "checkpoint.pt"
+
+
+class TrainingDataError(SunrigError):
+    """The logs given to training cannot train anything (no frames with heading and true sun)."""
+
+
+# ------------------------------------------------------------------------------------------
+# Data
+
+
+@dataclass
+class Drive:
+    """One log's usable frames, pre-scaled: images (F, h, w, 3) uint8 BGR and per-frame values."""
+
+    name: str
+    images: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    yaw_rad: np.ndarray  # (F,)
+    sun_enu: np.ndarray  # (F, 3)
+
+
+def _scaled(frame: Frame, crop_size: int, crop_fov_rad: float) -> tuple[np.ndarray, float]:
+    side = crop_side_px(frame.intrinsics, crop_fov_rad)
+    scale = crop_size / side
+    img = frame.image_bgr
+    if abs(scale - 1.0) > 1e-6:
+        size = (max(crop_size, round(img.shape[1] * scale)), max(crop_size, round(img.shape[0] * scale)))
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+    return img, scale
+
+
+def load_drive(frames: Sequence[Frame], name: str, crop_size: int, crop_fov_rad: float) -> Drive | None:
+    """A drive from its frames; frames without heading or true sun are left out (None if none)."""
+    usable = [f for f in frames if f.attitude is not None and f.sun_enu_truth is not None]
+    if not usable:
+        return None
+    images, scales = zip(*(_scaled(f, crop_size, crop_fov_rad) for f in usable), strict=True)
+    shapes = {im.shape for im in images}
+    if len(shapes) > 1:
+        raise TrainingDataError(f"{name}: frames of different sizes in one drive ({sorted(shapes)}); split the log")
+    k, s = usable[0].intrinsics, scales[0]
+    # Intrinsics scale with the image about the pixel grid's corner (continuous coordinates).
+    return Drive(
+        name=name,
+        images=np.stack(images),
+        fx=k.fx * s, fy=k.fy * s, cx=k.cx * s, cy=k.cy * s,
+        yaw_rad=np.array([f.attitude.heading_rad for f in usable]),
+        sun_enu=np.stack([f.sun_enu_truth for f in usable]),
+    )
+
+
+def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float,
+                read_frames: Callable[[Path], Sequence[Frame]] | None = None,
+                progress: Callable[[int, int], None] | None = None) -> list[Drive]:
+    """Every log as one drive. ``read_frames`` defaults to the native log reader."""
+    if read_frames is None:
+        from replay.sources import open_frames
+
+        read_frames = open_frames
+    drives = []
+    for i, path in enumerate(paths):
+        drive = load_drive(list(read_frames(Path(path))), Path(path).name, crop_size, crop_fov_rad)
+        if drive is not None:
+            drives.append(drive)
+        if progress:
+            progress(i + 1, len(paths))
+    if not drives:
+        raise TrainingDataError(
+            "none of the logs has frames with both a heading and the true sun; "
+            "train on logs from `sunrig synth`, KITTI drives, or recordings with GNSS time and position"
+        )
+    return drives
+
+
+@dataclass
+class Batch:
+    crops: np.ndarray  # (B, T, S, S, 3) uint8 BGR
+    angles: np.ndarray  # (B, T, 3) float32: yaw relative to the newest frame, horizontal, vertical
+    yaw: np.ndarray  # (B, T) float64 absolute yaw (with the random global offset)
+    mask: np.ndarray  # (B, T) bool
+    truth: np.ndarray  # (B, 3) float64 ENU (with the random global offset)
+
+
+class WindowSampler:
+    """Random windows: a drive, ``frames`` of its frames, ``crops`` random crops each."""
+
+    def __init__(self, drives: Sequence[Drive], frames: int, crops: int, crop_size: int,
+                 subset_prob: float, rng: np.random.Generator) -> None:
+        self.drives = list(drives)
+        self.frames, self.crops, self.size = frames, crops, crop_size
+        self.subset_prob = subset_prob
+        self.rng = rng
+        # Drives are drawn in proportion to their length, so every frame is equally likely.
+        lengths = np.array([len(d.images) for d in self.drives], dtype=np.float64)
+        self.p = lengths / lengths.sum()
+
+    def sample(self, batch: int) -> Batch:
+        t = self.frames * self.crops
+        s = self.size
+        out = Batch(
+            crops=np.empty((batch, t, s, s, 3), np.uint8),
+            angles=np.empty((batch, t, 3), np.float32),
+            yaw=np.empty((batch, t)),
+            mask=np.ones((batch, t), bool),
+            truth=np.empty((batch, 3)),
+        )
+        rng = self.rng
+        for b in range(batch):
+            d = self.drives[rng.choice(len(self.drives), p=self.p)]
+            n = len(d.images)
+            idx = np.sort(rng.choice(n, size=self.frames, replace=n < self.frames))
+            newest = idx[-1]
+            offset = rng.uniform(0.0, 2.0 * math.pi)
+            h, w = d.images.shape[1:3]
+            x0 = rng.integers(0, w - s + 1, size=(self.frames, self.crops))
+            y0 = rng.integers(0, h - s + 1, size=(self.frames, self.crops))
+            hz, vt = view_angles_rad(x0 + s / 2.0, y0 + s / 2.0, d.fx, d.fy, d.cx, d.cy)
+            for j, fi in enumerate(idx):
+                for c in range(self.crops):
+                    k = j * self.crops + c
+                    out.crops[b, k] = d.images[fi, y0[j, c] : y0[j, c] + s, x0[j, c] : x0[j, c] + s]
+                rows = slice(j * self.crops, (j + 1) * self.crops)
+                out.angles[b, rows, 0] = wrap_pi(d.yaw_rad[fi] - d.yaw_rad[newest])
+                out.angles[b, rows, 1] = hz[j]
+                out.angles[b, rows, 2] = vt[j]
+                out.yaw[b, rows] = d.yaw_rad[fi] + offset
+            c, sn = math.cos(offset), math.sin(offset)
+            x, y, z = d.sun_enu[newest]
+            out.truth[b] = (c * x + sn * y, -sn * x + c * y, z)  # world_from_heading(offset)
+            if rng.random() < self.subset_prob:
+                keep = rng.integers(1, t + 1)
+                out.mask[b] = False
+                out.mask[b, rng.choice(t, size=keep, replace=False)] = True
+        return out
+
+
+# ------------------------------------------------------------------------------------------
+# Training
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "light"
+    minutes: float = 80.0  # wall-clock budget of this and earlier (resumed) sessions together
+    max_steps: int = 0  # 0: until the time budget ends
+    batch_windows: int = 6
+    lr: float = 1e-3
+    weight_decay: float = 0.05
+    warmup_steps: int = 200
+    subset_prob: float = 0.3
+    frames_per_window: int = 8
+    crops_per_frame: int = 4
+    crop_fov_deg: float = PAPER_CROP_FOV_DEG
+    seed: int = 0
+    threads: int = 0  # 0: all cores
+    checkpoint_every_s: float = 300.0
+    # Recorded in the contract; filled by the CLI.
+    command: str = ""
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+def _lr_at(step: int, total: int, cfg: TrainConfig) -> float:
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    frac = min(1.0, (step - cfg.warmup_steps) / max(1, total - cfg.warmup_steps))
+    return cfg.lr * (0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * frac)))
+
+
+class _Normaliser:
+    """The contract's input normalisation, as torch ops on a uint8 NHWC batch."""
+
+    def __init__(self, input_norm: dict[str, Any]) -> None:
+        swap, gain, offset = input_affine(input_norm)
+        self.swap = swap
+        self.gain = torch.tensor(gain, dtype=torch.float32).view(1, 3, 1, 1)
+        self.offset = torch.tensor(offset, dtype=torch.float32).view(1, 3, 1, 1)
+
+    def __call__(self, crops_bgr: np.ndarray) -> Any:
+        x = torch.from_numpy(crops_bgr).permute(0, 3, 1, 2).float()
+        if self.swap:
+            x = x.flip(1)
+        return x * self.gain + self.offset
+
+
+def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)  # atomic: a kill mid-save leaves the previous checkpoint intact
+
+
+def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
+          progress: Callable[[dict[str, Any]], None] | None = None) -> Path:
+    """Train (or resume) and export; returns the model folder."""
+    if cfg.preset not in nets.PRESETS:
+        raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
+    net_cfg = nets.PRESETS[cfg.preset]
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    ckpt_path = out_dir / CHECKPOINT
+    fov = math.radians(cfg.crop_fov_deg)
+
+    t_load = time.monotonic()
+    drives = load_drives(sorted(Path(p) for p in log_paths), net_cfg.crop_size, fov)
+    n_frames = sum(len(d.images) for d in drives)
+    log.info("loaded %d drives, %d frames in %.0f s", len(drives), n_frames, time.monotonic() - t_load)
+
+    backbone, aggregator = net_cfg.build(seed=cfg.seed)
+    params = list(backbone.parameters()) + list(aggregator.parameters())
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    step, elapsed_s = 0, 0.0
+    rng = np.random.default_rng(cfg.seed)
+    if ckpt_path.exists():
+        state = torch.load(ckpt_path, weights_only=False)
+        if state["config"]["preset"] != cfg.preset:
+            raise ValidationError(
+                f"{ckpt_path} was trained with preset {state['config']['preset']!r}, not {cfg.preset!r}; "
+                "pass the same preset or another --out"
+            )
+        backbone.load_state_dict(state["backbone"])
+        aggregator.load_state_dict(state["aggregator"])
+        opt.load_state_dict(state["optimizer"])
+        step, elapsed_s = state["step"], state["elapsed_s"]
+        rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
+
+    sampler = WindowSampler(drives, cfg.frames_per_window, cfg.crops_per_frame, net_cfg.crop_size,
+                            cfg.subset_prob, rng)
+    contract_stub = net_cfg.contract(crops_per_frame=cfg.crops_per_frame,
+                                     frames_per_window=cfg.frames_per_window, crop_fov_deg=cfg.crop_fov_deg)
+    normalise = _Normaliser(contract_stub.input_norm)
+    budget_s = cfg.minutes * 60.0
+    # The schedule's length: steps if given, else estimated from the measured step time.
+    est_total = cfg.max_steps or 10**9
+    backbone.train()
+    aggregator.train()
+    start = time.monotonic() - elapsed_s
+    last_ckpt = time.monotonic()
+    ema_loss, ema_err = None, None
+
+    def state_dict() -> dict[str, Any]:
+        return {
+            "backbone": backbone.state_dict(), "aggregator": aggregator.state_dict(),
+            "optimizer": opt.state_dict(), "step": step, "elapsed_s": time.monotonic() - start,
+            "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "config": asdict(cfg),
+        }
+
+    while True:
+        elapsed = time.monotonic() - start
+        if cfg.max_steps and step >= cfg.max_steps:
+            break
+        if not cfg.max_steps and elapsed >= budget_s:
+            break
+        if not cfg.max_steps and step >= 20:
+            est_total = int(step * budget_s / max(elapsed, 1e-9))
+        for g in opt.param_groups:
+            g["lr"] = _lr_at(step, est_total, cfg)
+
+        batch = sampler.sample(cfg.batch_windows)
+        b, t = batch.mask.shape
+        emb = backbone(normalise(batch.crops.reshape(b * t, *batch.crops.shape[2:]))).view(b, t, -1)
+        mask = torch.from_numpy(batch.mask)
+        v_head = aggregator(emb, torch.from_numpy(batch.angles), mask)
+        v_world = nets.world_from_heading_torch(v_head, torch.from_numpy(batch.yaw).float())
+        truth = torch.from_numpy(batch.truth).float()
+        token_loss = nets.sun_loss(v_world, truth[:, None, :].expand_as(v_world), mask)
+        maskf = mask.float().unsqueeze(-1)
+        mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
+        window_loss = nets.sun_loss(mean, truth)
+        loss = token_loss + window_loss
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        step += 1
+
+        with torch.no_grad():
+            cos = (torch.nn.functional.normalize(mean, dim=-1) * truth).sum(-1).clamp(-1, 1)
+            err_deg = float(torch.rad2deg(torch.acos(cos)).mean())
+        ema_loss = float(loss) if ema_loss is None else 0.98 * ema_loss + 0.02 * float(loss)
+        ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg
+        if progress:
+            progress({"step": step, "total": est_total, "elapsed_s": time.monotonic() - start,
+                      "budget_s": budget_s, "loss": ema_loss, "err_deg": ema_err})
+        if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:
+            _save_checkpoint(ckpt_path, state_dict())
+            last_ckpt = time.monotonic()
+
+    _save_checkpoint(ckpt_path, state_dict())
+    data = dict(cfg.data)
+    data.update({"drives": len(drives), "frames": n_frames})
+    training = {
+        "trained": True,
+        "command": cfg.command,
+        "data": data,
+        "recipe": {k: v for k, v in asdict(cfg).items() if k not in ("command", "data")},
+        "steps": step,
+        "windows_seen": step * cfg.batch_windows,
+        "minutes": round((time.monotonic() - start) / 60.0, 1),
+        "final_train_err_deg_ema": round(ema_err or float("nan"), 2),
+    }
+    contract = net_cfg.contract(crops_per_frame=cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
+                                crop_fov_deg=cfg.crop_fov_deg, training=training)
+    return export_model(backbone, aggregator, contract, out_dir)
+
+
+def data_fingerprint(paths: Sequence[Path]) -> str:
+    """Short hash of the training logs' names and sizes, recorded in the contract."""
+    h = hashlib.sha256()
+    for p in sorted(Path(x) for x in paths):
+        h.update(p.name.encode())
+        h.update(str(p.stat().st_size).encode())
+    return h.hexdigest()[:12]
+
+
+def command_line() -> str:
+    return "sunrig " + " ".join(sys.argv[1:])

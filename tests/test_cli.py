@@ -1,0 +1,114 @@
+"""`sunrig replay` as a user runs it: a subprocess, its exit code, its stdout and stderr."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+
+PNG_BYTES = bytes.fromhex("89504e470d0a1a0a0000000d4948445200000001000000010806000000") + b"\x00" * 20
+
+
+def run_cli(*args, timeout=120):
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    return subprocess.run([sys.executable, "-m", "rig.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+@pytest.fixture
+def bad_inputs(tmp_path):
+    paths = {
+        "random": tmp_path / "random.mcap",
+        "empty": tmp_path / "empty.mcap",
+        "png": tmp_path / "image.png",
+    }
+    paths["random"].write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    paths["empty"].write_bytes(b"")
+    paths["png"].write_bytes(PNG_BYTES)
+    paths["missing"] = tmp_path / "nope.mcap"
+    paths["directory"] = tmp_path
+    return paths
+
+
+@pytest.mark.parametrize("kind", ["random", "empty", "png", "missing", "directory"])
+def test_replay_of_a_non_log_fails_with_one_line(bad_inputs, kind):
+    res = run_cli("replay", str(bad_inputs[kind]), "--jsonl", "-")
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("sunrig: error: ") and "Traceback" not in res.stderr
+    assert str(bad_inputs[kind].name) in lines[0]
+    assert res.stdout == ""
+
+
+def test_debug_shows_the_traceback(bad_inputs):
+    res = run_cli("--debug", "replay", str(bad_inputs["random"]))
+    assert res.returncode != 0 and "Traceback" in res.stderr
+
+
+def _write_log(path, n=12):
+    from replay.native import LogWriter
+
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(4)
+    with LogWriter(path) as w:
+        for i in range(n):
+            img = rng.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
+            att = Attitude(math.radians(10.0 * i), HeadingRef.TRUE) if i != 5 else None
+            w.write_frame(Frame(t_mono_s=0.2 * i, seq=i, image_bgr=img, intrinsics=intr, attitude=att,
+                                sun_enu_truth=[0.6, 0.0, 0.8]))
+    return path
+
+
+def test_replay_without_model_says_pass_model(tmp_path, monkeypatch):
+    log = _write_log(tmp_path / "a.mcap")
+    res = run_cli("replay", str(log), "--model", str(tmp_path / "no-such-model"))
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
+    assert "no-such-model" in res.stderr
+
+
+def test_replay_with_a_broken_model_file(tmp_path):
+    log = _write_log(tmp_path / "a.mcap")
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "backbone.onnx").write_bytes(b"not onnx at all")
+    (model / "aggregator.onnx").write_bytes(b"not onnx either")
+    res = run_cli("replay", str(log), "--model", str(model))
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert "backbone.onnx" in res.stderr
+
+
+@pytest.mark.torch
+@pytest.mark.parametrize("aggregator", ["transformer", "mean", "meanshift", "single"])
+def test_replay_writes_one_json_object_per_estimate(tmp_path, tiny_model_dir, aggregator):
+    log = _write_log(tmp_path / "a.mcap")
+    out = tmp_path / "est.jsonl"
+    res = run_cli("replay", str(log), "--model", str(tiny_model_dir), "--aggregator", aggregator,
+                  "--jsonl", str(out))
+    assert res.returncode == 0, res.stderr
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(rows) == 11  # 12 frames, one without heading
+    assert "1 frames without heading skipped" in res.stderr
+    required = {"t", "seq", "sun_enu", "azimuth_deg", "elevation_deg", "heading_deg", "heading_ref",
+                "spread_deg", "n_frames", "truth_enu", "error_deg"}
+    for row in rows:
+        assert required <= set(row)
+        assert row["aggregator"] == aggregator
+        assert np.linalg.norm(row["sun_enu"]) == pytest.approx(1.0, abs=1e-6)
+        assert 0.0 <= row["error_deg"] <= 180.0
+        assert row["truth_enu"] == pytest.approx([0.6, 0.0, 0.8])
+    assert [r["seq"] for r in rows] == [0, 1, 2, 3, 4, 6, 7, 8, 9, 10, 11, 12][: len(rows)]
+    assert rows[0]["n_frames"] == 1 and max(r["n_frames"] for r in rows) > 1
+
+
+@pytest.mark.torch
+def test_replay_to_stdout(tmp_path, tiny_model_dir):
+    log = _write_log(tmp_path / "a.mcap", n=3)
+    res = run_cli("replay", str(log), "--model", str(tiny_model_dir), "--jsonl", "-", "--quiet")
+    assert res.returncode == 0 and res.stderr == ""
+    assert len(res.stdout.splitlines()) == 3

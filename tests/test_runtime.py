@@ -1,0 +1,318 @@
+"""The onnxruntime model: loading a model folder, feeding it, and refusing every folder that does
+not fit its contract with a one-line message that names the difference."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.contract import (
+    AGGREGATOR_FILE,
+    BACKBONE_FILE,
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    ModelContract,
+)
+from estimator.runtime import OnnxModel, check_expected
+from rig.errors import ContractMismatch, ModelError, ValidationError
+from tests.tolerances import BATCHED_F32
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def copy_model(src: Path, dst: Path) -> Path:
+    dst.mkdir(parents=True, exist_ok=True)
+    for name in (BACKBONE_FILE, AGGREGATOR_FILE):
+        shutil.copy(src / name, dst / name)
+    return dst
+
+
+def edit_metadata(
+    path: Path,
+    *,
+    contract_changes: dict | None = None,
+    set_keys: dict | None = None,
+    drop_keys: tuple[str, ...] = (),
+) -> None:
+    """Rewrite an ONNX file's metadata in place, as a careless tool or a hand edit would."""
+    onnx = pytest.importorskip("onnx")
+    model = onnx.load(str(path))
+    meta = {p.key: p.value for p in model.metadata_props}
+    if contract_changes:
+        raw = json.loads(meta["sunrig.contract"])
+        raw.update(contract_changes)
+        meta["sunrig.contract"] = json.dumps(raw)
+    meta.update(set_keys or {})
+    for key in drop_keys:
+        meta.pop(key, None)
+    del model.metadata_props[:]
+    for key, value in meta.items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.save(model, str(path))
+
+
+def refusal(exc_type, model_dir: Path, **kwargs) -> str:
+    with pytest.raises(exc_type) as info:
+        OnnxModel.load(model_dir, **kwargs)
+    message = str(info.value)
+    assert "\n" not in message, f"expected a one-line message, got {message!r}"
+    return message
+
+
+@pytest.fixture(scope="module")
+def model(tiny_model_dir) -> OnnxModel:
+    return OnnxModel.load(tiny_model_dir, intra_op_threads=1)
+
+
+@pytest.fixture(scope="module")
+def crop48_model_dir(tmp_path_factory) -> Path:
+    """Another tiny model with 48 px crops (same D), to swap graphs between folders. The legacy
+    exporter is enough here and takes a tenth of the time."""
+    pytest.importorskip("torch", reason="building a test model needs the train extra")
+    from estimator.export import build_random_model
+
+    return build_random_model(
+        tmp_path_factory.mktemp("crop48"), crop_size=48, seed=5, exporter="legacy"
+    )
+
+
+# ---------------------------------------------------------------------------- loading
+
+
+@pytest.mark.torch
+def test_load_reads_the_contract(model, tiny_model_dir):
+    c = model.contract
+    assert (c.crop_size_px, c.embedding_dim, c.crops_per_frame, c.frames_per_window) == (
+        32,
+        64,
+        4,
+        8,
+    )
+    assert c.training["trained"] is False
+    assert model.model_dir == Path(tiny_model_dir)
+    assert len(model.model_id) == 12 and int(model.model_id, 16) >= 0
+    assert OnnxModel.load(tiny_model_dir).model_id == model.model_id  # stable
+    assert "32px" in repr(model)
+
+
+@pytest.mark.torch
+def test_model_id_follows_the_graph_bytes(tiny_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    before = OnnxModel.load(folder).model_id
+    edit_metadata(folder / AGGREGATOR_FILE, set_keys={"note": "retouched"})
+    assert OnnxModel.load(folder).model_id != before
+
+
+@pytest.mark.torch
+def test_expected_fields(tiny_model_dir):
+    OnnxModel.load(
+        tiny_model_dir, expect={"crops_per_frame": 4, "encoding": {"kind": "cyclic-nested-sine"}}
+    )
+    message = refusal(
+        ContractMismatch, tiny_model_dir, expect={"crop_size_px": 128, "frames_per_window": 8}
+    )
+    assert "crop_size_px: 32 != expected 128" in message
+    assert "frames_per_window" not in message
+
+
+def test_check_expected_names_nested_fields():
+    contract = ModelContract(crop_size_px=64, embedding_dim=32)
+    check_expected(contract, {"embedding_dim": 32, "input_norm": {"color_order": "RGB"}})
+    with pytest.raises(ContractMismatch, match=r"input_norm.color_order: 'RGB' != expected 'BGR'"):
+        check_expected(contract, {"input_norm": {"color_order": "BGR"}})
+    with pytest.raises(ValidationError, match="not contract fields: crop_size"):
+        check_expected(contract, {"crop_size": 64})
+
+
+@pytest.mark.torch
+def test_thread_count_is_validated(tiny_model_dir):
+    with pytest.raises(ValidationError, match="intra_op_threads"):
+        OnnxModel.load(tiny_model_dir, intra_op_threads=0)
+
+
+# ---------------------------------------------------------------------------- running
+
+
+@pytest.mark.torch
+def test_normalise_follows_input_norm(model):
+    crops = np.random.default_rng(0).integers(0, 256, size=(3, 32, 32, 3), dtype=np.uint8)
+    rgb = crops[..., ::-1].astype(np.float64) / 255.0
+    want = ((rgb - np.array(IMAGENET_MEAN)) / np.array(IMAGENET_STD)).transpose(0, 3, 1, 2)
+    got = model.normalise(crops)
+    assert got.dtype == np.float32 and got.shape == (3, 3, 32, 32) and got.flags.c_contiguous
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
+
+
+@pytest.mark.torch
+def test_embed_shapes_and_batching(model):
+    crops = np.random.default_rng(1).integers(0, 256, size=(5, 32, 32, 3), dtype=np.uint8)
+    whole = model.embed(crops)
+    assert whole.shape == (5, 64) and whole.dtype == np.float32
+    np.testing.assert_allclose(model.embed(crops, batch_size=2), whole, atol=BATCHED_F32, rtol=0)
+    np.testing.assert_allclose(model.embed(crops[3:4]), whole[3:4], atol=BATCHED_F32, rtol=0)
+    assert model.embed(crops[:0]).shape == (0, 64)
+
+
+@pytest.mark.torch
+@pytest.mark.parametrize(
+    ("crops", "match"),
+    [
+        (np.zeros((2, 32, 32, 3), np.float32), "dtype uint8"),
+        (np.zeros((2, 48, 48, 3), np.uint8), r"expected shape \(N, 32, 32, 3\)"),
+        (np.zeros((32, 32, 3), np.uint8), r"expected shape \(N, 32, 32, 3\)"),
+        ([[0]], "numpy array"),
+    ],
+)
+def test_embed_rejects_bad_crops(model, crops, match):
+    with pytest.raises(ValidationError, match=match):
+        model.embed(crops)
+
+
+@pytest.mark.torch
+def test_aggregate_shapes(model):
+    rng = np.random.default_rng(2)
+    emb = rng.normal(size=(2, 32, 64)).astype(np.float32)
+    ang = rng.uniform(-3, 3, size=(2, 32, 3))  # float64 is accepted and cast
+    mask = np.ones((2, 32), dtype=bool)
+    mask[1, 10:] = False
+    out = model.aggregate(emb, ang, mask)
+    assert out.shape == (2, 32, 3) and out.dtype == np.float32
+    assert np.all(np.isfinite(out)) and np.all(out[1, 10:] == 0.0)
+    single = model.aggregate(emb[1:, :10], ang[1:, :10], mask[1:, :10])
+    np.testing.assert_allclose(out[1:, :10], single, atol=BATCHED_F32, rtol=0)
+    assert model.aggregate(emb[:0], ang[:0], mask[:0]).shape == (0, 32, 3)
+
+
+@pytest.mark.torch
+def test_aggregate_rejects_bad_inputs(model):
+    emb = np.zeros((1, 4, 64), np.float32)
+    ang = np.zeros((1, 4, 3), np.float32)
+    mask = np.ones((1, 4), bool)
+    with pytest.raises(ValidationError, match=r"embeddings: expected shape \(B, T, 64\)"):
+        model.aggregate(np.zeros((1, 4, 32), np.float32), ang, mask)
+    with pytest.raises(ValidationError, match=r"angles: expected shape \(1, 4, 3\)"):
+        model.aggregate(emb, ang[:, :3], mask)
+    with pytest.raises(ValidationError, match="dtype bool"):
+        model.aggregate(emb, ang, mask.astype(np.int64))
+    with pytest.raises(ValidationError, match=r"mask: expected shape \(1, 4\)"):
+        model.aggregate(emb, ang, mask[:, :2])
+    with pytest.raises(ValidationError, match="finite"):
+        model.aggregate(emb, np.full((1, 4, 3), np.nan, np.float32), mask)
+
+
+# ---------------------------------------------------------------------------- refusals
+
+
+def test_refuses_a_missing_folder(tmp_path):
+    message = refusal(ModelError, tmp_path / "nowhere")
+    assert "does not exist" in message and "backbone.onnx" in message
+
+
+def test_refuses_a_folder_without_graphs(tmp_path):
+    (tmp_path / BACKBONE_FILE).write_bytes(b"")
+    message = refusal(ModelError, tmp_path)
+    assert "lacks aggregator.onnx" in message
+
+
+def test_refuses_random_bytes(tmp_path):
+    rng = np.random.default_rng(3)
+    for name in (BACKBONE_FILE, AGGREGATOR_FILE):
+        (tmp_path / name).write_bytes(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    message = refusal(ModelError, tmp_path)
+    assert "backbone.onnx: not a usable ONNX graph" in message and "re-export" in message
+
+
+@pytest.mark.torch
+def test_refuses_a_graph_without_contract(tiny_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    edit_metadata(folder / AGGREGATOR_FILE, drop_keys=("sunrig.contract",))
+    message = refusal(ModelError, folder)
+    assert "aggregator.onnx" in message and "no 'sunrig.contract' metadata" in message
+
+
+@pytest.mark.torch
+def test_refuses_contract_that_is_not_json(tiny_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    edit_metadata(folder / BACKBONE_FILE, set_keys={"sunrig.contract": "{crop_size_px: 32"})
+    assert "not JSON" in refusal(ContractMismatch, folder)
+
+
+@pytest.mark.torch
+def test_refuses_graphs_from_two_models(tiny_model_dir, crop48_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    shutil.copy(crop48_model_dir / BACKBONE_FILE, folder / BACKBONE_FILE)
+    message = refusal(ContractMismatch, folder)
+    assert "carry different contracts" in message
+    assert "crop_size_px: 48 != 32" in message and "re-export" in message
+
+
+@pytest.mark.torch
+def test_refuses_contracts_differing_in_one_field(tiny_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    edit_metadata(folder / AGGREGATOR_FILE, contract_changes={"frames_per_window": 16})
+    message = refusal(ContractMismatch, folder)
+    assert "frames_per_window: 8 != 16" in message and "crop_size_px" not in message
+
+
+@pytest.mark.torch
+def test_refuses_swapped_graphs(tiny_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    shutil.copy(tiny_model_dir / AGGREGATOR_FILE, folder / BACKBONE_FILE)
+    message = refusal(ContractMismatch, folder)
+    assert "backbone.onnx: holds the 'aggregator' graph" in message and "swapped" in message
+
+
+@pytest.mark.torch
+@pytest.mark.parametrize(
+    ("changes", "expected"),
+    [
+        ({"crop_size_px": 48}, "input 'crops' axis 2 is 32 but contract crop_size_px 48"),
+        ({"embedding_dim": 128}, "output 'embeddings' axis 1 is 64 but contract embedding_dim 128"),
+    ],
+)
+def test_refuses_a_contract_that_lies_about_the_graph(tiny_model_dir, tmp_path, changes, expected):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    for name in (BACKBONE_FILE, AGGREGATOR_FILE):
+        edit_metadata(folder / name, contract_changes=changes)
+    message = refusal(ContractMismatch, folder)
+    assert "backbone.onnx" in message and expected in message
+
+
+@pytest.mark.torch
+@pytest.mark.parametrize(("version", "fix"), [(2, "upgrade sunrig"), (0, "re-export")])
+def test_refuses_an_unknown_contract_version(tiny_model_dir, tmp_path, version, fix):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    for name in (BACKBONE_FILE, AGGREGATOR_FILE):
+        edit_metadata(folder / name, contract_changes={"version": version})
+    message = refusal(ContractMismatch, folder)
+    assert (
+        f"contract version {version}" in message and "reads version 1" in message and fix in message
+    )
+
+
+@pytest.mark.torch
+def test_refuses_unknown_contract_fields(tiny_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    for name in (BACKBONE_FILE, AGGREGATOR_FILE):
+        edit_metadata(folder / name, contract_changes={"colour_space": "linear"})
+    assert "colour_space" in refusal(ContractMismatch, folder)
+
+
+# ---------------------------------------------------------------------------- packaging
+
+
+def test_runtime_does_not_import_torch():
+    code = (
+        "import estimator.runtime, rig, replay, drivers, sys; "
+        "assert 'torch' not in sys.modules, 'torch imported'"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
