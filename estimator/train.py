@@ -336,7 +336,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         with torch.no_grad():
             cos = (torch.nn.functional.normalize(mean, dim=-1) * truth).sum(-1).clamp(-1, 1)
             err_deg = float(torch.rad2deg(torch.acos(cos)).mean())
-        ema_loss = float(loss) if ema_loss is None else 0.98 * ema_loss + 0.02 * float(loss)
+        loss_value = float(loss.detach())
+        ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
         ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg
         if progress:
             progress({"step": step, "total": est_total, "elapsed_s": time.monotonic() - start,
