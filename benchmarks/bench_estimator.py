@@ -1,0 +1,63 @@
+"""Per-frame and per-window cost of the estimator on this machine, per network preset.
+
+Random weights (speed does not depend on them), fp32, ONNX Runtime on the CPU. Per frame: 4 crops
+cut and resized plus one backbone run (done once, when a frame arrives). Per window: one
+aggregator run over 32 cached tokens plus the calibration. Needs the train extra to build models.
+
+    python3 benchmarks/bench_estimator.py [--presets fast,light,paper] [--threads N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import machine, time_ms  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", default="fast,light,paper")
+    ap.add_argument("--threads", type=int, default=0, help="ONNX Runtime intra-op threads (0: default)")
+    ap.add_argument("--repeats", type=int, default=20)
+    args = ap.parse_args()
+
+    from estimator import nets
+    from estimator.estimator import SunEstimator
+    from estimator.export import export_model
+    from estimator.runtime import OnnxModel
+    from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+
+    k = Intrinsics(fx=721.5377, fy=721.5377, cx=609.5593, cy=172.854, width=1242, height=375)
+    rng = np.random.default_rng(0)
+    frames = [Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (375, 1242, 3), dtype=np.uint8),
+                    intrinsics=k, attitude=Attitude(math.radians(5.0 * i), HeadingRef.TRUE)) for i in range(8)]
+    results = {}
+    for name in args.presets.split(","):
+        cfg = nets.PRESETS[name]
+        with tempfile.TemporaryDirectory() as tmp:
+            backbone, aggregator = cfg.build(seed=0)
+            export_model(backbone, aggregator, cfg.contract(training={"trained": False}), tmp)
+            model = OnnxModel.load(tmp, intra_op_threads=args.threads or None)
+            est = SunEstimator(model)
+            window = est.encode_batch(frames)
+            i = iter(range(10**9))
+            per_frame = time_ms(lambda: est.encode(frames[next(i) % 8]), repeats=args.repeats)
+            per_window = {agg: time_ms(lambda a=agg: est.estimate(window, a), repeats=args.repeats)
+                          for agg in ("transformer", "mean", "meanshift", "single")}
+            results[name] = {"crop_size_px": cfg.crop_size, "base_width": cfg.base_width,
+                             "frame_encode": per_frame, "window": per_window}
+    print(json.dumps({"benchmark": "estimator", "image": [1242, 375], "crops_per_frame": 4,
+                      "tokens_per_window": 32, "results": results, "machine": machine()}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
