@@ -50,8 +50,8 @@ def main() -> None:
             est = SunEstimator(model)
             window = est.encode_batch(frames)
             i = iter(range(10**9))
-            per_frame = time_ms(lambda: est.encode(frames[next(i) % 8]), repeats=args.repeats)
-            per_window = {agg: time_ms(lambda a=agg: est.estimate(window, a), repeats=args.repeats)
+            per_frame = time_ms(lambda e=est, i=i: e.encode(frames[next(i) % 8]), repeats=args.repeats)
+            per_window = {agg: time_ms(lambda e=est, w=window, a=agg: e.estimate(w, a), repeats=args.repeats)
                           for agg in ("transformer", "mean", "meanshift", "single")}
             results[name] = {"crop_size_px": cfg.crop_size, "base_width": cfg.base_width,
                              "frame_encode": per_frame, "window": per_window}

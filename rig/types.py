@@ -279,7 +279,8 @@ class SunEstimate:
             raise ValidationError(f"SunEstimate.spread_rad: expected within [0, pi] rad, got {spread}")
         if self.n_frames < 1 or self.n_tokens < 1:
             raise ValidationError(
-                f"SunEstimate: expected at least one frame and token, got {self.n_frames} frames, {self.n_tokens} tokens"
+                "SunEstimate: expected at least one frame and token, "
+                f"got {self.n_frames} frames, {self.n_tokens} tokens"
             )
         if self.truth_enu is not None:
             object.__setattr__(self, "truth_enu", _vector3("SunEstimate.truth_enu", self.truth_enu, unit=True))
