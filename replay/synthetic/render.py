@@ -37,10 +37,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from rig.geometry import world_from_heading
-from rig.types import Intrinsics
 from replay.synthetic.scene import ALBEDO_SCALE, Scene, Solid
 from replay.synthetic.sky import SUN_ANGULAR_RADIUS_RAD, PreethamSky
+from rig.geometry import world_from_heading
+from rig.types import Intrinsics
 
 SKY_ID, GROUND_ID, FIRST_FACE_ID = 0, 1, 2
 _FAR = 1.0e5  # metres: the depth of the sky
@@ -50,6 +50,8 @@ _SHADOW_TOL = 0.06  # metres of exit height above P before P counts as shadowed
 _SHADOW_SOFT = 0.12  # metres over which the shadow fades in (a penumbra of sorts)
 _NOISE_TEXELS_PER_M = 12.0
 _GROUND_NOISE_TEXELS_PER_M = 24.0
+_DOME_STEP_DEG = 0.5
+_MAX_SHADOW_CELLS = 4096  # per side of the exit-height map
 
 
 # ---------------------------------------------------------------------------------------------
@@ -213,6 +215,8 @@ class Renderer:
         self._compile_objects()
         g = scene.ground
         extent = np.array(g.albedo.shape[1::-1]) * g.res_m
+        # Long drives cover more ground: coarsen the shadow map rather than let it grow unbounded.
+        shadow_res_m = max(shadow_res_m, float(extent.max()) / _MAX_SHADOW_CELLS)
         self.shadow_res = shadow_res_m
         self.shadow_origin = g.origin_xy
         shape = (int(math.ceil(extent[1] / shadow_res_m)), int(math.ceil(extent[0] / shadow_res_m)))
@@ -221,14 +225,16 @@ class Renderer:
         u = (np.arange(w, dtype=np.float32) + 0.5 - self.intr.cx) / self.intr.fx
         v = (np.arange(h, dtype=np.float32) + 0.5 - self.intr.cy) / self.intr.fy
         self.xn, self.yn = np.meshgrid(u, v)
+        self._xcol, self._yrow = u.astype(np.float64), v.astype(np.float64)
+        self._ws: dict[str, np.ndarray] = {}
         self.zeros = np.zeros((h, w), np.float32)
         hs, ws = -(-h // sky_step_px), -(-w // sky_step_px)
         us = ((np.arange(ws) + 0.5) * sky_step_px - self.intr.cx) / self.intr.fx
         vs = ((np.arange(hs) + 0.5) * sky_step_px - self.intr.cy) / self.intr.fy
         self.xs, self.ys = (a.astype(np.float32) for a in np.meshgrid(us, vs))
         self._noise = scene.noise
-        ambient_ground = sky.ambient_irradiance([[0.0, 0.0, 1.0]])[0]
-        self._ground_light = (sky.direct_irradiance([[0.0, 0.0, 1.0]])[0], ambient_ground)
+        self._ground_border = tuple(float(v) * ALBEDO_SCALE for v in g.default_bgr)
+        self._build_dome()
 
     # -- scene compilation
 
@@ -252,49 +258,54 @@ class Renderer:
         self.D = np.concatenate(offsets) if offsets else np.zeros(0)
         nf = len(self.F)
         total = nf + FIRST_FACE_ID
-        # Texture frame: e1 horizontal along the face, e2 up the face (or north on flat faces);
-        # a, b in metres from the face's lower-left corner.
+        # Texture coordinates (metres): a = e1 . P + a0 along the face (e1 horizontal, a from 0
+        # at the face's left edge); b = z on walls (buildings stand on z = 0, so b is the height
+        # on the wall), y on flat faces and the ground.
         e1 = np.zeros((total, 3))
-        e2 = np.zeros((total, 3))
         a0 = np.zeros(total)
-        b0 = np.zeros(total)
         e1[GROUND_ID] = (1.0, 0.0, 0.0)
-        e2[GROUND_ID] = (0.0, 1.0, 0.0)
-        win_a = np.zeros((total, 4), np.float32)  # spacing, a_start, a_end, half width fraction
-        win_b = np.zeros((total, 4), np.float32)  # spacing, first floor, top, half height fraction
+        win_a = np.zeros((total, 4), np.float32)  # 1/spacing, offset, columns, half width fraction
+        win_b = np.zeros((total, 4), np.float32)  # 1/floor height, offset, floors, half height fraction
         win_a[:, 0] = win_b[:, 0] = 1.0
         glass = np.zeros((total, 4), np.float32)
         alb = np.zeros((total, 4), np.float32)
-        g = self.scene.ground
         alb[GROUND_ID] = (0.0, 0.0, 0.0, 0.35)  # ground albedo comes from the map
-        for i in range(nf):
+        fs = slice(FIRST_FACE_ID, None)
+        n = self.N
+        flat = np.abs(n[:, 2]) >= 0.99
+        d1 = np.cross(np.array([0.0, 0.0, 1.0]), n)
+        d1[flat] = (1.0, 0.0, 0.0)
+        d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+        d2 = np.cross(n, d1)
+        fv = self.V[self.F]  # (F, 4, 3)
+        pa = np.einsum("fkj,fj->fk", fv, d1)
+        pb = np.einsum("fkj,fj->fk", fv, d2)
+        e1[fs] = d1
+        a0[fs] = -pa.min(axis=1)
+        alb[fs, :3] = np.array([m.albedo_rgb[::-1] for m in mats], dtype=np.float64).reshape(-1, 3)
+        alb[fs, 3] = np.array([m.contrast for m in mats], dtype=np.float64)
+        lengths, heights = pa.max(axis=1) - pa.min(axis=1), pb.max(axis=1) - pb.min(axis=1)
+        has_windows = np.array([m.windows is not None for m in mats], dtype=bool)
+        for i in np.nonzero(has_windows & (np.abs(n[:, 2]) < 0.2))[0]:
             f = i + FIRST_FACE_ID
-            n = self.N[i]
-            if abs(n[2]) < 0.99:
-                d1 = np.cross([0.0, 0.0, 1.0], n)
-                d1 /= np.linalg.norm(d1)
-            else:
-                d1 = np.array([1.0, 0.0, 0.0])
-            d2 = np.cross(n, d1)
-            fv = self.V[self.F[i]]
-            pa, pb = fv @ d1, fv @ d2
-            e1[f], e2[f] = d1, d2
-            a0[f], b0[f] = -pa.min(), -pb.min()
-            m = mats[i]
-            alb[f] = (*m.albedo_rgb[::-1], m.contrast)
-            w = m.windows
-            if w is not None and abs(n[2]) < 0.2:
-                length, height = pa.max() - pa.min(), pb.max() - pb.min()
-                su, sw = w.spacing_m
-                ncol = int((length - 1.0) // su)
-                if ncol >= 1:
-                    start = (length - ncol * su) / 2
-                    win_a[f] = (su, start, start + ncol * su, w.size_frac[0] / 2)
-                    nfloor = int((height - w.ground_floor_m - 0.6) // sw)
-                    win_b[f] = (sw, w.ground_floor_m, w.ground_floor_m + max(nfloor, 0) * sw, w.size_frac[1] / 2)
-                    glass[f, :3] = w.glass_rgb[::-1]
-        self.tab_e1 = np.concatenate([e1, a0[:, None]], axis=1).astype(np.float32).reshape(-1, 1, 4)
-        self.tab_e2 = np.concatenate([e2, b0[:, None]], axis=1).astype(np.float32).reshape(-1, 1, 4)
+            w = mats[i].windows
+            su, sw = w.spacing_m
+            ncol = int((lengths[i] - 1.0) // su)
+            if ncol >= 1:
+                start = (lengths[i] - ncol * su) / 2
+                # In cell units: fa = a / su - start / su lies in [0, ncol) on the grid.
+                win_a[f] = (1.0 / su, start / su, ncol, w.size_frac[0] / 2)
+                nfloor = int((heights[i] - w.ground_floor_m - 0.6) // sw)
+                win_b[f] = (1.0 / sw, w.ground_floor_m / sw, max(nfloor, 0), w.size_frac[1] / 2)
+                glass[f, :3] = w.glass_rgb[::-1]
+        horizontal = np.zeros(total)
+        horizontal[GROUND_ID] = 1.0
+        horizontal[FIRST_FACE_ID:] = np.abs(self.N[:, 2]) > 0.7
+        self.tab_tex = np.stack([e1[:, 0], e1[:, 1], a0, horizontal], axis=-1).astype(np.float32).reshape(-1, 1, 4)
+        self._noise_scale = np.full((total, 1), _NOISE_TEXELS_PER_M, np.float32)
+        self._noise_scale[GROUND_ID] = _GROUND_NOISE_TEXELS_PER_M
+        self._plane_tab = np.zeros((total, 1, 4), np.float32)
+        self._plane_tab[SKY_ID, 0] = (0.0, 0.0, 0.0, _FAR)  # den 0 -> t inf -> clipped to _FAR
         self.tab_alb = alb.reshape(-1, 1, 4)
         self.tab_wa = win_a.reshape(-1, 1, 4)
         self.tab_wb = win_b.reshape(-1, 1, 4)
@@ -306,8 +317,9 @@ class Renderer:
         direct = self.sky.direct_irradiance(normals_all)
         ambient = self.sky.ambient_irradiance(normals_all)
         direct[SKY_ID] = ambient[SKY_ID] = 0.0
-        self.tab_direct = np.concatenate([direct, (normals_all @ self.sky.sun_enu)[:, None]], axis=1) \
-            .astype(np.float32).reshape(-1, 1, 4) / np.float32(math.pi)
+        # Channels 0-2: direct irradiance / pi (so albedo * it is radiance); 3: n . s.
+        self.tab_direct = np.concatenate([direct / math.pi, (normals_all @ self.sky.sun_enu)[:, None]], axis=1) \
+            .astype(np.float32).reshape(-1, 1, 4)
         self.tab_ambient = np.concatenate([ambient, np.zeros((total, 1))], axis=1) \
             .astype(np.float32).reshape(-1, 1, 4) / np.float32(math.pi)
         if total >= 32767:
@@ -402,7 +414,9 @@ class Renderer:
 
     def _rasterise(self, pose: CameraPose, r_wc: np.ndarray, rz: np.ndarray) -> np.ndarray:
         intr = self.intr
-        ids = np.where(rz < 0.0, np.float32(GROUND_ID), np.float32(SKY_ID)).astype(np.float32)
+        ids = self._buf("ids")
+        # Below the horizon the ray meets the ground (id 1), above it the sky (id 0).
+        np.copyto(ids, np.less(rz, 0.0, out=self._buf("below", dtype=bool)))
         if len(self.F) == 0:
             return ids
         c = np.asarray(pose.position, dtype=np.float64)
@@ -416,7 +430,9 @@ class Renderer:
             v = intr.fy * vc[:, 1] / vc[:, 2] + intr.cy
         fu, fv = u[self.F], v[self.F]
         w, h = intr.width, intr.height
-        onscreen = ~all_in | ((fu.max(axis=1) >= 0) & (fu.min(axis=1) <= w) & (fv.max(axis=1) >= 0) & (fv.min(axis=1) <= h))
+        onscreen = ~all_in | (
+            (fu.max(axis=1) >= 0) & (fu.min(axis=1) <= w) & (fv.max(axis=1) >= 0) & (fv.min(axis=1) <= h)
+        )
         drawable = front & any_in & onscreen
         scale = float(1 << _SHIFT)
         pts_all = np.zeros((len(self.F), 4, 2), np.int32)
@@ -441,123 +457,224 @@ class Renderer:
                     cv2.fillConvexPoly(ids, pts, float(fi + FIRST_FACE_ID), cv2.LINE_8, _SHIFT)
         return ids
 
-    def sky_radiance_lowres(self, r_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sky radiance at every sky_step-th pixel (below the horizon: just above it, for fog),
-        and the angle to the sun there (for the glare)."""
-        d = np.stack([self.xs, self.ys, np.ones_like(self.xs)], axis=-1) @ r_wc.T.astype(np.float32)
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        d[..., 2] = np.maximum(d[..., 2], 0.03)
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    # -- sky
+
+    def _build_dome(self) -> None:
+        """The sky (and cloud layer) over azimuth x elevation, once per scene: the sun is fixed."""
+        step = math.radians(_DOME_STEP_DEG)
+        n_az = int(round(2 * math.pi / step))
+        n_el = int(round(math.pi / 2 / step)) + 1
+        az = np.arange(n_az) * step
+        el = np.arange(n_el) * step
+        az_g, el_g = np.meshgrid(az, el)
+        d = np.stack([np.cos(el_g) * np.sin(az_g), np.cos(el_g) * np.cos(az_g), np.sin(el_g)], axis=-1)
+        d = d.astype(np.float32)
         rad = self.sky.radiance(d)
         if self.sky.cloud_cover > 0.0:
             rad = self._clouds(d, rad)
-        gamma = np.arccos(np.clip(d @ self.sun.astype(np.float32), -1.0, 1.0))
+        self.dome = rad.astype(np.float32)
+        self._dome_inv_step = 1.0 / step
+
+    def sky_radiance_lowres(self, r_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sky radiance at every sky_step-th pixel (below the horizon: just above it, for fog),
+        and the angle to the sun there (for the glare)."""
+        rw = r_wc.astype(np.float32)
+        dx = rw[0, 0] * self.xs + rw[0, 1] * self.ys + rw[0, 2]
+        dy = rw[1, 0] * self.xs + rw[1, 1] * self.ys + rw[1, 2]
+        dz = rw[2, 0] * self.xs + rw[2, 1] * self.ys + rw[2, 2]
+        inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+        dx, dy, dz = dx * inv, dy * inv, dz * inv
+        az = np.mod(np.arctan2(dx, dy), np.float32(2 * math.pi))
+        el = np.arcsin(np.clip(dz, 0.03, 1.0))
+        k = np.float32(self._dome_inv_step)
+        rad = cv2.remap(self.dome, az * k, el * k, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        s = self.sun.astype(np.float32)
+        gamma = np.arccos(np.clip(dx * s[0] + dy * s[1] + dz * s[2], -1.0, 1.0))
         return rad, gamma
 
     def _clouds(self, d: np.ndarray, rad: np.ndarray) -> np.ndarray:
-        # Cloud layer: the noise tile stretched over a plane ~1.5 km up.
-        z = np.maximum(d[..., 2], 0.03)
-        mx = (d[..., 0] / z * 40.0).astype(np.float32)
-        my = (d[..., 1] / z * 40.0).astype(np.float32)
+        # Cloud layer: the noise tile stretched over a plane high above.
+        z = np.maximum(d[..., 2], 0.02)
+        mx = (d[..., 0] / z * 60.0).astype(np.float32)
+        my = (d[..., 1] / z * 60.0).astype(np.float32)
         n = cv2.remap(self._noise, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
         cover = self.sky.cloud_cover
-        dens = np.clip((n - (1.0 - cover)) / 0.2, 0.0, 1.0) * np.clip(d[..., 2] / 0.1, 0.0, 1.0)
+        # Near the horizon the layer is seen edge-on: fade it into haze rather than streaks.
+        dens = np.clip((n - (1.0 - cover)) / 0.2, 0.0, 1.0) * np.clip((d[..., 2] - 0.04) / 0.2, 0.0, 1.0)
         cos_g = np.clip(d @ self.sun.astype(np.float32), -1.0, 1.0)
         e_h = float(self.sky.ambient_irradiance([[0.0, 0.0, 1.0]])[0][1] + self.sky.sun_irradiance_bgr[1] * self.sun[2])
         lum = 0.75 * e_h / math.pi * (0.8 + 0.6 * np.exp((cos_g - 1.0) * 8.0)) * (0.7 + 0.3 * n)
         return rad * (1.0 - dens[..., None]) + (lum * dens)[..., None] * np.array([1.0, 0.99, 0.97], np.float32)
 
+    # -- shading
+
+    def _buf(self, name: str, channels: int = 0, dtype=np.float32) -> np.ndarray:
+        """A preallocated per-pixel work buffer. Fresh full-frame temporaries cost page faults
+        each frame (about as much as the arithmetic), so the shading pass writes into these."""
+        b = self._ws.get(name)
+        if b is None:
+            shape = (self.intr.height, self.intr.width) + ((channels,) if channels else ())
+            b = self._ws[name] = np.empty(shape, dtype)
+        return b
+
+    def _outer(self, name: str, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        """col[j] + row[i] over the image, in one pass (for anything affine in xn, yn)."""
+        out = self._buf(name)
+        np.add(col[None, :], row[:, None], out=out)
+        return out
+
     def render(self, pose: CameraPose) -> RenderOutput:
+        """Radiance of the scene seen from ``pose``. The returned arrays are the renderer's work
+        buffers: copy them before the next call if they must be kept."""
         r_wc = pose.world_from_cam()
         c = np.asarray(pose.position, dtype=np.float64)
-        xn, yn = self.xn, self.yn
-        rw = [np.float32(r_wc[k, 0]) * xn + np.float32(r_wc[k, 1]) * yn + np.float32(r_wc[k, 2]) for k in range(3)]
-        rx, ry, rz = rw
+        f32 = np.float32
+        buf = self._buf
+        xcol, yrow = self._xcol, self._yrow
+        # World ray directions (z_cam = 1) are affine in xn, yn: each an outer sum.
+        rx = self._outer("rx", r_wc[0, 0] * xcol + r_wc[0, 2], r_wc[0, 1] * yrow)
+        ry = self._outer("ry", r_wc[1, 0] * xcol + r_wc[1, 2], r_wc[1, 1] * yrow)
+        rz = self._outer("rz", r_wc[2, 0] * xcol + r_wc[2, 2], r_wc[2, 1] * yrow)
         ids = self._rasterise(pose, r_wc, rz)
         zeros = self.zeros
 
-        def fetch(tab: np.ndarray) -> tuple[np.ndarray, ...]:
-            return cv2.split(cv2.remap(tab, zeros, ids, cv2.INTER_NEAREST))
+        def fetch(tab: np.ndarray, name: str) -> np.ndarray:
+            return cv2.remap(tab, zeros, ids, cv2.INTER_NEAREST, dst=buf(name, tab.shape[2]))
 
-        # Ray-plane intersection: n.(c + t r) = d.
-        nrm4 = np.concatenate([self.N, -(self.D - self.N @ c)[:, None]], axis=1)  # (F, 4): n, -(d - n.c)
-        plane = np.zeros((len(self.F) + FIRST_FACE_ID, 1, 4), np.float32)
-        plane[SKY_ID, 0] = (0.0, 0.0, 0.0, -_FAR)
-        plane[GROUND_ID, 0] = (0.0, 0.0, 1.0, c[2])
-        plane[FIRST_FACE_ID:, 0] = nrm4
-        nx, ny, nz, negk = fetch(plane)
-        den = nx * rx + ny * ry + nz * rz
-        is_sky = ids == SKY_ID
-        den[is_sky] = 1.0
-        den = np.where(np.abs(den) < 1e-6, np.float32(-1e-6), den)
-        t = np.clip(negk / -den, _NEAR, _FAR)  # camera-z depth, since r has z_cam = 1
-        px = np.float32(c[0]) + t * rx
-        py = np.float32(c[1]) + t * ry
-        pz = np.float32(c[2]) + t * rz
-        is_ground = ids == GROUND_ID
-        pz[is_ground] = 0.0
-        # Shadow lookup.
+        tmp, tmp2 = buf("tmp"), buf("tmp2")
+        # Ray-plane intersection n.(c + t r) = d in camera coordinates: t = k / (n_cam . (xn, yn, 1)).
+        plane = self._plane_tab
+        plane[FIRST_FACE_ID:, 0, :3] = self.N @ r_wc
+        plane[FIRST_FACE_ID:, 0, 3] = self.D - self.N @ c
+        plane[GROUND_ID, 0, :3] = r_wc[2]
+        plane[GROUND_ID, 0, 3] = -c[2]
+        g = fetch(plane, "plane")
+        den = np.multiply(g[..., 0], self.xn, out=buf("den"))
+        den += np.multiply(g[..., 1], self.yn, out=tmp)
+        den += g[..., 2]
+        t = buf("t")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            np.divide(g[..., 3], den, out=t)
+        np.clip(t, _NEAR, _FAR, out=t)  # camera-z depth; the sky (0 / 0 -> nan) is fixed below
+        t[np.isnan(t)] = _FAR
+        px = np.multiply(t, rx, out=buf("px"))
+        px += f32(c[0])
+        py = np.multiply(t, ry, out=buf("py"))
+        py += f32(c[1])
+        pz = np.multiply(t, rz, out=buf("pz"))
+        pz += f32(c[2])
+        # Shadow: the exit height over the point's sun-ward ground point, in map cells:
+        # (P - P_z s / s_z - origin) / res = (c - c_z s / s_z - origin) / res + t (r - r_z s / s_z) / res.
         s = self.sun
-        gx = px - pz * np.float32(s[0] / s[2])
-        gy = py - pz * np.float32(s[1] / s[2])
-        inv = np.float32(1.0 / self.shadow_res)
-        hval = cv2.remap(self.hmap, (gx - np.float32(self.shadow_origin[0])) * inv,
-                         (gy - np.float32(self.shadow_origin[1])) * inv, cv2.INTER_LINEAR,
+        inv = 1.0 / self.shadow_res
+        kx, ky = s[0] / s[2], s[1] / s[2]
+        ox, oy = self.shadow_origin
+        hx = self._outer("hx", inv * ((r_wc[0, 0] - kx * r_wc[2, 0]) * xcol + r_wc[0, 2] - kx * r_wc[2, 2]),
+                         inv * (r_wc[0, 1] - kx * r_wc[2, 1]) * yrow)
+        hx *= t
+        hx += f32(inv * (c[0] - kx * c[2] - ox))
+        hy = self._outer("hy", inv * ((r_wc[1, 0] - ky * r_wc[2, 0]) * xcol + r_wc[1, 2] - ky * r_wc[2, 2]),
+                         inv * (r_wc[1, 1] - ky * r_wc[2, 1]) * yrow)
+        hy *= t
+        hy += f32(inv * (c[1] - ky * c[2] - oy))
+        hval = cv2.remap(self.hmap, hx, hy, cv2.INTER_LINEAR, dst=buf("hval"),
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-        sunlit = np.clip((pz + np.float32(_SHADOW_TOL + _SHADOW_SOFT) - hval) * np.float32(1.0 / _SHADOW_SOFT), 0.0, 1.0)
-        # Texture coordinates (metres) on each face; ground: world x, y.
-        e1x, e1y, e1z, a0 = fetch(self.tab_e1)
-        e2x, e2y, e2z, b0 = fetch(self.tab_e2)
-        ta = e1x * px + e1y * py + e1z * pz + a0
-        tb = e2x * px + e2y * py + e2z * pz + b0
-        # Albedo: faces from their material and windows, ground from the map.
-        ab, ag, ar, contrast = fetch(self.tab_alb)
-        su, a_start, a_end, hwf = fetch(self.tab_wa)
-        sw, gf, top, hhf = fetch(self.tab_wb)
-        fa = (ta - a_start) / su
-        fa -= np.floor(fa)
-        fb = (tb - gf) / sw
-        fb -= np.floor(fb)
-        win = (np.abs(fa - 0.5) < hwf) & (np.abs(fb - 0.5) < hhf) & (ta > a_start) & (ta < a_end) & (tb > gf) & (tb < top)
-        gb, gg, gr, _ = fetch(self.tab_glass)
-        ab = np.where(win, gb, ab)
-        ag = np.where(win, gg, ag)
-        ar = np.where(win, gr, ar)
+        sunlit = np.subtract(pz, hval, out=buf("sunlit"))
+        sunlit += f32(_SHADOW_TOL + _SHADOW_SOFT)
+        sunlit *= f32(1.0 / _SHADOW_SOFT)
+        np.clip(sunlit, 0.0, 1.0, out=sunlit)
+        # Texture coordinates in metres: along the face horizontally, and up (z) or north (y).
+        tex = fetch(self.tab_tex, "tex")
+        ta = np.multiply(tex[..., 0], px, out=buf("ta"))
+        ta += np.multiply(tex[..., 1], py, out=tmp)
+        ta += tex[..., 2]
+        tb = np.subtract(py, pz, out=buf("tb"))
+        tb *= tex[..., 3]
+        tb += pz
+        # Windows: cells of a grid, inside the grid's extent.
+        wa, wb = fetch(self.tab_wa, "wa"), fetch(self.tab_wb, "wb")
+        fa = np.multiply(ta, wa[..., 0], out=tmp)
+        fa -= wa[..., 1]
+        fb = np.multiply(tb, wb[..., 0], out=tmp2)
+        fb -= wb[..., 1]
+        win = np.greater_equal(fa, 0, out=buf("win", dtype=bool))
+        mask = buf("mask", dtype=bool)
+        win &= np.less(fa, wa[..., 2], out=mask)
+        win &= np.greater_equal(fb, 0, out=mask)
+        win &= np.less(fb, wb[..., 2], out=mask)
+        fl = np.floor(fa, out=buf("floor"))
+        fa -= fl
+        fa -= f32(0.5)
+        np.abs(fa, out=fa)
+        win &= np.less(fa, wa[..., 3], out=mask)
+        np.floor(fb, out=fl)
+        fb -= fl
+        fb -= f32(0.5)
+        np.abs(fb, out=fb)
+        win &= np.less(fb, wb[..., 3], out=mask)
+        # Ground albedo: the fine map near, the coarse map far, where a pixel spans metres.
         gm = self.scene.ground
-        ginv = np.float32(1.0 / gm.res_m)
-        mgx = (px - np.float32(gm.origin_xy[0])) * ginv
-        mgy = (py - np.float32(gm.origin_xy[1])) * ginv
-        border = tuple(float(v) * ALBEDO_SCALE for v in gm.default_bgr)
-        fine = cv2.remap(gm.albedo, mgx, mgy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=border)
-        cf = np.float32(1.0 / gm.coarse_factor)
-        coarse = cv2.remap(gm.coarse, mgx * cf - np.float32(0.5 - 0.5 * cf), mgy * cf - np.float32(0.5 - 0.5 * cf),
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=border)
-        # Distant ground samples the coarse map: a pixel there spans metres of road.
-        footprint = t * t * np.float32(1.0 / (self.intr.fy * max(c[2], 0.3)))
-        wc = np.clip((footprint - np.float32(gm.res_m * 1.5)) / np.float32(gm.res_m * gm.coarse_factor), 0.0, 1.0)
-        groundalb = cv2.split(fine.astype(np.float32) * (1.0 - wc)[..., None] + coarse.astype(np.float32) * wc[..., None])
-        gscale = np.float32(1.0 / ALBEDO_SCALE)
+        ginv = 1.0 / gm.res_m
+        gx0, gy0 = gm.origin_xy
+        mgx = np.multiply(t, rx, out=buf("mgx"))
+        mgx *= f32(ginv)
+        mgx += f32((c[0] - gx0) * ginv)
+        mgy = np.multiply(t, ry, out=buf("mgy"))
+        mgy *= f32(ginv)
+        mgy += f32((c[1] - gy0) * ginv)
+        fine = cv2.remap(gm.albedo, mgx, mgy, cv2.INTER_LINEAR, dst=buf("fine", 3, np.uint8),
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=self._ground_border)
+        cf = f32(1.0 / gm.coarse_factor)
+        off = f32(0.5 - 0.5 / gm.coarse_factor)
+        mgx *= cf
+        mgx -= off
+        mgy *= cf
+        mgy -= off
+        coarse = cv2.remap(gm.coarse, mgx, mgy, cv2.INTER_LINEAR, dst=buf("coarse", 3, np.uint8),
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=self._ground_border)
+        coarse_w = np.multiply(t, t, out=buf("coarse_w"))
+        coarse_w *= f32(1.0 / (self.intr.fy * max(c[2], 0.3) * gm.res_m * gm.coarse_factor))
+        coarse_w -= f32(0.2)
+        np.clip(coarse_w, 0.0, 1.0, out=coarse_w)
+        coarse_w *= f32(1.0 / ALBEDO_SCALE)
+        fine_w = np.subtract(f32(1.0 / ALBEDO_SCALE), coarse_w, out=buf("fine_w"))
+        is_ground = np.equal(ids, GROUND_ID, out=buf("is_ground", dtype=bool))
         # Detail noise, fading with distance where it would only alias.
-        ng = np.float32(_NOISE_TEXELS_PER_M)
-        scale_map = np.where(is_ground, np.float32(_GROUND_NOISE_TEXELS_PER_M), ng)
-        noise = cv2.remap(self._noise, ta * scale_map, tb * scale_map, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        fade = np.float32(1.0) / (np.float32(1.0) + t * np.float32(1.0 / 25.0))
-        detail = np.float32(1.0) + np.float32(2.0) * contrast * (noise - np.float32(0.5)) * fade
-        dirb, dirg, dirr, _ = fetch(self.tab_direct)
-        ambb, ambg, ambr, _ = fetch(self.tab_ambient)
+        nscale = self._noise_scale  # per face: texels per metre
+        nsc = cv2.remap(nscale, zeros, ids, cv2.INTER_NEAREST, dst=buf("nsc"))
+        np.multiply(ta, nsc, out=tmp)
+        np.multiply(tb, nsc, out=tmp2)
+        noise = cv2.remap(self._noise, tmp, tmp2, cv2.INTER_LINEAR, dst=buf("noise"), borderMode=cv2.BORDER_WRAP)
+        alb = fetch(self.tab_alb, "alb")
+        detail = np.subtract(noise, f32(0.5), out=noise)
+        detail *= alb[..., 3]
+        fade = np.multiply(t, f32(1.0 / 12.0), out=tmp)
+        fade += f32(1.0)
+        detail /= fade
+        detail += f32(1.0)
+        glass = fetch(self.tab_glass, "glass")
+        direct = fetch(self.tab_direct, "direct")
+        ambient = fetch(self.tab_ambient, "ambient")
         sky_lo, gamma_lo = self.sky_radiance_lowres(r_wc)
         h, w = ids.shape
-        sky_full = cv2.resize(sky_lo, (w, h), interpolation=cv2.INTER_LINEAR)
-        fog = np.float32(1.0) - np.exp(-t * np.float32(1.0 / self.fog_m))
-        fog[is_sky] = 1.0
-        out = []
-        for k, (fa_, ga_, dk, ak) in enumerate(((ab, groundalb[0], dirb, ambb), (ag, groundalb[1], dirg, ambg),
-                                                  (ar, groundalb[2], dirr, ambr))):
-            albedo = np.where(is_ground, ga_ * gscale, fa_) * detail
-            light = dk * sunlit + ak
-            surf = albedo * light
-            out.append(surf + (sky_full[..., k] - surf) * fog)
-        radiance = cv2.merge(out)
+        sky_full = cv2.resize(sky_lo, (w, h), dst=buf("sky", 3), interpolation=cv2.INTER_LINEAR)
+        fog = np.multiply(t, f32(-1.0 / self.fog_m), out=buf("fog"))
+        np.exp(fog, out=fog)  # transmittance of the air between camera and surface
+        radiance = self._buf("radiance", 3)
+        albedo, light = buf("albedo"), buf("light")
+        for k in range(3):
+            np.multiply(fine[..., k], fine_w, out=tmp)
+            tmp += np.multiply(coarse[..., k], coarse_w, out=tmp2)
+            np.copyto(albedo, alb[..., k])
+            np.copyto(albedo, glass[..., k], where=win)
+            np.copyto(albedo, tmp, where=is_ground)
+            albedo *= detail
+            np.multiply(direct[..., k], sunlit, out=light)
+            light += ambient[..., k]
+            albedo *= light  # now the surface radiance
+            albedo -= sky_full[..., k]
+            albedo *= fog
+            np.add(albedo, sky_full[..., k], out=radiance[..., k])
         sun_px, sun_vis = self._add_sun(radiance, ids, r_wc, gamma_lo)
         return RenderOutput(radiance, ids, sun_px, sun_vis, depth=t, sunlit=sunlit)
 
@@ -587,7 +704,7 @@ class Renderer:
         if visible > 0.0:
             # Veiling glare and the aureole around a visible sun, over everything.
             e = float(self.sky.sun_irradiance_bgr[1]) / math.pi * visible
-            glow = e * (0.5 * np.exp(-gamma_lo / 0.02) + 0.06 * np.exp(-gamma_lo / 0.15))
+            glow = e * (3.0 * np.exp(-gamma_lo / 0.03) + 0.3 * np.exp(-gamma_lo / 0.2))
             glow_full = cv2.resize(glow.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
             tint = (self.sky.sun_irradiance_bgr / self.sky.sun_irradiance_bgr[1]).astype(np.float32)
             radiance += glow_full[..., None] * tint

@@ -79,25 +79,20 @@ class Solid:
         if len(self.materials) != len(self.faces):
             raise ValueError(f"Solid: expected {len(self.faces)} materials, got {len(self.materials)}")
         centroid = self.vertices.mean(axis=0)
-        normals = np.empty((len(self.faces), 3))
-        faces = self.faces.copy()
-        for i, f in enumerate(faces):
-            v = self.vertices[f]
-            # Newell's method: robust for quads and for triangles with a repeated vertex.
-            n = np.zeros(3)
-            for j in range(4):
-                a, b = v[j], v[(j + 1) % 4]
-                n += np.array(
-                    [(a[1] - b[1]) * (a[2] + b[2]), (a[2] - b[2]) * (a[0] + b[0]), (a[0] - b[0]) * (a[1] + b[1])]
-                )
-            n /= np.linalg.norm(n)
-            if n @ (v.mean(axis=0) - centroid) < 0:  # make every face wind outward
-                n = -n
-                faces[i] = f[::-1]
-            normals[i] = n
-        self.faces = faces
-        self.normals = normals
-        self.offsets = np.einsum("ij,ij->i", normals, self.vertices[faces[:, 0]])
+        v = self.vertices[self.faces]  # (F, 4, 3)
+        a, b = v, np.roll(v, -1, axis=1)
+        # Newell's method: robust for quads and for triangles with a repeated vertex.
+        n = np.stack([
+            np.sum((a[..., 1] - b[..., 1]) * (a[..., 2] + b[..., 2]), axis=1),
+            np.sum((a[..., 2] - b[..., 2]) * (a[..., 0] + b[..., 0]), axis=1),
+            np.sum((a[..., 0] - b[..., 0]) * (a[..., 1] + b[..., 1]), axis=1),
+        ], axis=-1)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        inward = np.einsum("ij,ij->i", n, v.mean(axis=1) - centroid) < 0
+        n[inward] *= -1.0  # make every face wind outward
+        self.faces[inward] = self.faces[inward][:, ::-1]
+        self.normals = n
+        self.offsets = np.einsum("ij,ij->i", n, self.vertices[self.faces[:, 0]])
 
     @property
     def z_range(self) -> tuple[float, float]:
@@ -251,7 +246,7 @@ def random_path(rng: np.random.Generator, drive_length_m: float, road: RoadSpec,
     first = True
     intersections_at: list[tuple[float, float, float]] = []  # (s at arc start, R, sign)
     while total < need:
-        straight = rng.uniform(6.0, 0.6 * drive_length_m) if first else rng.uniform(15.0, 70.0)
+        straight = rng.uniform(6.0, max(12.0, 0.6 * drive_length_m)) if first else rng.uniform(15.0, 70.0)
         first = False
         pieces.append((straight, 0.0))
         total += straight
@@ -313,8 +308,8 @@ class GroundMap:
         (x0, y0), (x1, y1) = extent
         w, h = int(math.ceil((x1 - x0) / res_m)), int(math.ceil((y1 - y0) / res_m))
         bgr = np.array(albedo_rgb[::-1]) * ALBEDO_SCALE
-        img = np.empty((h, w, 3), np.uint8)
-        img[:] = np.clip(np.round(bgr), 0, 255).astype(np.uint8)
+        img = np.zeros((h, w, 3), np.uint8)
+        cv2.rectangle(img, (0, 0), (w, h), tuple(float(v) for v in np.clip(np.round(bgr), 0, 255)), -1)
         return GroundMap((x0, y0), res_m, img, tuple(float(a) for a in albedo_rgb[::-1]))
 
     def to_px(self, xy) -> np.ndarray:
@@ -377,9 +372,10 @@ def paint_ground(rng: np.random.Generator, path: RoadPath, road: RoadSpec, groun
     var = fractal_noise(rng, 256, beta=1.5)
     # One noise texel per metre: tile the 256-texel tile over the map, then upsample.
     up = max(1, int(round(1.0 / res)))
-    var_tiles = np.tile(var, (h // (256 * up) + 1, w // (256 * up) + 1))
-    img = np.empty((h, w, 3), np.uint8)
-    img[:] = _albedo_px(base_rgb)
+    var8 = np.clip(96.0 + 64.0 * var, 0, 255).astype(np.uint8)  # 0.75..1.25 in 1/128ths
+    var_tiles = np.tile(var8, (h // (256 * up) + 1, w // (256 * up) + 1))
+    img = np.zeros((h, w, 3), np.uint8)  # (cv2 fills a fresh map far faster than numpy does)
+    cv2.rectangle(img, (0, 0), (w, h), _albedo_px(base_rgb), -1)
     paint = _Painter(img, lo, res)
 
     hw, outer = road.half_width, road.outer
@@ -448,10 +444,10 @@ def paint_ground(rng: np.random.Generator, path: RoadPath, road: RoadSpec, groun
     band = 256 * up
     for r0 in range(0, h, band):
         tile_rows = var_tiles[r0 // up: r0 // up + 256]
-        mod = cv2.resize(tile_rows, (tile_rows.shape[1] * up, tile_rows.shape[0] * up),
-                         interpolation=cv2.INTER_LINEAR)[: min(band, h - r0), :w]
-        rows = img[r0:r0 + mod.shape[0]]
-        rows[:] = np.clip(rows.astype(np.float32) * (0.75 + 0.5 * mod)[..., None], 0, 255).astype(np.uint8)
+        mod8 = cv2.resize(tile_rows, (tile_rows.shape[1] * up, tile_rows.shape[0] * up),
+                          interpolation=cv2.INTER_LINEAR)[: min(band, h - r0), :w]
+        rows = img[r0:r0 + mod8.shape[0]]
+        cv2.multiply(rows, cv2.merge([mod8, mod8, mod8]), dst=rows, scale=1.0 / 128.0)
     return GroundMap((float(lo[0]), float(lo[1])), res, img, tuple(float(v) for v in base_rgb[::-1]))
 
 

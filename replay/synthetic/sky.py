@@ -137,6 +137,9 @@ class PreethamSky:
         lum = self._zY * _perez(cos_theta, gamma, cos_gamma, self._cy) / self._f0[0]
         x = self._zx * _perez(cos_theta, gamma, cos_gamma, self._cx) / self._f0[1]
         y = self._zy * _perez(cos_theta, gamma, cos_gamma, self._cyc) / self._f0[2]
+        # Near the horizon the model's chromaticity dips below the daylight locus (a magenta
+        # cast); keep it on or above the locus y_D(x) = -3 x^2 + 2.87 x - 0.275.
+        y = np.maximum(y, -3.0 * x * x + 2.87 * x - 0.275 - 0.002)
         y = np.maximum(y, 1e-4)
         big_x = x / y * lum
         big_z = (1.0 - x - y) / y * lum
@@ -153,7 +156,8 @@ class PreethamSky:
             return clear.astype(np.float32)
         sin_el = np.clip(d[..., 2], 0.0, 1.0)
         grey = self._overcast_zenith * (1.0 + 2.0 * sin_el) / 3.0
-        c = self.cloud_cover
+        # The cloud layer itself is drawn by the renderer; this is the veil between the clouds.
+        c = 0.4 * self.cloud_cover
         return ((1.0 - c) * clear + c * grey[..., None]).astype(np.float32)
 
     def sun_disk_radiance_bgr(self) -> np.ndarray:

@@ -1,0 +1,376 @@
+"""Synthetic drives: determinism, Frame fields, and that the picture obeys the sun it claims.
+
+The geometric checks build tiny scenes by hand (a pole, a box, a wall and a car) on flat, untextured
+ground, light them with a known sun and look at the rendered radiance where the conventions say
+the shadow, the sun or the lit face must be: azimuth clockwise from north, ENU, heading along
+(sin psi, cos psi), OpenCV camera, pixel (u, v) continuous with the image edge at 0.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from replay.synthetic import Drive, drive_seed, kitti_intrinsics, plan_drive, synth_drive
+from replay.synthetic.camera import CameraEffects
+from replay.synthetic.drive import SUN_ELEVATION_RANGE_DEG
+from replay.synthetic.render import CameraPose, Renderer, project_direction, project_points, world_from_cam
+from replay.synthetic.scene import GroundMap, Material, Scene, SceneObject, box_solid, make_car
+from replay.synthetic.sky import PreethamSky
+from rig.geometry import az_el_from_enu, enu_from_az_el, world_from_heading
+from rig.types import HeadingRef
+
+SMALL = kitti_intrinsics(0.25)  # 310 x 94, the KITTI field of view
+LUMA = np.array([0.0722, 0.7152, 0.2126], np.float32)  # BGR
+GREY = Material((0.3, 0.3, 0.3), contrast=0.0)
+
+
+def flat_scene(objects, albedo=(0.25, 0.25, 0.25)) -> Scene:
+    return Scene(GroundMap.flat(albedo, ((-60.0, -60.0), (60.0, 60.0)), 0.1), objects,
+                 np.full((256, 256), 0.5, np.float32))
+
+
+def render(objects, sun_az_deg, sun_el_deg, pose, intr=SMALL):
+    sky = PreethamSky(enu_from_az_el(math.radians(sun_az_deg), math.radians(sun_el_deg)), 3.0)
+    r = Renderer(flat_scene(objects), sky, intr, shadow_res_m=0.05)
+    out = r.render(pose)
+    return r, out, out.radiance @ LUMA
+
+
+def pixel(uv) -> tuple[int, int]:
+    """Row, column of the pixel containing continuous coordinate (u, v)."""
+    return int(math.floor(uv[1])), int(math.floor(uv[0]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera model
+
+
+def test_camera_axes_follow_heading_and_opencv():
+    for psi in (0.0, 0.7, math.pi / 2, 4.0):
+        r = world_from_cam(psi)
+        np.testing.assert_allclose(r[:, 2], [math.sin(psi), math.cos(psi), 0.0], atol=1e-12)  # forward
+        np.testing.assert_allclose(r[:, 0], [math.cos(psi), -math.sin(psi), 0.0], atol=1e-12)  # right
+        np.testing.assert_allclose(r[:, 1], [0.0, 0.0, -1.0], atol=1e-12)  # down
+        # Same heading frame as rig.geometry: camera x/z are the heading frame's x/y.
+        np.testing.assert_allclose(world_from_heading(psi)[:, :2], r[:, [0, 2]], atol=1e-12)
+
+
+def test_pitch_up_and_roll_right_move_the_horizon_as_stated():
+    pose = CameraPose((0.0, 0.0, 1.65), 1.0, math.radians(3.0), 0.0)
+    # Nose up: the horizon (a far point at elevation 0 straight ahead) drops below cy.
+    uv, _ = project_direction(enu_from_az_el(1.0, 0.0), pose, SMALL)
+    assert uv[1] == pytest.approx(SMALL.cy + SMALL.fy * math.tan(math.radians(3.0)), abs=1e-6)
+    # Right side down: the horizon's right end rises in the image.
+    pose = CameraPose((0.0, 0.0, 1.65), 1.0, 0.0, math.radians(4.0))
+    left, _ = project_direction(enu_from_az_el(1.0 - 0.5, 0.0), pose, SMALL)
+    right, _ = project_direction(enu_from_az_el(1.0 + 0.5, 0.0), pose, SMALL)
+    assert right[1] < left[1] - 5
+    # The optical axis' horizontal projection stays on the heading whatever the pitch and roll.
+    r = world_from_cam(2.0, 0.02, -0.03)
+    az, _ = az_el_from_enu(r[:, 2])
+    assert float(az) == pytest.approx(2.0, abs=1e-12)
+
+
+def test_sun_in_view_is_the_brightest_pixel_where_the_intrinsics_put_it():
+    heading = math.radians(30.0)
+    for d_az, el in ((0.0, 8.0), (12.0, 10.0), (-20.0, 6.0)):
+        pose = CameraPose((0.0, 0.0, 1.65), heading)
+        _, out, lum = render([], math.degrees(heading) + d_az, el, pose)
+        # Independent of the renderer: pinhole, OpenCV, heading along (sin, cos).
+        da, e = math.radians(d_az), math.radians(el)
+        u = SMALL.cx + SMALL.fx * math.tan(da)
+        v = SMALL.cy - SMALL.fy * math.tan(e) / math.cos(da)
+        i, j = np.unravel_index(np.argmax(lum), lum.shape)
+        assert abs(j + 0.5 - u) <= 1.0 and abs(i + 0.5 - v) <= 1.0, (d_az, el, (u, v), (j, i))
+        # Sub-pixel: the disk's light centroid (pixel centres at index + 0.5).
+        win = lum[i - 3:i + 4, j - 3:j + 4]
+        wgt = np.clip(win - np.median(lum), 0.0, None)
+        yy, xx = np.mgrid[i - 3:i + 4, j - 3:j + 4] + 0.5
+        cu, cv = (wgt * xx).sum() / wgt.sum(), (wgt * yy).sum() / wgt.sum()
+        assert abs(cu - u) < 0.25 and abs(cv - v) < 0.25, (d_az, el, (u, v), (cu, cv))
+        assert out.sun_visible == pytest.approx(1.0)
+
+
+def test_sun_behind_the_camera_is_not_drawn():
+    pose = CameraPose((0.0, 0.0, 1.65), 0.0)
+    _, out, lum = render([], 180.0, 10.0, pose)
+    assert np.isnan(out.sun_px).all() and out.sun_visible == 0.0
+    assert lum.max() < 100.0  # no disk (the disk is ~1e6 kcd/m^2)
+
+
+def test_sky_is_brighter_toward_the_sun():
+    sky = PreethamSky(enu_from_az_el(math.radians(100.0), math.radians(30.0)), 3.0)
+    near = sky.radiance(enu_from_az_el(math.radians(110.0), math.radians(25.0))) @ LUMA
+    far = sky.radiance(enu_from_az_el(math.radians(280.0), math.radians(25.0))) @ LUMA
+    assert near > 2.0 * far
+    # Blue sky: away from the sun the blue channel (BGR index 0) leads.
+    rad = sky.radiance(enu_from_az_el(math.radians(280.0), math.radians(60.0)))
+    assert rad[0] > rad[2]
+
+
+# ---------------------------------------------------------------------------------------------
+# Shading and shadows
+
+
+def _shadow_samples(base_xy, height, sun_az_deg, sun_el_deg, fractions):
+    """Ground points along where a pole's shadow must fall (away from the sun), and the same
+    points mirrored to the sun's side, where no shadow may be."""
+    away = -np.array([math.sin(math.radians(sun_az_deg)), math.cos(math.radians(sun_az_deg))])
+    length = height / math.tan(math.radians(sun_el_deg))
+    shadow = [np.r_[base_xy + away * f * length, 0.0] for f in fractions]
+    mirror = [np.r_[base_xy - away * f * length, 0.0] for f in fractions]
+    return shadow, mirror
+
+
+@pytest.mark.parametrize("sun_az_deg", [135.0, 225.0, 300.0, 60.0])
+def test_pole_shadow_falls_away_from_the_sun(sun_az_deg):
+    base = np.array([0.0, 14.0])
+    pole = SceneObject("pole", [box_solid(base, 0.0, 0.4, 0.4, 0.0, 6.0, GREY)])
+    pose = CameraPose((0.0, 0.0, 1.65), 0.0, math.radians(-8.0))
+    sun_el = 40.0
+    _, out, lum = render([pole], sun_az_deg, sun_el, pose, intr=kitti_intrinsics(0.5))
+    intr = kitti_intrinsics(0.5)
+    shadow, mirror = _shadow_samples(base, 6.0, sun_az_deg, sun_el, (0.3, 0.55, 0.8))
+    uv_s, _ = project_points(shadow, pose, intr)
+    uv_m, _ = project_points(mirror, pose, intr)
+    for a, b in zip(uv_s, uv_m, strict=True):
+        ia, ib = pixel(a), pixel(b)
+        assert out.ids[ia] == 1 and out.ids[ib] == 1  # both on open ground
+        assert out.sunlit[ia] < 0.05, f"no shadow where it must fall: {a}"
+        assert out.sunlit[ib] > 0.95, f"shadow on the sun's side: {b}"
+        assert lum[ia] < 0.6 * lum[ib]
+    # And in image terms: the shadow goes left of the pole exactly when the sun is to the right.
+    (u_base,), _ = project_points([np.r_[base, 0.0]], pose, intr)
+    sun_right = math.sin(math.radians(sun_az_deg)) > 0  # camera looks north: east is right
+    assert (uv_s[-1][0] < u_base[0]) == sun_right
+
+
+@pytest.mark.parametrize(("sun_az_deg", "brighter"), [(90.0, "east"), (180.0, "south"), (135.0, None)])
+def test_face_turned_to_the_sun_is_brighter(sun_az_deg, brighter):
+    box = SceneObject("building", [box_solid((0.0, 0.0), 0.0, 6.0, 6.0, 0.0, 8.0, GREY)])
+    pose = CameraPose((10.0, -10.0, 1.65), math.radians(315.0))  # looking at the SE corner
+    _, out, lum = render([box], sun_az_deg, 30.0, pose)
+    (east, south), _ = project_points([[3.0, 0.0, 3.0], [0.0, -3.0, 3.0]], pose, SMALL)
+    le, ls = lum[pixel(east)], lum[pixel(south)]
+    assert out.ids[pixel(east)] >= 2 and out.ids[pixel(south)] >= 2
+    if brighter == "east":
+        assert le > 2.0 * ls
+    elif brighter == "south":
+        assert ls > 2.0 * le
+    else:  # sun on the diagonal: both equally lit
+        assert le == pytest.approx(ls, rel=0.02)
+    # A sunward face is lit, not shadowed by its own box.
+    for uv, n in ((east, (1.0, 0.0, 0.0)), (south, (0.0, -1.0, 0.0))):
+        if np.dot(n, enu_from_az_el(math.radians(sun_az_deg), math.radians(30.0))) > 0.1:
+            assert out.sunlit[pixel(uv)] > 0.95
+
+
+def test_tall_box_shadows_a_low_box_downsun_but_not_upsun():
+    tall = SceneObject("building", [box_solid((0.0, 20.0), 0.0, 4.0, 4.0, 0.0, 10.0, GREY)])
+    west = SceneObject("building", [box_solid((-5.0, 20.0), 0.0, 3.0, 3.0, 0.0, 2.0, GREY)])
+    east = SceneObject("building", [box_solid((5.0, 20.0), 0.0, 3.0, 3.0, 0.0, 2.0, GREY)])
+    pose = CameraPose((0.0, 0.0, 6.0), 0.0, math.radians(-12.0))  # up high to see the roofs
+    _, out, _ = render([tall, west, east], 100.0, 30.0, pose)  # sun in the east, a little south
+    (roof_w, roof_e), _ = project_points([[-5.0, 20.5, 2.0], [5.0, 20.5, 2.0]], pose, SMALL)
+    assert out.ids[pixel(roof_w)] >= 2 and out.ids[pixel(roof_e)] >= 2
+    assert out.sunlit[pixel(roof_w)] < 0.05  # in the tall box's shadow (it reaches ~17 m west)
+    assert out.sunlit[pixel(roof_e)] > 0.95
+
+
+def _ray_boxes(origin, dirs, boxes, any_hit=False):
+    """Oracle: nearest hit parameter (N,) of rays origin (3,) or (N, 3) + t * dirs with upright yawed boxes
+    (centre, yaw, width, length, z0, z1), by the slab method; inf where none is hit. With
+    ``any_hit`` a ray starting inside a box counts as hitting it (at 0)."""
+    best = np.full(len(dirs), np.inf)
+    for (cx, cy), yaw, w, ln, z0, z1 in boxes:
+        r = np.array([math.cos(yaw), -math.sin(yaw), 0.0])  # local x (width)
+        f = np.array([math.sin(yaw), math.cos(yaw), 0.0])  # local y (length)
+        up = np.array([0.0, 0.0, 1.0])
+        o = np.asarray(origin, dtype=np.float64) - np.array([cx, cy, 0.0])
+        t0, t1 = np.full(len(dirs), -np.inf), np.full(len(dirs), np.inf)
+        for axis, lo, hi in ((r, -w / 2, w / 2), (f, -ln / 2, ln / 2), (up, z0, z1)):
+            od, dd = o @ axis, dirs @ axis
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a, b = (lo - od) / dd, (hi - od) / dd
+            inside = (od >= lo) & (od <= hi)
+            a = np.where(dd == 0, np.where(inside, -np.inf, np.inf), a)
+            b = np.where(dd == 0, np.where(inside, np.inf, -np.inf), b)
+            t0, t1 = np.maximum(t0, np.minimum(a, b)), np.minimum(t1, np.maximum(a, b))
+        hit = (t0 <= t1) & (t1 > 1e-6)
+        if any_hit:
+            best = np.where(hit, np.minimum(best, np.maximum(t0, 0.0)), best)
+        else:
+            best = np.where(hit & (t0 > 1e-6) & (t0 < best), t0, best)
+    return best
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_depth_and_shadows_match_a_ray_cast_oracle(seed):
+    rng = np.random.default_rng(seed)
+    boxes = []
+    while len(boxes) < 6:  # footprints must not overlap (the renderer's scene contract)
+        c = (float(rng.uniform(-15, 15)), float(rng.uniform(8, 40)))
+        w, ln = float(rng.uniform(1, 6)), float(rng.uniform(1, 8))
+        if all(math.dist(c, b[0]) > 0.5 * (math.hypot(w, ln) + math.hypot(b[2], b[3])) for b in boxes):
+            boxes.append((c, float(rng.uniform(0, math.pi)), w, ln,
+                          float(rng.choice([0.0, rng.uniform(0.5, 3.0)])), float(rng.uniform(3, 12))))
+    objects = [SceneObject("box", [box_solid(c, yaw, w, ln, z0, z1, GREY)]) for c, yaw, w, ln, z0, z1 in boxes]
+    # Stacked objects: a car-like stack below the camera, a sign-like one reaching above it.
+    for (cx, cy), parts in (((3.5, 6.0), [(1.6, 3.5, 0.0, 0.35), (1.8, 4.4, 0.35, 1.0), (1.5, 2.2, 1.0, 1.5)]),
+                            ((-3.0, 5.0), [(0.1, 0.1, 0.0, 2.2), (0.05, 0.9, 2.2, 2.9)])):
+        yaw = float(rng.uniform(0, math.pi))
+        stack = [((cx, cy), yaw, w, ln, z0, z1) for w, ln, z0, z1 in parts]
+        objects.append(SceneObject("stack", [box_solid(c, a, w, ln, z0, z1, GREY) for c, a, w, ln, z0, z1 in stack]))
+        boxes.extend(stack)
+    sun_az, sun_el = float(rng.uniform(0, 360)), float(rng.uniform(15, 70))
+    pose = CameraPose((float(rng.uniform(-2, 2)), 0.0, 1.65), math.radians(float(rng.uniform(-15, 15))),
+                      math.radians(float(rng.uniform(-3, 1))), math.radians(float(rng.uniform(-2, 2))))
+    r, out, _ = render(objects, sun_az, sun_el, pose)
+    # Rays through pixel centres, z_cam = 1, so that t is the camera depth as in the renderer.
+    v, u = np.mgrid[0:SMALL.height, 0:SMALL.width] + 0.5
+    cam = np.stack([(u - SMALL.cx) / SMALL.fx, (v - SMALL.cy) / SMALL.fy, np.ones_like(u)], -1).reshape(-1, 3)
+    dirs = cam @ pose.world_from_cam().T
+    origin = np.asarray(pose.position)
+    t_box = _ray_boxes(origin, dirs, boxes)
+    t_ground = np.where(dirs[:, 2] < 0, -origin[2] / np.where(dirs[:, 2] < 0, dirs[:, 2], -1.0), np.inf)
+    t = np.minimum(t_box, t_ground)
+    surface = np.isfinite(t) & (t < 200.0)
+    depth = out.depth.reshape(-1)
+    # Pixels on an object's outline may go either way; compare away from depth edges.
+    tt = np.where(surface, t, 1e4).reshape(SMALL.height, SMALL.width)
+    edge = np.zeros_like(tt, bool)
+    for dy, dx in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+        edge |= np.abs(np.roll(tt, (dy, dx), (0, 1)) - tt) > 0.05 * tt
+    keep = surface & ~edge.reshape(-1)
+    assert keep.sum() > 0.25 * keep.size
+    rel = np.abs(depth[keep] - t[keep]) / t[keep]
+    assert np.mean(rel < 0.01) > 0.99, np.mean(rel < 0.01)
+    # Outlines too: which box (or the ground) each pixel centre sees.
+    which = np.full(len(dirs), -1)
+    best = np.where(t_ground < t_box, t_ground, np.inf)
+    for i, b in enumerate(boxes):
+        ti = _ray_boxes(origin, dirs, [b])
+        closer = ti < best
+        which[closer], best[closer] = i, ti[closer]
+    solid_of_face = np.concatenate([np.full(len(f), i) for i, f in enumerate(r._solid_faces)])
+    ids = out.ids.reshape(-1).astype(int)
+    got = np.where(ids >= 2, solid_of_face[np.maximum(ids - 2, 0)], -1)
+    on_object = surface & ((which >= 0) | (got >= 0))
+    mismatch = np.mean(which[on_object] != got[on_object])
+    assert mismatch < 0.045, mismatch  # fillConvexPoly's fill is ~1 px fat at outlines: ~2-3 %
+    # Shadow: does the ray from the surface point toward the sun hit a box? Only where the sun
+    # reaches at all: faces turned away get no direct light whatever their visibility says.
+    n_dot_s = r.tab_direct[ids, 0, 3]
+    keep &= (n_dot_s > 0.05) | (ids == 1)
+    s = enu_from_az_el(math.radians(sun_az), math.radians(sun_el))
+    # Start a hair in front of the surface (toward the camera), then head for the sun.
+    pts = origin + dirs[keep] * (t[keep, None] * (1.0 - 1e-4))
+    lit = ~np.isfinite(_ray_boxes(pts, np.broadcast_to(s, pts.shape), boxes, any_hit=True))
+    sunlit = out.sunlit.reshape(-1)[keep]
+    agree = np.where(lit, sunlit > 0.5, sunlit < 0.5)
+    assert np.mean(agree) > 0.985, np.mean(agree)
+    assert (~lit).sum() > 20  # the scene does have shadows to get right
+
+
+def test_car_in_front_of_a_long_wall_is_drawn_in_front():
+    # A depth sort by nearest point would put the wall (6 m away at its closest) in front of
+    # the car 15 m ahead; the footprint order must not.
+    wall = SceneObject("wall", [box_solid((6.0, 10.0), 0.0, 0.5, 60.0, 0.0, 3.0, GREY)])
+    car = make_car(np.random.default_rng(0), np.array([3.5, 15.0]), 0.0)
+    r, out, _ = render([wall, car], 200.0, 40.0, CameraPose((0.0, 0.0, 1.65), 0.0))
+    (uv,), _ = project_points([[3.5, 15.0 - 2.0, 0.7]], CameraPose((0.0, 0.0, 1.65), 0.0), SMALL)
+    face = int(out.ids[pixel(uv)]) - 2
+    car_faces = np.concatenate([r._solid_faces[1], r._solid_faces[2], r._solid_faces[3]])
+    assert face in car_faces
+
+
+# ---------------------------------------------------------------------------------------------
+# Drives
+
+
+def test_same_seed_same_images_other_seed_other_images():
+    a = [f.image_bgr for f in synth_drive(11, 3, intrinsics=SMALL)]
+    b = [f.image_bgr for f in synth_drive(11, 3, intrinsics=SMALL)]
+    c = [f.image_bgr for f in synth_drive(12, 3, intrinsics=SMALL)]
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert not np.array_equal(a[0], c[0])
+
+
+def test_frame_fields():
+    frames = list(synth_drive(5, 4, intrinsics=SMALL, fps=20.0))
+    assert [f.seq for f in frames] == [0, 1, 2, 3]
+    assert [f.t_mono_s for f in frames] == pytest.approx([0.0, 0.05, 0.1, 0.15])
+    assert np.all(np.diff([f.utc_ns for f in frames]) == 50_000_000)
+    truth = frames[0].sun_enu_truth
+    assert np.linalg.norm(truth) == pytest.approx(1.0, abs=1e-9)
+    for f in frames:
+        assert f.image_bgr.shape == (94, 310, 3) and f.image_bgr.dtype == np.uint8
+        assert f.intrinsics == SMALL
+        assert f.gnss is None
+        assert f.attitude.reference is HeadingRef.TRUE
+        assert abs(f.attitude.pitch_rad) < math.radians(5) and abs(f.attitude.roll_rad) < math.radians(4)
+        np.testing.assert_array_equal(f.sun_enu_truth, truth)  # one sun per drive
+        assert 10 < f.image_bgr.mean() < 245 and f.image_bgr.std() > 5  # a picture, not a blank
+
+
+def test_truth_is_the_rendering_light_and_elevation_in_range():
+    lo, hi = SUN_ELEVATION_RANGE_DEG
+    for seed in range(20):
+        p = plan_drive(seed, 2).params
+        _, el = az_el_from_enu(p.sun_enu)
+        assert lo <= math.degrees(float(el)) <= hi
+    d = Drive(3, 1, intrinsics=SMALL, sun_azimuth_rad=1.0, sun_elevation_rad=0.5)
+    (frame,) = list(d.frames())
+    want = enu_from_az_el(1.0, 0.5)
+    np.testing.assert_allclose(frame.sun_enu_truth, want, atol=1e-12)
+    np.testing.assert_allclose(d.renderer.sun, want, atol=1e-12)  # the light the shading used
+    np.testing.assert_allclose(d.sky.sun_enu, want, atol=1e-12)  # and the sky's sun
+
+
+def test_heading_is_the_camera_yaw_used_to_render():
+    d = Drive(8, 2, intrinsics=SMALL)
+    for f, pose in zip(d.frames(), d.poses, strict=True):
+        assert f.attitude.heading_rad == pytest.approx(pose.heading_rad % (2 * math.pi), abs=1e-12)
+        assert f.attitude.pitch_rad == pose.pitch_rad and f.attitude.roll_rad == pose.roll_rad
+
+
+def test_yaw_varies_along_drives():
+    spans = []
+    for seed in range(12):
+        h = np.unwrap([p.heading_rad for p in plan_drive(seed, 40).poses])
+        spans.append(math.degrees(h.max() - h.min()))
+    assert sum(s >= 20.0 for s in spans) >= 9, spans
+    assert max(spans) >= 90.0, spans
+
+
+def test_drive_seeds_are_independent_and_stable():
+    assert drive_seed(0, 0) == drive_seed(0, 0)
+    assert len({drive_seed(0, i) for i in range(50)} | {drive_seed(1, i) for i in range(50)}) == 100
+
+
+def test_ideal_effects_are_deterministic_without_noise():
+    d = Drive(4, 1, intrinsics=SMALL, effects=CameraEffects.ideal(0.02))
+    img = next(iter(d))
+    assert img.image_bgr.dtype == np.uint8
+
+
+def test_a_small_drive_written_to_a_log_reads_back(tmp_path):
+    native = pytest.importorskip("replay.native")
+    from replay.synthetic import write_synthetic_logs
+
+    paths = write_synthetic_logs(tmp_path, drives=2, frames=3, seed=9, intrinsics=SMALL, progress=False)
+    assert [p.name for p in paths] == ["drive_9_0000.mcap", "drive_9_0001.mcap"]
+    frames = list(native.read_frames(paths[1]))
+    want = list(synth_drive(drive_seed(9, 1), 3, intrinsics=SMALL))
+    assert len(frames) == 3
+    for got, ref in zip(frames, want, strict=True):
+        assert got.seq == ref.seq and got.t_mono_s == pytest.approx(ref.t_mono_s)
+        np.testing.assert_allclose(got.sun_enu_truth, ref.sun_enu_truth, atol=1e-9)
+        assert got.attitude.heading_rad == pytest.approx(ref.attitude.heading_rad, abs=1e-6)
+        assert got.image_bgr.shape == ref.image_bgr.shape
+        # JPEG: close, not equal.
+        assert np.abs(got.image_bgr.astype(int) - ref.image_bgr.astype(int)).mean() < 6
