@@ -195,6 +195,17 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_synth(args: argparse.Namespace) -> int:
+    from replay.synthetic import write_synthetic_logs
+
+    paths = write_synthetic_logs(args.out, drives=args.drives, frames=args.frames, seed=args.seed,
+                                 progress=not args.quiet, fps=args.fps, jobs=args.jobs,
+                                 render_scale=args.render_scale)
+    if not args.quiet:
+        print(f"synth: {len(paths)} logs of {args.frames} frames in {args.out}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sunrig", description="Estimate the sun direction from a camera rig's images and heading."
@@ -238,6 +249,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("synth", help="write procedural street drives with the true sun as native logs")
+    p.add_argument("out", help="output folder (drives already there are kept: a run resumes)")
+    p.add_argument("--drives", type=int, default=10)
+    p.add_argument("--frames", type=int, default=40, help="frames per drive (default 40)")
+    p.add_argument("--seed", type=int, default=0, help="drive i of seed S is always the same drive")
+    p.add_argument("--fps", type=float, default=10.0, help="frame rate of the drives (default 10)")
+    p.add_argument("--jobs", type=int, default=1, help="drives rendered in parallel (default 1)")
+    p.add_argument("--render-scale", type=float, default=0.5,
+                   help="internal render size relative to the output (default 0.5, upsampled)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_synth)
     return parser
 
 

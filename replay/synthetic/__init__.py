@@ -25,6 +25,7 @@ import numpy as np
 
 from replay.synthetic.camera import CameraEffects
 from replay.synthetic.drive import KITTI_INTRINSICS, Drive, DriveParams, kitti_intrinsics, plan_drive, synth_drive
+from rig.errors import ValidationError
 from rig.types import Intrinsics
 
 __all__ = [
@@ -73,31 +74,51 @@ class _Progress:
             print(file=sys.stderr)
 
 
-def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames: int, seed: int,
-                         intrinsics: Intrinsics | None = None, progress: bool = True,
-                         render_scale: float = 0.5) -> list[Path]:
-    """Write ``drives`` native logs of ``frames`` frames each, ``drive_{seed}_{i:04d}.mcap``.
-
-    Drive i uses :func:`drive_seed` (seed, i), so any one log can be remade alone. Returns the
-    paths in order. Images go through the log writer's JPEG encoder.
-    """
+def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> tuple[Path, int]:
+    """Render one drive into ``path`` via a temporary name, so an existing file is always whole."""
     from replay.native import LogWriter
 
-    if drives < 0 or frames < 1:
-        raise ValueError(f"write_synthetic_logs: expected drives >= 0 and frames >= 1, got {drives}, {frames}")
+    path, dseed, frames, intrinsics, render_scale, fps = job
+    tmp = path.with_name(path.name + ".part")
+    drive = Drive(dseed, frames, intrinsics=intrinsics, render_scale=render_scale, fps=fps)
+    with LogWriter(tmp) as writer:
+        for frame in drive.frames():
+            writer.write_frame(frame)
+    os.replace(tmp, path)
+    return path, frames
+
+
+def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames: int, seed: int,
+                         intrinsics: Intrinsics | None = None, progress: bool = True,
+                         render_scale: float = 0.5, fps: float = 10.0, jobs: int = 1) -> list[Path]:
+    """Write ``drives`` native logs of ``frames`` frames each, ``drive_{seed}_{i:04d}.mcap``.
+
+    Drive i uses :func:`drive_seed` (seed, i), so any one log can be remade alone, and a drive
+    whose log already exists is not rendered again: an interrupted run resumes. ``jobs`` drives
+    render in parallel processes. Returns the paths in order. Images go through the log
+    writer's JPEG encoder.
+    """
+    if drives < 0 or frames < 1 or jobs < 1:
+        raise ValidationError(
+            f"synthetic logs: expected drives >= 0, frames >= 1 and jobs >= 1, got {drives}, {frames}, {jobs}"
+        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
+    todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
+            for i, p in enumerate(paths) if not p.exists()]
     bar = _Progress(drives * frames, progress, "synthetic drives")
-    paths = []
+    bar.update((drives - len(todo)) * frames)
     try:
-        for i in range(drives):
-            path = out / f"drive_{seed}_{i:04d}.mcap"
-            drive = Drive(drive_seed(seed, i), frames, intrinsics=intrinsics, render_scale=render_scale)
-            with LogWriter(path) as writer:
-                for frame in drive.frames():
-                    writer.write_frame(frame)
-                    bar.update()
-            paths.append(path)
+        if jobs == 1 or len(todo) <= 1:
+            for job in todo:
+                bar.update(_write_one(job)[1])
+        else:
+            import multiprocessing
+
+            with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+                for _, n in pool.imap_unordered(_write_one, todo):
+                    bar.update(n)
     finally:
         bar.close()
     return paths
