@@ -26,6 +26,7 @@ graphs with the contract, including the command and data that produced it.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import math
 import os
@@ -52,6 +53,7 @@ from estimator.export import export_model  # noqa: E402
 
 log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
+METRICS = "train_metrics.jsonl"  # one line per 50 steps, appended across resumes
 
 
 class TrainingDataError(SunrigError):
@@ -339,6 +341,11 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         loss_value = float(loss.detach())
         ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
         ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg
+        if step % 50 == 0:
+            with open(out_dir / METRICS, "a", encoding="utf-8") as fh:
+                fh.write(json.dumps({"step": step, "elapsed_s": round(time.monotonic() - start, 1),
+                                     "lr": opt.param_groups[0]["lr"], "loss_ema": round(ema_loss, 4),
+                                     "window_err_deg_ema": round(ema_err, 2)}) + "\n")
         if progress:
             progress({"step": step, "total": est_total, "elapsed_s": time.monotonic() - start,
                       "budget_s": budget_s, "loss": ema_loss, "err_deg": ema_err})

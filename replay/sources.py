@@ -11,6 +11,10 @@ from pathlib import Path
 
 from rig.types import Frame
 
+# A 40-frame synthetic street drive (`sunrig synth OUT --drives 1 --frames 40 --seed 3000`),
+# shipped so the quick start runs without any download.
+DEMO_LOG = Path(__file__).resolve().parent / "data" / "demo.mcap"
+
 
 def open_frames(path: str | Path) -> Iterable[Frame]:
     """A re-iterable source of Frames for ``path``; raises :class:`rig.errors.LogError` with a

@@ -69,6 +69,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from rig.window import SpreadWindowPolicy
 
     # The log is checked before the model is loaded: a wrong path should fail in milliseconds.
+    if args.log is None:
+        from replay.sources import DEMO_LOG
+
+        args.log = str(DEMO_LOG)
     source = open_frames(args.log)
     model = _load_model(args.model)
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
@@ -214,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     p = sub.add_parser("replay", help="run a recorded log through the estimator")
-    p.add_argument("log", help="a native sunrig log (.mcap)")
+    p.add_argument("log", nargs="?", help="a native sunrig log (.mcap); default: the bundled demo drive")
     p.add_argument("--jsonl", metavar="PATH|-", help="write one JSON object per estimate here (- for stdout)")
     p.add_argument("--model", metavar="DIR", help="model folder (backbone.onnx + aggregator.onnx)")
     p.add_argument("--aggregator", default="transformer", choices=["transformer", "mean", "meanshift", "single"])

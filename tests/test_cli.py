@@ -112,3 +112,20 @@ def test_replay_to_stdout(tmp_path, tiny_model_dir):
     res = run_cli("replay", str(log), "--model", str(tiny_model_dir), "--jsonl", "-", "--quiet")
     assert res.returncode == 0 and res.stderr == ""
     assert len(res.stdout.splitlines()) == 3
+
+
+def test_bundled_demo_log_is_a_drive_with_truth():
+    from replay.sources import DEMO_LOG, open_frames
+
+    frames = list(open_frames(DEMO_LOG))
+    assert len(frames) == 40
+    assert all(f.attitude is not None and f.sun_enu_truth is not None for f in frames)
+    headings = np.unwrap([f.attitude.heading_rad for f in frames])
+    assert np.ptp(headings) > 0.0  # the car moves: yaw is not constant
+
+
+@pytest.mark.torch
+def test_replay_defaults_to_the_bundled_log(tiny_model_dir):
+    res = run_cli("replay", "--model", str(tiny_model_dir), "--jsonl", "-", "--quiet")
+    assert res.returncode == 0, res.stderr
+    assert len(res.stdout.splitlines()) == 40
