@@ -1,0 +1,54 @@
+"""`sunrig eval`: the summary's numbers and shape, and the figures."""
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from estimator.evaluate import error_summary
+
+
+def test_error_summary_numbers():
+    s = error_summary([1.0, 4.0, 6.0, 12.0, 30.0])
+    assert s["mean_deg"] == pytest.approx(10.6)
+    assert s["median_deg"] == 6.0 and s["max_deg"] == 30.0 and s["n_windows"] == 5
+    assert s["under_5_deg"] == pytest.approx(0.4)
+    assert s["under_10_deg"] == pytest.approx(0.6)
+    assert s["under_20_deg"] == pytest.approx(0.8)
+    assert error_summary([]) == {"n_windows": 0}
+
+
+@pytest.mark.torch
+def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
+    from replay.native import LogWriter
+    from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+
+    k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(0)
+    logs = []
+    for d in range(2):
+        path = tmp_path / f"d{d}.mcap"
+        with LogWriter(path) as w:
+            for i in range(12):
+                w.write_frame(Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8),
+                                    intrinsics=k, attitude=Attitude(math.radians(7.0 * i), HeadingRef.TRUE),
+                                    sun_enu_truth=[0.0, 0.8, 0.6]))
+        logs.append(path)
+    out, png = tmp_path / "eval.json", tmp_path / "eval.png"
+    res = subprocess.run([sys.executable, "-m", "rig.cli", "eval", str(tmp_path), "--model", str(tiny_model_dir),
+                          "--json", str(out), "--plot", str(png), "--quiet"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(out.read_text())
+    aggs = summary["aggregators"]
+    assert set(aggs) == {"transformer", "mean", "meanshift", "single"}
+    for s in aggs.values():
+        # 12 frames per log, windows full from the 8th frame on: 5 per log.
+        assert s["n_windows"] == 10
+        assert 0.0 <= s["median_deg"] <= s["max_deg"] <= 180.0
+        assert {"mean_deg", "median_deg", "max_deg", "under_5_deg", "under_10_deg", "under_20_deg"} <= set(s)
+    assert summary["windows_skipped_filling"] == 14
+    assert png.stat().st_size > 10_000 and (tmp_path / "eval-tokens.png").stat().st_size > 10_000
