@@ -69,6 +69,7 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
     for name, frames in sources:
         result.logs.append(name)
         stats = OfflineStats()
+        sampled_this_log = False
         for estimates in estimate_stream(frames, estimator, policy, aggregators=aggregators, stats=stats):
             first = next(iter(estimates.values()))
             if first.n_frames < policy.n_frames:
@@ -79,9 +80,11 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
                 continue
             for agg, est in estimates.items():
                 result.errors_deg[agg].append(math.degrees(est.error_rad))
-            # Keep a few windows spread over the run for the scatter figure.
-            if len(result.samples) < n_samples and n_done % 97 == 0:
+            # The first full window of each of the first logs, for the scatter figure: each log
+            # has its own sun, so the figure shows different skies.
+            if len(result.samples) < n_samples and not sampled_this_log:
                 result.samples.append(estimates)
+                sampled_this_log = True
             n_done += 1
             if progress:
                 progress(n_done)
@@ -132,8 +135,10 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
                 _polar_window(axes[r][c], sample[agg])
                 if c == 0:
                     axes[r][c].set_ylabel(agg, labelpad=24)
-        fig.suptitle("per-token estimates (dots), aggregate (x) and truth (*); radius = zenith angle")
+        fig.suptitle("per-token (dots), aggregate (x), truth (*)\nazimuth clockwise from N; radius: zenith angle",
+                     fontsize=9)
         fig.tight_layout()
+        fig.subplots_adjust(hspace=0.3)
         fig.savefig(tokens_png)
         plt.close(fig)
         written.append(tokens_png)
