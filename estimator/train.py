@@ -199,13 +199,13 @@ class WindowSampler:
 
 @dataclass
 class TrainConfig:
-    preset: str = "light"
+    preset: str = "fast"
     minutes: float = 80.0  # wall-clock budget of this and earlier (resumed) sessions together
     max_steps: int = 0  # 0: until the time budget ends
     batch_windows: int = 6
-    lr: float = 1e-3
+    lr: float = 5e-4
     weight_decay: float = 0.05
-    warmup_steps: int = 200
+    warmup_steps: int = 300
     subset_prob: float = 0.3
     frames_per_window: int = 8
     crops_per_frame: int = 4

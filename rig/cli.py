@@ -243,11 +243,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("logs", nargs="+", help="native logs, or folders of them")
     p.add_argument("--out", required=True, metavar="MODEL_DIR",
                    help="model folder; holds checkpoint.pt, and a run resumes from it")
-    p.add_argument("--preset", default="light", help="network preset: light (default), paper, ...")
+    p.add_argument("--preset", default="fast",
+                   help="network preset: fast (default, the 90-minute CPU recipe), light, paper (ResNet18 at 224 px)")
     p.add_argument("--minutes", type=float, default=80.0, help="training time budget (default 80)")
     p.add_argument("--steps", type=int, default=0, help="stop after this many steps instead")
     p.add_argument("--batch", type=int, default=6, help="windows per step (default 6)")
-    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
