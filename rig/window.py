@@ -1,14 +1,21 @@
 """Which frames form a window. Pure logic: takes the candidates, returns the chosen ones.
 
 Consecutive frames at 10-30 Hz are nearly identical, so "the last 8" would show the network one
-view eight times. The policy spreads the window over the last ``span_s`` seconds instead: the
-newest frame always, then the frames nearest to evenly spaced target times back to
-``newest - span_s``. While the buffer still covers less than the span, it takes what there is
-(an estimate from fewer frames, reported in ``n_frames``) rather than wait.
+view eight times. The policy instead picks frames that differ: the newest frame always, then,
+greedily, the candidate farthest from every frame chosen so far (farthest-point sampling), where
+two frames' distance combines their time apart (in units of the span) and their headings apart
+(in units of ``yaw_scale_rad``). On a straight road that spreads the window over the span; in a
+turn it takes more of the frames that look in new directions, which is where the paper's
+spatio-temporal aggregation gains most.
+
+Candidates are the frames with a heading from the last ``span_s`` seconds. While fewer than
+``n_frames`` are there (the ring is filling, or the source is slow), the window is all of them:
+an estimate from fewer frames now (reported in ``n_frames``) beats none.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TypeVar
@@ -16,6 +23,7 @@ from typing import TypeVar
 import numpy as np
 
 from rig.errors import ValidationError
+from rig.geometry import wrap_pi
 from rig.types import FrameFeatures
 
 T = TypeVar("T", bound=FrameFeatures)
@@ -23,16 +31,19 @@ T = TypeVar("T", bound=FrameFeatures)
 
 @dataclass(frozen=True)
 class SpreadWindowPolicy:
-    """Up to ``n_frames`` frames spread evenly in time over the last ``span_s`` seconds."""
+    """Up to ``n_frames`` frames from the last ``span_s`` seconds, diverse in time and yaw."""
 
     n_frames: int = 8
     span_s: float = 4.0
+    yaw_scale_rad: float = math.radians(45.0)
 
     def __post_init__(self) -> None:
         if self.n_frames < 1:
             raise ValidationError(f"window n_frames: expected >= 1, got {self.n_frames}")
         if not self.span_s > 0:
             raise ValidationError(f"window span_s: expected > 0 s, got {self.span_s}")
+        if not self.yaw_scale_rad > 0:
+            raise ValidationError(f"window yaw_scale_rad: expected > 0, got {self.yaw_scale_rad}")
 
     def select(self, candidates: Sequence[T]) -> list[T]:
         """Chosen frames, oldest first. ``candidates`` must be ordered by time, oldest first."""
@@ -40,17 +51,18 @@ class SpreadWindowPolicy:
         if not usable:
             return []
         t = np.array([c.frame.t_mono_s for c in usable])
-        newest = t[-1]
-        in_span = np.nonzero(t >= newest - self.span_s)[0]
-        first = int(in_span[0])
-        if len(in_span) <= self.n_frames:
-            return list(usable[first:])
-        targets = np.linspace(newest - self.span_s, newest, self.n_frames)
-        chosen: list[int] = []
-        pool = list(range(first, len(usable)))
-        # Fill from the newest target backwards, each target taking the nearest unused frame.
-        for target in targets[::-1]:
-            best = min(pool, key=lambda i: abs(t[i] - target))
+        first = int(np.searchsorted(t, t[-1] - self.span_s, side="left"))
+        pool = usable[first:]
+        if len(pool) <= self.n_frames:
+            return list(pool)
+        t = t[first:] / self.span_s
+        yaw = np.array([c.frame.attitude.heading_rad for c in pool])
+        dist = np.hypot(t[:, None] - t[None, :], wrap_pi(yaw[:, None] - yaw[None, :]) / self.yaw_scale_rad)
+        chosen = [len(pool) - 1]  # the newest frame is always in
+        nearest = dist[-1].copy()
+        for _ in range(self.n_frames - 1):
+            # Ties (e.g. equal distances) go to the newer frame: argmax of the reversed array.
+            best = len(pool) - 1 - int(np.argmax(nearest[::-1]))
             chosen.append(best)
-            pool.remove(best)
-        return [usable[i] for i in sorted(chosen)]
+            nearest = np.minimum(nearest, dist[best])
+        return [pool[i] for i in sorted(chosen)]

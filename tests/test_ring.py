@@ -1,0 +1,68 @@
+"""Bounded buffers: overflow policy, counters, and waits that always end."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from rig.errors import ValidationError
+from rig.ring import DropOldestQueue, FrameRing
+from rig.types import Attitude, Frame, FrameFeatures, HeadingRef, Intrinsics
+
+INTR = Intrinsics(fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
+IMG = np.zeros((16, 16, 3), np.uint8)
+
+
+def feats(seq, t):
+    frame = Frame(t_mono_s=t, seq=seq, image_bgr=IMG, intrinsics=INTR, attitude=Attitude(0.0, HeadingRef.TRUE))
+    return FrameFeatures(frame, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 2), np.float32), "m")
+
+
+def test_queue_drops_oldest_and_counts():
+    q = DropOldestQueue(3)
+    results = [q.put(i) for i in range(5)]
+    assert results == [True, True, True, False, False]
+    assert q.dropped == 2 and q.put_count == 5
+    assert [q.get(0.0) for _ in range(4)] == [2, 3, 4, None]
+
+
+def test_queue_get_times_out_and_close_wakes_waiters():
+    q = DropOldestQueue(1)
+    assert q.get(0.01) is None
+    got = []
+    waiter = threading.Thread(target=lambda: got.append(q.get(30.0)))
+    waiter.start()
+    q.close()
+    waiter.join(5.0)
+    assert not waiter.is_alive() and got == [None]
+
+
+def test_queue_memory_is_flat_under_overload():
+    q = DropOldestQueue(4)
+    for i in range(10_000):
+        q.put(i)
+    assert len(q) == 4 and q.dropped == 10_000 - 4
+
+
+def test_ring_bounded_by_count_and_age():
+    ring = FrameRing(capacity=5, max_age_s=1.0)
+    for i in range(8):
+        ring.push(feats(i, 0.1 * i))
+    assert [f.frame.seq for f in ring.snapshot()] == [3, 4, 5, 6, 7]
+    assert ring.evicted == 3
+    ring.push(feats(8, 5.0))  # a gap: everything older than 1 s goes
+    assert [f.frame.seq for f in ring.snapshot()] == [8]
+
+
+def test_ring_refuses_late_frames():
+    ring = FrameRing()
+    assert ring.push(feats(1, 1.0))
+    assert not ring.push(feats(0, 0.5))
+    assert ring.out_of_order == 1 and len(ring) == 1
+
+
+def test_bad_sizes():
+    with pytest.raises(ValidationError):
+        DropOldestQueue(0)
+    with pytest.raises(ValidationError):
+        FrameRing(capacity=0)
