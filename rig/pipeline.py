@@ -1,0 +1,273 @@
+"""The live rig: capture -> encode -> ring -> estimate -> publish, each stage its own thread.
+
+- **capture** pulls frames from the source (a driver, or a log paced in real time) and puts them
+  in a small drop-oldest queue: a slow estimator makes the rig skip frames, never lag behind.
+- **encode** runs the backbone once per frame as it enters the ring (``SunEstimator.encode``).
+- **estimate** forms a window from the ring for the newest frame and runs the aggregator. It is
+  woken through a one-slot mailbox: if estimating falls behind encoding, older "new frame"
+  signals are overwritten (counted as skipped windows) so latency stays bounded.
+- **publish**: every publisher's ``publish`` must return at once (the serial one hands the
+  message to its own writer thread).
+
+Every stage waits with a timeout and checks one stop event. A stage that raises stops all the
+others, and :meth:`RigPipeline.run` re-raises it as :class:`PipelineError` naming the stage,
+within a couple of seconds; a source that blocks forever is abandoned (its thread is a daemon),
+never waited on without bound.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from estimator.calibration import EstimationError
+from estimator.estimator import SunEstimator
+from rig.errors import SunrigError
+from rig.ring import DropOldestQueue, FrameRing
+from rig.types import Frame, FrameFeatures, SunEstimate
+from rig.window import SpreadWindowPolicy
+
+log = logging.getLogger(__name__)
+
+_POLL_S = 0.05  # how often an idle stage re-checks the stop event
+_JOIN_S = 2.0  # how long run() waits for a stage to end once stopped
+
+
+class PipelineError(SunrigError):
+    """A stage of the live pipeline failed; the message names the stage and the cause."""
+
+
+class Publisher(Protocol):
+    def publish(self, est: SunEstimate) -> None: ...
+
+    def close(self) -> None: ...
+
+    def stats(self) -> dict: ...
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    queue_size: int = 2  # frames waiting for the backbone; more only adds latency
+    ring_capacity: int = 128
+    ring_max_age_s: float = 10.0
+    status_every_s: float = 5.0
+    realtime: bool = False  # pace a recorded source by its timestamps
+
+
+@dataclass
+class _Latency:
+    samples: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
+
+    def add(self, seconds: float) -> None:
+        self.samples.append(seconds)
+
+    def summary_ms(self) -> dict[str, float]:
+        if not self.samples:
+            return {}
+        a = np.fromiter(self.samples, dtype=np.float64) * 1e3
+        return {"p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)),
+                "max_ms": float(a.max())}
+
+
+@dataclass
+class RigStats:
+    """Counters of one run. ``latency`` is frame arrival (capture) to the return of the last
+    publisher's ``publish``; ``update_hz`` is estimates per second over the run."""
+
+    frames_captured: int = 0
+    frames_dropped_queue: int = 0
+    frames_without_heading: int = 0
+    frames_encoded: int = 0
+    frames_out_of_order: int = 0
+    windows_skipped: int = 0
+    estimates: int = 0
+    estimates_failed: int = 0
+    started_s: float = 0.0
+    ended_s: float = 0.0
+    latency: _Latency = field(default_factory=_Latency)
+    publishers: dict[str, dict] = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        d = {k: v for k, v in self.__dict__.items() if k not in ("latency", "started_s", "ended_s")}
+        d["latency"] = self.latency.summary_ms()
+        span = max(self.ended_s - self.started_s, 1e-9)
+        d["update_hz"] = self.estimates / span
+        d["duration_s"] = span
+        return d
+
+    def status_line(self, now_s: float) -> str:
+        lat = self.latency.summary_ms()
+        rate = self.estimates / max(now_s - self.started_s, 1e-9)
+        lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
+        pub_drops = sum(v.get("dropped", 0) for v in self.publishers.values())
+        return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
+                f"{self.frames_without_heading}) | estimates {self.estimates} at {rate:.1f} Hz, skipped "
+                f"{self.windows_skipped}, failed {self.estimates_failed} | {lat_text} | publish drops {pub_drops}")
+
+
+class RigPipeline:
+    """Runs a source through the estimator to the publishers until the source ends or ``stop``."""
+
+    def __init__(self, source: Iterable[Frame], estimator: SunEstimator, policy: SpreadWindowPolicy,
+                 publishers: Sequence[Publisher] = (), *, config: RigConfig | None = None,
+                 on_frame: Callable[[Frame], None] | None = None,
+                 on_status: Callable[[str], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.source = source
+        self.estimator = estimator
+        self.policy = policy
+        self.publishers = list(publishers)
+        self.config = config or RigConfig()
+        self.on_frame = on_frame  # e.g. a recorder; must not block
+        self.on_status = on_status
+        self.clock = clock
+        self.stats = RigStats()
+        self._stop = threading.Event()
+        self._capture_done = threading.Event()
+        self._encode_done = threading.Event()
+        self._frames: DropOldestQueue[tuple[Frame, float]] = DropOldestQueue(self.config.queue_size)
+        self._mailbox: DropOldestQueue[tuple[FrameFeatures, float]] = DropOldestQueue(1)
+        self.ring = FrameRing(self.config.ring_capacity, self.config.ring_max_age_s)
+        self._failure: tuple[str, BaseException] | None = None
+        self._failure_lock = threading.Lock()
+
+    # -- control -----------------------------------------------------------------------------
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _fail(self, stage: str, exc: BaseException) -> None:
+        with self._failure_lock:
+            if self._failure is None:
+                self._failure = (stage, exc)
+        self._stop.set()
+
+    def _stage(self, name: str, body: Callable[[], None], done: threading.Event | None) -> threading.Thread:
+        def run() -> None:
+            try:
+                body()
+            except BaseException as exc:  # noqa: BLE001 - any failure must stop the whole rig
+                log.debug("stage %s failed", name, exc_info=True)
+                self._fail(name, exc)
+            finally:
+                if done is not None:
+                    done.set()
+
+        # Daemon: a source blocked inside a driver call must not keep the process alive.
+        return threading.Thread(target=run, name=f"sunrig-{name}", daemon=True)
+
+    def run(self, timeout_s: float | None = None) -> RigStats:
+        """Run to the end of the source (or ``stop``, or ``timeout_s``); raise on a stage failure."""
+        self.stats.started_s = self.clock()
+        threads = [
+            self._stage("capture", self._capture, self._capture_done),
+            self._stage("encode", self._encode, self._encode_done),
+            self._stage("estimate", self._estimate, None),
+        ]
+        for t in threads:
+            t.start()
+        next_status = self.clock() + self.config.status_every_s
+        deadline = None if timeout_s is None else self.clock() + timeout_s
+        try:
+            while any(t.is_alive() for t in threads):
+                threads[-1].join(_POLL_S)
+                now = self.clock()
+                if self.on_status and now >= next_status:
+                    self._collect_publisher_stats()
+                    self.on_status(self.stats.status_line(now))
+                    next_status = now + self.config.status_every_s
+                if deadline is not None and now >= deadline:
+                    self._stop.set()
+                if self._stop.is_set():
+                    break
+        except KeyboardInterrupt:
+            self._stop.set()
+        finally:
+            self._stop.set()
+            self._frames.close()
+            self._mailbox.close()
+            end = time.monotonic() + _JOIN_S
+            for t in threads:
+                t.join(max(0.0, end - time.monotonic()))
+            self.stats.ended_s = self.clock()
+            self._collect_publisher_stats()
+        stuck = [t.name for t in threads if t.is_alive()]
+        if stuck:
+            log.warning("abandoned stage(s) %s that did not stop within %.0f s", ", ".join(stuck), _JOIN_S)
+        if self._failure is not None:
+            stage, exc = self._failure
+            raise PipelineError(f"{stage} stage failed: {type(exc).__name__}: {exc}") from exc
+        return self.stats
+
+    def _collect_publisher_stats(self) -> None:
+        for p in self.publishers:
+            try:
+                self.stats.publishers[type(p).__name__] = p.stats()
+            except Exception:  # noqa: BLE001 - statistics must never stop the rig
+                pass
+
+    # -- stages ------------------------------------------------------------------------------
+    def _capture(self) -> None:
+        first_t: float | None = None
+        start = self.clock()
+        for frame in self.source:
+            if self._stop.is_set():
+                return
+            if self.config.realtime:
+                if first_t is None:
+                    first_t = frame.t_mono_s
+                delay = start + (frame.t_mono_s - first_t) - self.clock()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+            self.stats.frames_captured += 1
+            if self.on_frame is not None:
+                self.on_frame(frame)
+            if frame.attitude is None:
+                # A frame without heading can never join a window: skip the backbone for it.
+                self.stats.frames_without_heading += 1
+                continue
+            if not self._frames.put((frame, self.clock())):
+                self.stats.frames_dropped_queue += 1
+
+    def _encode(self) -> None:
+        while not self._stop.is_set():
+            item = self._frames.get(_POLL_S)
+            if item is None:
+                if self._capture_done.is_set() and len(self._frames) == 0:
+                    return
+                continue
+            frame, arrived = item
+            feats = self.estimator.encode(frame)
+            self.stats.frames_encoded += 1
+            if not self.ring.push(feats):
+                self.stats.frames_out_of_order += 1
+                continue
+            if not self._mailbox.put((feats, arrived)):
+                self.stats.windows_skipped += 1
+
+    def _estimate(self) -> None:
+        while not self._stop.is_set():
+            item = self._mailbox.get(_POLL_S)
+            if item is None:
+                if self._encode_done.is_set() and len(self._mailbox) == 0:
+                    return
+                continue
+            feats, arrived = item
+            window = [f for f in self.ring.snapshot() if f.frame.t_mono_s <= feats.frame.t_mono_s]
+            window = self.policy.select(window)
+            try:
+                est = self.estimator.estimate(window)
+            except EstimationError as exc:
+                self.stats.estimates_failed += 1
+                log.warning("no estimate for seq %d: %s", feats.frame.seq, exc)
+                continue
+            for p in self.publishers:
+                p.publish(est)
+            self.stats.estimates += 1
+            self.stats.latency.add(self.clock() - arrived)

@@ -1,0 +1,142 @@
+"""The live pipeline: it ends, it drops instead of lagging, and a failing stage stops it all."""
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from estimator.estimator import SunEstimator
+from rig.pipeline import PipelineError, RigConfig, RigPipeline
+from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+from rig.window import SpreadWindowPolicy
+
+pytestmark = pytest.mark.torch
+
+INTR = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+
+
+def frames(n, dt=0.1, heading_every=1):
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
+    for i in range(n):
+        att = Attitude(math.radians(3.0 * i), HeadingRef.TRUE) if i % heading_every == 0 else None
+        yield Frame(t_mono_s=dt * i, seq=i, image_bgr=img, intrinsics=INTR, attitude=att,
+                    sun_enu_truth=[0.0, 0.8, 0.6])
+
+
+class Collect:
+    """A publisher that keeps what it is given (the interface is ours; this is not a device fake)."""
+
+    def __init__(self, fail_after=None):
+        self.estimates = []
+        self.fail_after = fail_after
+        self.closed = False
+
+    def publish(self, est):
+        if self.fail_after is not None and len(self.estimates) >= self.fail_after:
+            raise OSError("controller link broke")
+        self.estimates.append(est)
+
+    def close(self):
+        self.closed = True
+
+    def stats(self):
+        return {"published": len(self.estimates), "dropped": 0}
+
+
+class SlowEstimator(SunEstimator):
+    """The real estimator with a deliberately slow backbone, to overload the pipeline."""
+
+    def __init__(self, *a, delay_s=0.02, **k):
+        super().__init__(*a, **k)
+        self.delay_s = delay_s
+
+    def encode(self, frame):
+        time.sleep(self.delay_s)
+        return super().encode(frame)
+
+
+@pytest.fixture(scope="module")
+def model(tiny_model_dir):
+    from estimator.runtime import OnnxModel
+
+    return OnnxModel.load(tiny_model_dir)
+
+
+def run_pipeline(source, estimator, publishers=(), timeout_s=30.0, **cfg):
+    pipe = RigPipeline(source, estimator, SpreadWindowPolicy(8, 4.0), publishers, config=RigConfig(**cfg))
+    return pipe, pipe.run(timeout_s=timeout_s)
+
+
+def test_runs_to_the_end_and_accounts_for_every_frame(model):
+    out = Collect()
+    pipe, stats = run_pipeline(frames(40, heading_every=5), SunEstimator(model), [out], queue_size=100)
+    assert stats.frames_captured == 40 and stats.frames_without_heading == 32
+    assert stats.frames_encoded == 8
+    assert stats.estimates + stats.windows_skipped + stats.estimates_failed == stats.frames_encoded
+    assert len(out.estimates) == stats.estimates >= 1
+    assert [e.seq for e in out.estimates] == sorted(e.seq for e in out.estimates)
+    assert all(e.n_frames <= 8 for e in out.estimates)
+    assert stats.as_dict()["latency"]["p50_ms"] > 0
+
+
+def test_overload_drops_frames_and_keeps_latency_and_memory_bounded(model):
+    est = SlowEstimator(model, delay_s=0.02)
+    pipe, stats = run_pipeline(frames(400, dt=0.001), est, [Collect()], queue_size=2, ring_capacity=16)
+    assert stats.frames_dropped_queue > 200  # a 1 kHz source into a ~50 Hz backbone
+    assert stats.frames_encoded + stats.frames_dropped_queue == 400
+    # Without dropping, the last frame would wait for ~400 x 20 ms = 8 s; with a queue of 2 it
+    # waits for at most a few backbone runs.
+    assert stats.latency.summary_ms()["p99_ms"] < 1000.0
+    assert len(pipe.ring) <= 16 and len(pipe._frames) <= 2
+
+
+@pytest.mark.parametrize("where", ["source", "encode", "publish"])
+def test_a_stage_that_raises_ends_the_pipeline_with_the_error(model, where):
+    def bad_source():
+        yield from frames(5)
+        raise OSError("camera unplugged")
+
+    class BadEncode(SunEstimator):
+        calls = 0
+
+        def encode(self, frame):
+            self.calls += 1
+            if self.calls == 3:
+                raise RuntimeError("backbone exploded")
+            return super().encode(frame)
+
+    source = bad_source() if where == "source" else frames(10_000, dt=0.0)
+    estimator = BadEncode(model) if where == "encode" else SunEstimator(model)
+    pubs = [Collect(fail_after=2)] if where == "publish" else [Collect()]
+    t0 = time.monotonic()
+    with pytest.raises(PipelineError) as info:
+        run_pipeline(source, estimator, pubs)
+    assert time.monotonic() - t0 < 10.0  # generous: the rule is "within 2 s" of the failure
+    stage = {"source": "capture", "encode": "encode", "publish": "estimate"}[where]
+    assert str(info.value).startswith(f"{stage} stage failed")
+
+
+def test_a_source_that_blocks_forever_does_not_hang_the_rig(model):
+    never = threading.Event()
+
+    def stalled():
+        yield from frames(3)
+        never.wait()  # a driver call that never returns
+        yield from ()
+
+    t0 = time.monotonic()
+    _, stats = run_pipeline(stalled(), SunEstimator(model), [Collect()], timeout_s=1.0)
+    assert time.monotonic() - t0 < 10.0
+    assert stats.frames_captured == 3
+    never.set()
+
+
+def test_status_lines_are_reported(model):
+    lines = []
+    pipe = RigPipeline(frames(30, dt=0.01), SunEstimator(model), SpreadWindowPolicy(), [Collect()],
+                       config=RigConfig(realtime=True, status_every_s=0.05), on_status=lines.append)
+    pipe.run(timeout_s=30)
+    assert lines and all(line.startswith("frames ") and "Hz" in line for line in lines)
