@@ -1,0 +1,131 @@
+"""The rig's configuration: one TOML file covers every option; command-line flags override it.
+
+Defaults live in :data:`DEFAULTS` (the single table of options, their types and defaults);
+``sunrig config --print`` shows the effective configuration as TOML, which is also a valid
+config file to start from.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from rig.errors import SunrigError
+
+
+class ConfigError(SunrigError):
+    """A configuration file or option is wrong; the message names the option."""
+
+
+# section -> option -> default. The type of each default is the option's type.
+DEFAULTS: dict[str, dict[str, Any]] = {
+    "source": {
+        "camera": "",  # file:LOG (a log through the live path); oak, opencv:N come with the drivers
+        "heading": "log",  # where heading comes from; a log carries its own
+    },
+    "estimator": {
+        "model": "",  # model folder; empty: the shipped default
+        "aggregator": "transformer",
+        "seed": 0,
+    },
+    "window": {
+        "span_s": 4.0,
+        "yaw_scale_deg": 45.0,
+    },
+    "rig": {
+        "queue_size": 2,
+        "ring_capacity": 128,
+        "ring_max_age_s": 10.0,
+        "status_every_s": 5.0,
+        "realtime": True,  # pace a recorded source by its timestamps
+    },
+    "output": {
+        "serial": "",  # port or pyserial URL; empty: no serial output
+        "baud": 115200,
+        "format": "nmea",
+        "jsonl": "",  # path or - ; empty: none
+        "record": "",  # MCAP path; empty: no recording
+        "record_frames": False,  # record the frames too, not only the estimates
+    },
+}
+
+CHOICES = {
+    ("estimator", "aggregator"): ("transformer", "mean", "meanshift", "single"),
+    ("output", "format"): ("nmea", "binary"),
+}
+
+
+def _check(section: str, key: str, value: Any) -> Any:
+    default = DEFAULTS[section][key]
+    expected = type(default)
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+        raise ConfigError(f"[{section}] {key}: expected {expected.__name__}, got {value!r}")
+    choices = CHOICES.get((section, key))
+    if choices and value not in choices:
+        raise ConfigError(f"[{section}] {key}: expected one of {', '.join(choices)}, got {value!r}")
+    return value
+
+
+def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
+    """Defaults, updated by the TOML file at ``path`` when given."""
+    cfg = copy.deepcopy(DEFAULTS)
+    if path is None:
+        return cfg
+    try:
+        raw = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist; pass an existing --config FILE.toml") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    return merge(cfg, raw, where=str(path))
+
+
+def merge(cfg: dict[str, dict[str, Any]], raw: Mapping[str, Any], where: str = "config") -> dict:
+    """``cfg`` updated by a nested mapping; unknown sections or options are errors, not ignored."""
+    for section, values in raw.items():
+        if section not in DEFAULTS:
+            raise ConfigError(f"{where}: unknown section [{section}]; known: {', '.join(DEFAULTS)}")
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"{where}: [{section}] must be a table of options")
+        for key, value in values.items():
+            if key not in DEFAULTS[section]:
+                raise ConfigError(
+                    f"{where}: unknown option [{section}] {key}; known: {', '.join(DEFAULTS[section])}"
+                )
+            cfg[section][key] = _check(section, key, value)
+    return cfg
+
+
+def override(cfg: dict[str, dict[str, Any]], flags: Mapping[str, Any]) -> dict:
+    """Apply command-line flags given as ``{"section.key": value}``; None means "not given"."""
+    nested: dict[str, dict[str, Any]] = {}
+    for dotted, value in flags.items():
+        if value is None:
+            continue
+        section, key = dotted.split(".", 1)
+        nested.setdefault(section, {})[key] = value
+    return merge(cfg, nested, where="command line")
+
+
+def dump_toml(cfg: Mapping[str, Mapping[str, Any]]) -> str:
+    """The configuration as TOML (flat sections of strings, numbers and booleans)."""
+    lines = []
+    for section, values in cfg.items():
+        lines.append(f"[{section}]")
+        for key, value in values.items():
+            if isinstance(value, bool):
+                text = "true" if value else "false"
+            elif isinstance(value, str):
+                text = '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+            else:
+                text = repr(value)
+            lines.append(f"{key} = {text}")
+        lines.append("")
+    return "\n".join(lines)

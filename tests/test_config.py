@@ -1,0 +1,51 @@
+"""Configuration: TOML covers every option, flags override, mistakes are named."""
+
+import tomllib
+
+import pytest
+
+from rig.config import DEFAULTS, ConfigError, dump_toml, load_config, override
+
+
+def test_defaults_round_trip_through_toml(tmp_path):
+    text = dump_toml(load_config())
+    assert tomllib.loads(text) == DEFAULTS
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    assert load_config(path) == DEFAULTS
+
+
+def test_file_then_flags(tmp_path):
+    path = tmp_path / "rig.toml"
+    path.write_text('[output]\nserial = "/dev/ttyUSB0"\nbaud = 9600\n[window]\nspan_s = 6\n')
+    cfg = load_config(path)
+    assert cfg["output"]["serial"] == "/dev/ttyUSB0" and cfg["output"]["baud"] == 9600
+    assert cfg["window"]["span_s"] == 6.0 and isinstance(cfg["window"]["span_s"], float)
+    cfg = override(cfg, {"output.baud": 115200, "output.serial": None, "output.format": "binary"})
+    assert cfg["output"]["baud"] == 115200  # the flag wins
+    assert cfg["output"]["serial"] == "/dev/ttyUSB0"  # a flag not given changes nothing
+    assert cfg["output"]["format"] == "binary"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[outptu]\nserial = 'x'\n", "unknown section [outptu]"),
+        ("[output]\nbaudrate = 9600\n", "unknown option [output] baudrate; known: serial, baud"),
+        ("[output]\nbaud = '9600'\n", "[output] baud: expected int, got '9600'"),
+        ("[output]\nformat = 'xml'\n", "[output] format: expected one of nmea, binary"),
+        ("[rig]\nrealtime = 1\n", "[rig] realtime: expected bool, got 1"),
+        ("[output\n", "not valid TOML"),
+    ],
+)
+def test_mistakes_are_named(tmp_path, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert message in str(info.value)
+
+
+def test_missing_file():
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config("/nonexistent/rig.toml")
