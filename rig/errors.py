@@ -31,6 +31,24 @@ class MissingExtraError(SunrigError, ImportError):
     """An optional dependency is not installed; the message names the extra to install."""
 
 
+class ProtocolError(SunrigError, ValueError):
+    """Bytes from a wire are not a message this decoder can use (``docs/protocol.md``).
+
+    ``reason`` says which check failed, so a stream reader can count each kind apart:
+    ``"checksum"`` (NMEA XOR or CRC-16), ``"framing"`` (no ``$``/``*HH``, bad COBS, wrong length),
+    ``"version"`` (a protocol version or message type this decoder does not know),
+    ``"foreign"`` (a valid NMEA sentence that is not ours) or ``"field"`` (a field out of range).
+    """
+
+    def __init__(self, message: str, reason: str = "framing") -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class PublishError(SunrigError):
+    """A publisher cannot start or be used: the serial port cannot be opened, a bad option, closed."""
+
+
 def require_torch():
     """Import torch lazily, naming the extra to install when it is absent."""
     try:

@@ -1,0 +1,406 @@
+"""Publishers: where a :class:`~rig.types.SunEstimate` goes once it is made.
+
+The I/O shells around ``rig/protocol.py``. ``SerialPublisher`` never blocks its caller (the
+estimator thread): ``publish()`` encodes and drops the message into a one-slot mailbox, newest
+wins, and a writer thread does the I/O with a write timeout, dropping, counting and reopening
+the port as needed. ``JsonlPublisher`` writes one JSON object per line, for scripts and
+evaluation. The drop policy and counters are specified in ``docs/protocol.md``.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import math
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Any, Protocol, runtime_checkable
+
+import serial
+
+from rig.errors import PublishError
+from rig.protocol import DEFAULT_STATUS_RULE, StatusRule, encode_binary, encode_nmea
+from rig.types import SunEstimate
+
+log = logging.getLogger(__name__)
+
+try:  # pyserial's posix reset_output_buffer raises termios.error on a dead fd, not OSError
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - Windows
+
+    class _TermiosError(Exception):  # type: ignore[no-redef]
+        pass
+
+
+_PORT_ERRORS = (serial.SerialException, OSError, ValueError, _TermiosError)
+
+FORMATS: dict[str, Callable[[SunEstimate, StatusRule], bytes]] = {"nmea": encode_nmea, "binary": encode_binary}
+# After a timeout, an error or a reopen the controller may hold half a message. An NMEA line
+# end closes that line so the next sentence starts on its own line; a binary frame already
+# starts with its own delimiter.
+_RESYNC_PREFIX = {"nmea": b"\r\n", "binary": b""}
+
+
+@runtime_checkable
+class Publisher(Protocol):
+    """What the pipeline hands each estimate to."""
+
+    def publish(self, est: SunEstimate) -> None: ...
+
+    def close(self) -> None: ...
+
+    def stats(self) -> dict[str, Any]: ...
+
+
+def open_serial(url: str, baudrate: int, write_timeout_s: float) -> serial.SerialBase:
+    """Open ``url`` (a device path or a pyserial URL: ``socket://``, ``loop://``, ``spy://``), 8N1.
+
+    Raises :class:`PublishError` with a message that says what to do.
+    """
+    try:
+        port = serial.serial_for_url(url, baudrate=baudrate, write_timeout=write_timeout_s, do_not_open=True)
+        port.open()
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise _open_error(url, exc) from None
+    return port
+
+
+def _open_error(name: str, exc: Exception) -> PublishError:
+    """One line that says what failed and what to do (pyserial nests the errno text twice)."""
+    code = exc.errno if isinstance(exc, OSError) else None
+    reason = os.strerror(code) if isinstance(code, int) and code > 0 else str(exc)
+    if code == errno.EACCES:
+        hint = "add the user to the 'dialout' group or pass another --serial"
+    else:
+        hint = "check the cable or pass another --serial"
+    return PublishError(f"cannot open serial port {name}: {reason}; {hint}")
+
+
+# How often the writer retries a full kernel buffer: the line drains 4 KB in 0.36 s at 115200 baud.
+_FULL_BUFFER_POLL_S = 0.005
+
+
+def _plain_posix_fd(port: serial.SerialBase) -> int | None:
+    """The non-blocking fd of a plain posix pyserial port, written directly (see ``_write_fd``).
+
+    None for everything else (loop://, socket://, spy:// which logs in its write, Windows, a
+    blocking fd): those go through their own ``write()`` and its write timeout.
+    """
+    if os.name != "posix" or type(port).write is not serial.Serial.write:
+        return None
+    try:
+        fd = port.fileno()
+        return fd if not os.get_blocking(fd) else None
+    except _PORT_ERRORS:
+        return None
+
+
+def _port_name(port: serial.SerialBase) -> str:
+    return str(getattr(port, "port", None) or getattr(port, "name", None) or type(port).__name__)
+
+
+class SerialPublisher:
+    """Publish estimates as NMEA sentences or binary frames on a serial port, never blocking.
+
+    ``port``: an opened (or openable) pyserial port object, or a device path / pyserial URL,
+    opened here with ``serial_for_url``. The publisher owns the port from then on and closes it
+    in :meth:`close`.
+
+    Drop policy: one-slot mailbox, newest wins. A message overwritten before the writer took it
+    counts in ``dropped_overwritten``; one whose write timed out in ``dropped_write_timeout``;
+    one whose write failed in ``write_errors``. After a timeout or an error the writer closes the
+    port and reopens it after a backoff that doubles from ``backoff_s[0]`` to ``backoff_s[1]``:
+    from the URL when it was given one, else with ``port.open()``.
+    """
+
+    def __init__(
+        self,
+        port: serial.SerialBase | str,
+        *,
+        format: str = "nmea",
+        baudrate: int = 115200,
+        write_timeout_s: float = 0.1,
+        status_rule: StatusRule = DEFAULT_STATUS_RULE,
+        backoff_s: tuple[float, float] = (0.1, 2.0),
+        join_timeout_s: float = 2.0,
+    ) -> None:
+        if format not in FORMATS:
+            raise PublishError(f"unknown serial format {format!r}: expected one of {sorted(FORMATS)}")
+        # A finite timeout is what bounds every wait of the writer thread; None would block forever.
+        if not (isinstance(write_timeout_s, int | float) and math.isfinite(write_timeout_s) and write_timeout_s > 0):
+            raise PublishError(f"write_timeout_s: expected a finite number of seconds > 0, got {write_timeout_s!r}")
+        lo, hi = backoff_s
+        if not 0 < lo <= hi:
+            raise PublishError(f"backoff_s: expected 0 < min <= max seconds, got {backoff_s!r}")
+        self._format = format
+        self._encode = FORMATS[format]
+        self._rule = status_rule
+        self._baudrate = baudrate
+        self._write_timeout_s = float(write_timeout_s)
+        self._backoff_s = (float(lo), float(hi))
+        self._join_timeout_s = join_timeout_s
+        if isinstance(port, str):
+            self._url: str | None = port
+            self._port = open_serial(port, baudrate, self._write_timeout_s)
+        else:
+            self._url = None
+            self._port = port
+            if not port.is_open:
+                try:
+                    port.open()
+                except _PORT_ERRORS as exc:
+                    raise _open_error(_port_name(port), exc) from None
+            port.write_timeout = self._write_timeout_s
+        self._name = self._url or _port_name(self._port)
+        self._cond = threading.Condition()  # guards the mailbox, the counters and _in_flight
+        self._slot: bytes | None = None
+        self._in_flight = False
+        self._closed = False
+        self._resync = False
+        self._last_error: str | None = None
+        self._counts = dict.fromkeys(
+            ("published", "written", "dropped_overwritten", "dropped_write_timeout", "write_errors", "reopens"), 0
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"sunrig-serial {self._name}", daemon=True)
+        self._thread.start()
+
+    # --- the caller's side: never waits on I/O --------------------------------------------
+
+    def publish(self, est: SunEstimate) -> None:
+        """Encode ``est`` and leave it for the writer; returns at once, replacing an unsent message."""
+        message = self._encode(est, self._rule)
+        with self._cond:
+            if self._closed:
+                raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
+            if self._slot is not None:
+                self._counts["dropped_overwritten"] += 1
+            self._slot = message
+            self._counts["published"] += 1
+            self._cond.notify()
+
+    def stats(self) -> dict[str, Any]:
+        """Counters and state. ``published`` = ``written`` + the three kinds of drop + ``pending``
+        + ``in_flight``: every message is accounted for."""
+        with self._cond:
+            out: dict[str, Any] = dict(self._counts)
+            out["pending"] = int(self._slot is not None)
+            out["in_flight"] = int(self._in_flight)
+            out["format"] = self._format
+            out["port"] = self._name
+            out["port_open"] = bool(self._port is not None and self._port.is_open)
+            out["writer_alive"] = self._thread.is_alive()
+            out["last_error"] = self._last_error
+        return out
+
+    def close(self) -> None:
+        """Stop the writer and close the port. Idempotent; returns within about ``join_timeout_s``
+        even when a write is stuck (the writer thread then closes the port when its write returns)."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._stop.set()
+            self._cond.notify_all()
+        cancel = getattr(self._port, "cancel_write", None)
+        if cancel is not None:
+            try:
+                cancel()  # wakes a pyserial write() waiting in select() (ports not written by _write_fd)
+            except _PORT_ERRORS:
+                pass
+        self._thread.join(self._join_timeout_s)
+        if self._thread.is_alive():
+            # The write is stuck below Python (a driver, a blocking port object): leave the daemon
+            # thread; it closes the port itself when the write returns.
+            log.warning(
+                "serial writer for %s did not stop within %.1f s; it closes the port when its write returns",
+                self._name,
+                self._join_timeout_s,
+            )
+
+    def __enter__(self) -> SerialPublisher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- the writer thread: all port I/O happens here ------------------------------------
+
+    def _run(self) -> None:
+        backoff = self._backoff_s[0]
+        try:
+            while not self._stop.is_set():
+                if not self._port.is_open and not self._reopen():
+                    self._stop.wait(backoff)
+                    backoff = min(2 * backoff, self._backoff_s[1])
+                    continue
+                message = self._take()
+                if message is None:
+                    continue
+                if self._write(message):
+                    backoff = self._backoff_s[0]
+                else:
+                    self._stop.wait(backoff)  # let a stalled reader drain, or a device come back
+                    backoff = min(2 * backoff, self._backoff_s[1])
+        finally:
+            self._close_port()
+
+    def _take(self) -> bytes | None:
+        """The newest message, waiting at most a bounded time so a stop is seen promptly."""
+        with self._cond:
+            if self._slot is None and not self._stop.is_set():
+                self._cond.wait(0.5)
+            if self._stop.is_set():  # closing: leave it pending rather than delay close() by a write
+                return None
+            message, self._slot = self._slot, None
+            self._in_flight = message is not None
+        return message
+
+    def _write(self, message: bytes) -> bool:
+        """Write one message; on a timeout or an error count the drop and close the port."""
+        data = _RESYNC_PREFIX[self._format] + message if self._resync else message
+        outcome, error = "written", None
+        try:
+            fd = _plain_posix_fd(self._port)
+            if fd is not None:
+                self._write_fd(fd, data)
+            else:
+                n = self._port.write(data)
+                if n is not None and n < len(data):  # cancel_write() from close() cut it short
+                    outcome = "dropped_write_timeout"
+        except serial.SerialTimeoutException:
+            outcome = "dropped_write_timeout"
+        except _PORT_ERRORS as exc:
+            outcome, error = "write_errors", f"{type(exc).__name__}: {exc}"
+        with self._cond:
+            self._counts[outcome] += 1
+            self._in_flight = False
+            if error is not None:
+                self._last_error = error
+        if outcome == "written":
+            self._resync = False
+            return True
+        if error is not None:
+            log.warning("serial write to %s failed (%s); reopening with backoff", self._name, error)
+        self._close_port()
+        return False
+
+    def _write_fd(self, fd: int, data: bytes) -> None:
+        """Write all of ``data`` to a non-blocking fd within the write timeout, without spinning.
+
+        pyserial's posix write retries EAGAIN in a busy loop until its timeout, and select()
+        reports a full pseudo-terminal as writable, so waiting on select() would spin too. On a
+        2-core rig a stalled reader would then take a core from the estimator. Instead: try,
+        and on a full buffer wait a few milliseconds on the stop event (close() wakes it).
+        """
+        deadline = time.monotonic() + self._write_timeout_s
+        view = memoryview(data)
+        while view:
+            try:
+                view = view[os.write(fd, view) :]
+                continue
+            except (BlockingIOError, InterruptedError):
+                pass
+            except OSError as exc:
+                raise serial.SerialException(f"write failed: {exc}") from None
+            if time.monotonic() >= deadline:
+                raise serial.SerialTimeoutException("Write timeout")
+            if self._stop.wait(_FULL_BUFFER_POLL_S):
+                raise serial.SerialTimeoutException("Write abandoned: the publisher is closing")
+
+    def _close_port(self) -> None:
+        port = self._port
+        if port is None or not port.is_open:
+            return
+        try:
+            # A close with unsent data waits for it to drain (up to closing_wait, 30 s by
+            # default on Linux UARTs); the data is stale anyway, so discard it first.
+            port.reset_output_buffer()
+        except _PORT_ERRORS:
+            pass
+        try:
+            port.close()
+        except _PORT_ERRORS:
+            pass
+        self._resync = True
+
+    def _reopen(self) -> bool:
+        """Open the port again: a fresh one from the URL, else the given object. False if not yet."""
+        try:
+            if self._url is not None:
+                port = serial.serial_for_url(
+                    self._url, baudrate=self._baudrate, write_timeout=self._write_timeout_s, do_not_open=True
+                )
+                port.open()
+                self._port = port
+            else:
+                self._port.open()
+        except _PORT_ERRORS as exc:
+            with self._cond:
+                self._last_error = f"reopen: {type(exc).__name__}: {exc}"
+            return False
+        with self._cond:
+            self._counts["reopens"] += 1
+        self._resync = True
+        log.info("serial port %s reopened", self._name)
+        return True
+
+
+class JsonlPublisher:
+    """One ``json.dumps(est.to_json_dict())`` per line, flushed per line.
+
+    ``target``: a path (created or truncated, closed by :meth:`close`), ``"-"`` for stdout, or an
+    open text stream (flushed, left open: its owner closes it). This one writes in the caller's
+    thread: it is for files and pipes, where a write does not stall.
+    """
+
+    def __init__(self, target: str | Path | IO[str]) -> None:
+        self._owned = False
+        if target == "-":
+            self._stream: IO[str] = sys.stdout
+            self._name = "<stdout>"
+        elif isinstance(target, str | Path):
+            try:
+                self._stream = open(target, "w", encoding="utf-8")  # closed in close()
+            except OSError as exc:
+                raise PublishError(
+                    f"cannot write JSONL to {target}: {exc.strerror}; check the folder exists and is writable"
+                ) from None
+            self._owned = True
+            self._name = str(target)
+        else:
+            self._stream = target
+            self._name = getattr(target, "name", type(target).__name__)
+        self._closed = False
+        self._counts = {"published": 0, "written": 0}
+
+    def publish(self, est: SunEstimate) -> None:
+        if self._closed:
+            raise PublishError(f"publish() on the closed JSONL publisher of {self._name}; make a new one")
+        self._counts["published"] += 1
+        self._stream.write(json.dumps(est.to_json_dict()) + "\n")
+        self._stream.flush()  # a reader tailing the file, or a crash, sees every line whole
+        self._counts["written"] += 1
+
+    def stats(self) -> dict[str, Any]:
+        return {**self._counts, "target": self._name}
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._owned:
+            self._stream.close()
+        else:
+            self._stream.flush()
+
+    def __enter__(self) -> JsonlPublisher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,435 @@
+"""The wire formats (rig/protocol.py, docs/protocol.md): golden bytes, round trips, budgets, framers.
+
+Wire tolerances (kept here until they move to tests/tolerances.py): NMEA fields are rounded to
+their last digit, so a round trip is exact to half of it; binary floats are float32.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+
+from rig.errors import ProtocolError, ValidationError
+from rig.geometry import enu_from_az_el
+from rig.protocol import (
+    BINARY_FRAME_LEN,
+    BINARY_PAYLOAD_LEN,
+    FLAG_HAS_UTC,
+    FLAG_PARTIAL_WINDOW,
+    FLAG_SPREAD_HIGH,
+    FLAG_VALID,
+    NMEA_MAX_LEN,
+    BinaryFrameReader,
+    NmeaLineReader,
+    StatusRule,
+    cobs_decode,
+    cobs_encode,
+    crc16_ccitt_false,
+    decode_binary,
+    decode_nmea,
+    encode_binary,
+    encode_nmea,
+    nmea_checksum,
+    nmea_sentence,
+)
+from rig.types import SunEstimate
+
+NMEA_DEG = 0.05 + 1e-9  # half of the 0.1 deg last digit
+NMEA_UNIT = 0.0005 + 1e-9  # half of the 0.001 last digit
+F32_DEG = 1e-4  # float32 of an angle below 360 deg: 2^-24 * 360 ~ 2e-5
+F32_UNIT = 1e-7
+UTC_2011 = 1317042145964389000  # 2011-09-26T13:02:25.964389Z (a KITTI drive)
+
+
+def make_estimate(
+    az_deg: float,
+    el_deg: float,
+    heading_deg: float = 0.0,
+    *,
+    spread_deg: float = 5.0,
+    n_frames: int = 8,
+    seq: int = 1,
+    utc_ns: int | None = UTC_2011,
+    heading_ref: str = "true",
+    t_mono_s: float = 100.0,
+) -> SunEstimate:
+    return SunEstimate(
+        t_mono_s=t_mono_s,
+        seq=seq,
+        sun_enu=enu_from_az_el(math.radians(az_deg), math.radians(el_deg)),
+        heading_rad=math.radians(heading_deg),
+        heading_ref=heading_ref,
+        spread_rad=math.radians(spread_deg),
+        n_frames=n_frames,
+        n_tokens=4 * n_frames,
+        aggregator="transformer",
+        utc_ns=utc_ns,
+    )
+
+
+def random_estimates(n: int, seed: int = 0) -> list[SunEstimate]:
+    """Seeded estimates over every field's whole range, UTC and heading references mixed."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        out.append(
+            make_estimate(
+                az_deg=rng.uniform(0, 360),
+                el_deg=math.degrees(math.asin(rng.uniform(-1, 1))),
+                heading_deg=rng.uniform(0, 360),
+                spread_deg=rng.uniform(0, 180),
+                n_frames=int(rng.integers(1, 200)),
+                seq=int(rng.integers(0, 2**40)),
+                utc_ns=int(rng.integers(0, 4 * 10**18)) if rng.random() < 0.7 else None,
+                heading_ref=str(rng.choice(["true", "magnetic", "relative"])),
+                t_mono_s=float(rng.uniform(0, 1e6)),
+            )
+        )
+    return out
+
+
+def worst_case_estimates() -> list[SunEstimate]:
+    """Every NMEA field at its widest at once: 3-digit azimuth, all of x, y, z, elevation and
+    bearing negative, 3-digit bearing and spread, 5-digit seq, 2-digit frames, a time."""
+    wide = dict(spread_deg=179.96, n_frames=120, seq=99999, utc_ns=UTC_2011 + 10**18)
+    return [
+        make_estimate(200.0, -45.0, heading_deg=350.0, heading_ref="relative", **wide),
+        make_estimate(225.0, -89.94, heading_deg=45.04, **wide),  # bearing rounds to -180.0
+        make_estimate(269.96, -10.0, heading_deg=90.0, **wide),  # vector (-0.985, -0.001, -0.174)
+    ]
+
+
+# --- checksums ------------------------------------------------------------------------------
+
+
+def test_crc16_ccitt_false_check_value():
+    # The catalogue's check value (CRC RevEng, CRC-16/IBM-3740 alias CCITT-FALSE).
+    assert crc16_ccitt_false(b"123456789") == 0x29B1
+    assert crc16_ccitt_false(b"") == 0xFFFF
+    # Incremental use gives the same answer as one call.
+    assert crc16_ccitt_false(b"6789", crc16_ccitt_false(b"12345")) == 0x29B1
+
+
+def test_nmea_checksum_of_a_known_gga_sentence():
+    # pynmea2's documentation example, checksum 6D.
+    body = b"GPGGA,184353.07,1929.045,S,02410.506,E,1,04,2.6,100.00,M,-33.9,M,,0000"
+    assert nmea_checksum(body) == 0x6D
+
+
+# --- COBS -----------------------------------------------------------------------------------
+
+COBS_VECTORS = [  # Wikipedia, "Consistent Overhead Byte Stuffing", encoding examples
+    (b"", b"\x01"),
+    (b"\x00", b"\x01\x01"),
+    (b"\x00\x00", b"\x01\x01\x01"),
+    (b"\x00\x11\x00", b"\x01\x02\x11\x01"),
+    (b"\x11\x22\x00\x33", b"\x03\x11\x22\x02\x33"),
+    (b"\x11\x22\x33\x44", b"\x05\x11\x22\x33\x44"),
+    (b"\x11\x00\x00\x00", b"\x02\x11\x01\x01\x01"),
+    (bytes(range(1, 255)), b"\xff" + bytes(range(1, 255))),
+    (bytes(range(0, 255)), b"\x01\xff" + bytes(range(1, 255))),
+    (bytes(range(1, 256)), b"\xff" + bytes(range(1, 255)) + b"\x02\xff"),
+    (bytes(range(2, 256)) + b"\x00", b"\xff" + bytes(range(2, 256)) + b"\x01\x01"),
+    (bytes(range(3, 256)) + b"\x00\x01", b"\xfe" + bytes(range(3, 256)) + b"\x02\x01"),
+]
+
+
+@pytest.mark.parametrize("raw, encoded", COBS_VECTORS, ids=range(len(COBS_VECTORS)))
+def test_cobs_known_vectors(raw, encoded):
+    assert cobs_encode(raw) == encoded
+    assert cobs_decode(encoded) == raw
+
+
+def test_cobs_round_trip_random_data_has_no_zero_and_bounded_overhead():
+    rng = np.random.default_rng(1)
+    for n in [0, 1, 2, 253, 254, 255, 256, 508, 509, 1000]:
+        for zero_fraction in (0.0, 0.05, 0.5, 1.0):
+            raw = rng.integers(1, 256, n, dtype=np.uint8)
+            raw[rng.random(n) < zero_fraction] = 0
+            raw = raw.tobytes()
+            enc = cobs_encode(raw)
+            assert 0 not in enc
+            assert len(enc) <= len(raw) + 1 + len(raw) // 254
+            assert cobs_decode(enc) == raw
+
+
+@pytest.mark.parametrize("bad", [b"", b"\x03\x11", b"\x02\x00", b"\x03\x11\x00"])
+def test_cobs_decode_refuses_bad_input(bad):
+    with pytest.raises(ProtocolError) as info:
+        cobs_decode(bad)
+    assert info.value.reason == "framing"
+
+
+# --- status ---------------------------------------------------------------------------------
+
+
+def test_status_rule_flags():
+    rule = StatusRule(full_window=8, max_spread_deg=30.0)
+    assert rule.flags(make_estimate(100, 30)) == FLAG_VALID | FLAG_HAS_UTC
+    assert rule.flags(make_estimate(100, 30, utc_ns=None)) == FLAG_VALID
+    assert rule.flags(make_estimate(100, 30, n_frames=7)) == FLAG_PARTIAL_WINDOW | FLAG_HAS_UTC
+    assert rule.flags(make_estimate(100, 30, spread_deg=30.5, utc_ns=None)) == FLAG_SPREAD_HIGH
+    assert rule.flags(make_estimate(100, 30, spread_deg=30.0, n_frames=9, utc_ns=None)) == FLAG_VALID
+    with pytest.raises(ValidationError, match="full_window"):
+        StatusRule(full_window=0)
+    with pytest.raises(ValidationError, match="max_spread_deg"):
+        StatusRule(max_spread_deg=-1.0)
+
+
+# --- NMEA -----------------------------------------------------------------------------------
+
+
+def _hand_checksum(body: str) -> str:
+    value = 0
+    for ch in body:
+        value ^= ord(ch)
+    return f"{value:02X}"
+
+
+def test_nmea_golden_sentence():
+    est = make_estimate(123.4, 35.6, heading_deg=100.0, spread_deg=5.2, seq=1234)
+    body = "PSRGS,1,130225.96,1234,123.4,35.6,0.679,-0.448,0.582,23.4,5.2,8,T,A"
+    assert _hand_checksum(body) == "5D"  # the value docs/protocol.md shows
+    assert encode_nmea(est) == f"${body}*5D\r\n".encode("ascii")
+
+
+def test_nmea_golden_sentence_without_utc_partial_window_relative():
+    est = make_estimate(10.0, 5.0, heading_deg=350.0, spread_deg=12.0, n_frames=3, seq=123456,
+                        utc_ns=None, heading_ref="relative")
+    body = "PSRGS,1,,23456,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"
+    assert encode_nmea(est) == f"${body}*{_hand_checksum(body)}\r\n".encode("ascii")
+
+
+def test_nmea_rounding_stays_in_range_and_never_prints_minus_zero():
+    line = encode_nmea(make_estimate(359.96, 0.0001, heading_deg=179.98)).decode()
+    fields = line.split("*")[0].split(",")  # $PSRGS, version, utc, seq, az, el, e, n, u, bearing, ...
+    assert fields[4] == "0.0"  # azimuth 359.96 wraps to 0.0, never 360.0
+    assert fields[5] == "0.0"
+    assert fields[6:9] == ["-0.001", "1.000", "0.000"]  # up = 2e-6: no "-0.000" either way
+    assert fields[9] == "-180.0"  # bearing 179.98 rounds to 180.0, which wraps into [-180, 180)
+    line = encode_nmea(make_estimate(0.0, -89.97, heading_deg=0.0)).decode()
+    assert line.split(",")[5] == "-90.0"
+
+
+def test_nmea_worst_case_is_exactly_82_characters():
+    for est in worst_case_estimates():
+        line = encode_nmea(est)
+        assert len(line) == NMEA_MAX_LEN, line
+        assert line.endswith(b"\r\n")
+
+
+def test_nmea_random_estimates_fit_and_round_trip():
+    rule = StatusRule()
+    longest = 0
+    for est in random_estimates(500, seed=2) + worst_case_estimates():
+        line = encode_nmea(est, rule)
+        longest = max(longest, len(line))
+        assert len(line) <= NMEA_MAX_LEN and line.isascii()
+        got = decode_nmea(line)
+        az = math.degrees(est.azimuth_rad)
+        assert abs((got["azimuth_deg"] - az + 180.0) % 360.0 - 180.0) <= NMEA_DEG
+        assert got["elevation_deg"] == pytest.approx(math.degrees(est.elevation_rad), abs=NMEA_DEG)
+        rb = math.degrees(est.relative_bearing_rad)
+        assert abs((got["relative_bearing_deg"] - rb + 180.0) % 360.0 - 180.0) <= NMEA_DEG
+        assert got["spread_deg"] == pytest.approx(math.degrees(est.spread_rad), abs=NMEA_DEG)
+        np.testing.assert_allclose(got["sun_enu"], est.sun_enu, atol=NMEA_UNIT)
+        assert got["seq"] == est.seq % 100_000
+        assert got["n_frames"] == min(est.n_frames, 99)
+        assert got["heading_ref"] == est.heading_ref.value
+        assert got["valid"] == bool(rule.flags(est) & FLAG_VALID)
+        if est.utc_ns is None:
+            assert got["utc_s_of_day"] is None
+        else:
+            s_of_day = (est.utc_ns % 86_400_000_000_000) / 1e9
+            assert 0.0 <= s_of_day - got["utc_s_of_day"] < 0.01 + 1e-6  # truncated to 1/100 s
+    assert longest == NMEA_MAX_LEN  # the worst cases reach the budget
+
+
+def _resigned(body: str) -> bytes:
+    return nmea_sentence(body.split(",")[1:], address=body.split(",")[0])
+
+
+@pytest.mark.parametrize(
+    "line, reason",
+    [
+        (b"$PSRGS,1,,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V*00\r\n", "checksum"),
+        (b"PSRGS,1,,1,10.0*11\r\n", "framing"),
+        (b"$PSRGS,1,,1,10.0\r\n", "framing"),
+        (b"$GPGGA,184353.07,1929.045,S,02410.506,E,1,04,2.6,100.00,M,-33.9,M,,0000*6D\r\n", "foreign"),
+        (_resigned("PSRGS,2,,1,10.0,5.0"), "version"),
+        (_resigned("PSRGS,1,,1,10.0,5.0"), "framing"),
+        (_resigned("PSRGS,1,,1,400.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"), "field"),
+        (_resigned("PSRGS,1,,1,1e2,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"), "field"),
+        (_resigned("PSRGS,1,256199.00,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"), "field"),
+        (_resigned("PSRGS,1,,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,X,V"), "field"),
+        (_resigned("PSRGS,1,,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,Q"), "field"),
+    ],
+)
+def test_decode_nmea_refuses_with_a_reason(line, reason):
+    with pytest.raises(ProtocolError) as info:
+        decode_nmea(line)
+    assert info.value.reason == reason
+
+
+# --- binary ---------------------------------------------------------------------------------
+
+GOLDEN_FRAME_HEX = (
+    "000701010354d2040101010101010123294088f26c90da124712d9c62d3f582be5be0306153f"
+    "cdccf64266660e423333bb410108c8426666a64008022003646700"
+)
+
+
+def test_binary_golden_frame():
+    est = make_estimate(123.4, 35.6, heading_deg=100.0, spread_deg=5.2, seq=1234, t_mono_s=12.5)
+    frame = encode_binary(est)
+    assert frame.hex() == GOLDEN_FRAME_HEX
+    assert len(frame) == BINARY_FRAME_LEN == 65
+    assert frame[0] == 0 and frame[-1] == 0 and 0 not in frame[1:-1]
+    raw = cobs_decode(frame[1:-1])
+    payload, crc = raw[:-2], raw[-2:]
+    assert len(payload) == BINARY_PAYLOAD_LEN == 60
+    assert struct.unpack("<H", crc)[0] == crc16_ccitt_false(payload)
+    assert payload[:4] == bytes([1, 1, FLAG_VALID | FLAG_HAS_UTC, ord("T")])
+    assert struct.unpack_from("<I", payload, 4)[0] == 1234
+    assert struct.unpack_from("<d", payload, 8)[0] == 12.5
+    assert struct.unpack_from("<q", payload, 16)[0] == UTC_2011
+
+
+def test_binary_round_trip_within_float32():
+    rule = StatusRule()
+    for est in random_estimates(300, seed=3) + worst_case_estimates():
+        got = decode_binary(encode_binary(est, rule))
+        assert got["version"] == 1 and got["msg_type"] == 1
+        assert got["seq"] == est.seq % 2**32
+        assert got["t_mono_s"] == est.t_mono_s
+        assert got["utc_ns"] == est.utc_ns
+        np.testing.assert_allclose(got["sun_enu"], est.sun_enu, atol=F32_UNIT)
+        for key, rad in (
+            ("azimuth_deg", est.azimuth_rad),
+            ("elevation_deg", est.elevation_rad),
+            ("relative_bearing_deg", est.relative_bearing_rad),
+            ("heading_deg", est.heading_rad),
+            ("spread_deg", est.spread_rad),
+        ):
+            assert got[key] == pytest.approx(math.degrees(rad), abs=F32_DEG), key
+        assert got["n_frames"] == est.n_frames and got["n_tokens"] == est.n_tokens
+        assert got["heading_ref"] == est.heading_ref.value
+        assert got["flags"] == rule.flags(est)
+        assert got["valid"] == bool(rule.flags(est) & FLAG_VALID)
+
+
+def _frame(payload: bytes) -> bytes:
+    return b"\x00" + cobs_encode(payload + struct.pack("<H", crc16_ccitt_false(payload))) + b"\x00"
+
+
+def test_decode_binary_refuses_with_a_reason():
+    good = encode_binary(make_estimate(50, 20))
+    raw = bytearray(cobs_decode(good[1:-1]))
+    payload = bytes(raw[:-2])
+    flipped = bytearray(raw)
+    flipped[20] ^= 0x40
+    cases = [
+        (b"\x00" + cobs_encode(bytes(flipped)) + b"\x00", "checksum"),
+        (_frame(bytes([2]) + payload[1:]), "version"),
+        (_frame(payload[:1] + bytes([7]) + payload[2:]), "version"),
+        (_frame(payload + b"\x00"), "framing"),
+        (_frame(b"\x01"), "framing"),
+        (good[:-1] + b"\x05\x00", "framing"),
+        (_frame(payload[:3] + b"X" + payload[4:]), "field"),
+    ]
+    for frame, reason in cases:
+        with pytest.raises(ProtocolError) as info:
+            decode_binary(frame)
+        assert info.value.reason == reason, frame.hex()
+
+
+# --- stream readers: chunked input, leading garbage, truncated messages ----------------------
+
+
+def _chunks(data: bytes, rng: np.random.Generator) -> list[bytes]:
+    cuts = np.sort(rng.integers(0, len(data), 40))
+    return [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)], strict=True)]
+
+
+@pytest.mark.parametrize("fmt", ["nmea", "binary"])
+def test_reader_chunked_input_gives_the_same_messages(fmt):
+    encode, reader_type = (encode_nmea, NmeaLineReader) if fmt == "nmea" else (encode_binary, BinaryFrameReader)
+    estimates = random_estimates(30, seed=4)
+    stream = b"".join(encode(e) for e in estimates)
+    whole = reader_type().feed(stream)
+    assert [m["seq"] for m in whole] == [e.seq % (100_000 if fmt == "nmea" else 2**32) for e in estimates]
+    for chunking in ("bytewise", "random"):
+        reader = reader_type()
+        pieces = [stream[i : i + 1] for i in range(len(stream))] if chunking == "bytewise" else (
+            _chunks(stream, np.random.default_rng(5))
+        )
+        got = [m for piece in pieces for m in reader.feed(piece)]
+        assert got == whole
+        assert reader.counts["messages"] == len(estimates)
+        assert sum(v for k, v in reader.counts.items() if k != "messages") == 0
+
+
+def test_nmea_reader_leading_garbage_and_foreign_sentences():
+    estimates = random_estimates(5, seed=6)
+    gga = b"$GPGGA,184353.07,1929.045,S,02410.506,E,1,04,2.6,100.00,M,-33.9,M,,0000*6D\r\n"
+    garbage = bytes(np.random.default_rng(7).integers(0, 256, 500, dtype=np.uint8)).replace(b"$", b"#")
+    garbage = garbage.replace(b"\r", b"r").replace(b"\n", b"n")
+    stream = garbage + b"".join(encode_nmea(e) + gga for e in estimates)
+    reader = NmeaLineReader()
+    got = reader.feed(stream)
+    assert [m["seq"] for m in got] == [e.seq % 100_000 for e in estimates]
+    assert reader.counts["garbage_bytes"] == len(garbage)
+    assert reader.counts["foreign"] == len(estimates)
+    assert reader.counts["bad_checksum"] == reader.counts["malformed"] == 0
+
+
+def test_nmea_reader_truncated_corrupt_and_overlong_lines():
+    a, b, c = (encode_nmea(e) for e in random_estimates(3, seed=8))
+    corrupt = bytearray(b)
+    corrupt[20] ^= 0x01  # one flipped bit: the checksum catches it
+    overlong = b"$" + b"X" * 100 + b"\r\n"
+    reader = NmeaLineReader()
+    got = reader.feed(a[:40] + b + bytes(corrupt) + overlong + a[:30] + b"\r\n" + c)
+    assert [m["seq"] for m in got] == [decode_nmea(x)["seq"] for x in (b, c)]
+    assert reader.counts["bad_checksum"] == 1
+    assert reader.counts["garbage_bytes"] == 40 + 101  # the cut sentence and the over-long line
+    assert reader.counts["malformed"] == 1  # the second cut sentence ends with a line end: no *HH
+    # A sentence cut at the end of the stream waits, and completes when the rest arrives.
+    reader = NmeaLineReader()
+    assert reader.feed(c[:-5]) == []
+    assert [m["seq"] for m in reader.feed(c[-5:])] == [decode_nmea(c)["seq"]]
+
+
+def test_binary_reader_leading_garbage():
+    estimates = random_estimates(5, seed=9)
+    garbage = bytes(np.random.default_rng(10).integers(0, 256, 700, dtype=np.uint8))
+    reader = BinaryFrameReader()
+    got = reader.feed(garbage + b"".join(encode_binary(e) for e in estimates))
+    assert [m["seq"] for m in got] == [e.seq % 2**32 for e in estimates]
+    assert reader.counts["messages"] == len(estimates)
+    assert reader.counts["bad_crc"] + reader.counts["malformed"] + reader.counts["garbage_bytes"] > 0
+
+
+def test_binary_reader_truncated_and_overlong_frames():
+    a, b, c = (encode_binary(e) for e in random_estimates(3, seed=11))
+    overlong = b"\x00" + b"\x07" * 1000
+    reader = BinaryFrameReader()
+    got = reader.feed(a[:30] + b + overlong + c)
+    # The leading delimiter of b ends the truncated a; the over-long run is dropped up to c's.
+    assert [m["seq"] for m in got] == [decode_binary(x)["seq"] for x in (b, c)]
+    assert reader.counts["malformed"] + reader.counts["bad_crc"] == 1
+    assert reader.counts["garbage_bytes"] == 1000
+    # Cut at the end of the stream: it waits for the rest.
+    reader = BinaryFrameReader()
+    assert reader.feed(c[:-10]) == []
+    assert len(reader.feed(c[-10:])) == 1
+
+
+def test_binary_leading_delimiter_saves_the_frame_after_a_truncated_one():
+    a, b = (encode_binary(e) for e in random_estimates(2, seed=12))
+    with_lead = BinaryFrameReader().feed(a[:30] + b)
+    without_lead = BinaryFrameReader().feed(a[:30] + b[1:])
+    assert len(with_lead) == 1 and len(without_lead) == 0

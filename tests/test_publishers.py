@@ -1,0 +1,502 @@
+"""The publishers (rig/publishers.py) over real pseudo-terminals, loop:// and files.
+
+pyserial opens the slave side of an ``os.openpty()`` pair, exactly as it opens /dev/ttyUSB0; the
+test reads the master side. Nothing is mocked. There are no timed asserts (speed is for the
+benchmarks): waits poll a condition with a deadline, and ``within()`` guards against hangs.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import socket
+import threading
+import time
+import tty
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pynmea2
+import pytest
+import serial
+from serial.urlhandler.protocol_loop import Serial as LoopSerial
+
+from rig.errors import PublishError
+from rig.protocol import (
+    NMEA_MAX_LEN,
+    BinaryFrameReader,
+    NmeaLineReader,
+    decode_binary,
+    decode_nmea,
+    encode_binary,
+    encode_nmea,
+    nmea_fields,
+)
+from rig.publishers import JsonlPublisher, Publisher, SerialPublisher
+from tests.test_protocol import F32_DEG, F32_UNIT, make_estimate, random_estimates, worst_case_estimates
+
+HANG_GUARD_S = 10.0  # generous: only a hang fails it, never a slow machine
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout_s: float = HANG_GUARD_S) -> None:
+    """Poll ``condition`` until true; fail (not hang) after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.002)
+
+
+def within(seconds: float, fn: Callable[[], Any]) -> Any:
+    """Run ``fn`` in a thread; fail if it has not returned after ``seconds`` (a hang guard)."""
+    result: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            result["value"] = fn()
+        except BaseException as exc:  # handed back to the test thread, re-raised there
+            result["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"{getattr(fn, '__name__', fn)} did not return within {seconds} s"
+    if "error" in result:
+        raise result["error"]
+    return result.get("value")
+
+
+def accounted(stats: dict[str, Any]) -> int:
+    """Every published message is written, dropped one of three ways, pending or in flight."""
+    keys = ("written", "dropped_overwritten", "dropped_write_timeout", "write_errors", "pending", "in_flight")
+    return sum(stats[k] for k in keys)
+
+
+class Pty:
+    """A pseudo-terminal pair: pyserial opens ``name`` (the slave); the test reads ``master``."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # no echo, no CR/LF translation: bytes pass as written
+        self.name = os.ttyname(self.slave)
+
+    def fill(self) -> None:
+        """Fill the kernel buffers from the test's own slave fd, as a reader that stopped would.
+
+        The kernel moves bytes on to the master's line discipline in the background, so room can
+        reappear just after an EAGAIN: fill until two rounds in a row find none."""
+        os.set_blocking(self.slave, False)
+        deadline = time.monotonic() + HANG_GUARD_S
+        empty_rounds = 0
+        while empty_rounds < 2:
+            assert time.monotonic() < deadline, "the pty never filled"
+            empty_rounds = empty_rounds + 1 if self._fill_once() == 0 else 0
+            time.sleep(0.01)  # let the kernel move what it can, then try again
+
+    def _fill_once(self) -> int:
+        total = 0
+        for size in (4096, 256, 1):
+            try:
+                while True:
+                    total += os.write(self.slave, b"\x00" * size)
+            except BlockingIOError:
+                pass
+        return total
+
+    def close_master(self) -> None:
+        if self.master >= 0:
+            os.close(self.master)
+            self.master = -1
+
+    def close(self) -> None:
+        self.close_master()
+        if self.slave >= 0:
+            os.close(self.slave)
+            self.slave = -1
+
+
+@pytest.fixture
+def pty():
+    pair = Pty()
+    yield pair
+    pair.close()
+
+
+class MasterReader:
+    """Reads a pty master in a thread and feeds a stream reader; ``raw`` keeps every byte."""
+
+    def __init__(self, master: int, reader: NmeaLineReader | BinaryFrameReader) -> None:
+        self.master = master
+        self.reader = reader
+        self.raw = bytearray()
+        self.messages: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import select
+
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.05)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 65536)
+            except OSError:  # EIO while no slave is open: wait for the publisher to reopen
+                self._stop.wait(0.01)
+                continue
+            with self._lock:
+                self.raw += data
+                self.messages += self.reader.feed(data)
+
+    def snapshot(self) -> list[dict[str, Any]]:
+        with self._lock:
+            return list(self.messages)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(HANG_GUARD_S)
+        assert not self._thread.is_alive()
+
+
+def publish_and_wait(pub: SerialPublisher, est, written_before: int) -> None:
+    """Publish one message and wait until the writer wrote it (no drop: one at a time)."""
+    pub.publish(est)
+    wait_until(lambda: pub.stats()["written"] > written_before, "the writer to write the message")
+
+
+def publish_until_seen(pub: SerialPublisher, reader: MasterReader, seq: int, what: str) -> None:
+    """Publish (again and again: the newest wins) until the reader has a message with ``seq``."""
+
+    def seen() -> bool:
+        pub.publish(make_estimate(40, 5, seq=seq))
+        return any(m["seq"] == seq for m in reader.snapshot())
+
+    wait_until(seen, what)
+
+
+# --- NMEA and binary over a real pseudo-terminal ---------------------------------------------
+
+
+def test_nmea_over_a_pty_is_accepted_by_pynmea2(pty):
+    estimates = random_estimates(120, seed=20) + worst_case_estimates()
+    reader = MasterReader(pty.master, NmeaLineReader())
+    try:
+        with SerialPublisher(pty.name, format="nmea") as pub:
+            for i, est in enumerate(estimates):
+                publish_and_wait(pub, est, i)
+            wait_until(lambda: len(reader.snapshot()) == len(estimates), "every sentence at the reader")
+            stats = pub.stats()
+    finally:
+        reader.stop()
+    assert stats["written"] == stats["published"] == len(estimates)
+    assert stats["dropped_overwritten"] == stats["dropped_write_timeout"] == stats["write_errors"] == 0
+    lines = bytes(reader.raw).split(b"\r\n")
+    assert lines[-1] == b"" and len(lines) - 1 == len(estimates)
+    for line, est in zip(lines[:-1], estimates, strict=True):
+        assert len(line) + 2 <= NMEA_MAX_LEN
+        parsed = pynmea2.parse(line.decode("ascii"), check=True)  # raises on a checksum mismatch
+        assert isinstance(parsed, pynmea2.ProprietarySentence)
+        assert parsed.manufacturer == "SRG"
+        assert parsed.data == ["S", *nmea_fields(est)]
+    assert reader.snapshot() == [decode_nmea(encode_nmea(e)) for e in estimates]
+    assert max(len(line) + 2 for line in lines[:-1]) == NMEA_MAX_LEN  # the worst cases went through
+    assert reader.reader.counts["bad_checksum"] == reader.reader.counts["garbage_bytes"] == 0
+
+
+def test_binary_frames_over_a_pty_pass_their_crc_and_round_trip(pty):
+    estimates = random_estimates(80, seed=21) + worst_case_estimates()
+    reader = MasterReader(pty.master, BinaryFrameReader())
+    try:
+        with SerialPublisher(pty.name, format="binary") as pub:
+            for i, est in enumerate(estimates):
+                publish_and_wait(pub, est, i)
+            wait_until(lambda: len(reader.snapshot()) == len(estimates), "every frame at the reader")
+    finally:
+        reader.stop()
+    counts = reader.reader.counts
+    assert counts["messages"] == len(estimates)
+    assert counts["bad_crc"] == counts["malformed"] == counts["garbage_bytes"] == 0
+    assert bytes(reader.raw) == b"".join(encode_binary(e) for e in estimates)
+    for got, est in zip(reader.snapshot(), estimates, strict=True):
+        np.testing.assert_allclose(got["sun_enu"], est.sun_enu, atol=F32_UNIT)
+        assert got["azimuth_deg"] == pytest.approx(math.degrees(est.azimuth_rad), abs=F32_DEG)
+        assert got["elevation_deg"] == pytest.approx(math.degrees(est.elevation_rad), abs=F32_DEG)
+        assert got["seq"] == est.seq % 2**32 and got["utc_ns"] == est.utc_ns and got["t_mono_s"] == est.t_mono_s
+
+
+# --- a reader that stops reading, or goes away ------------------------------------------------
+
+
+def test_publish_never_waits_for_a_stuck_write(pty):
+    """The writer is stuck on a full pty (a long write timeout): publish() still returns at once,
+    every call, and the counters show the overwritten messages. close() still returns."""
+    pty.fill()
+    pub = SerialPublisher(pty.name, format="nmea", write_timeout_s=60.0)
+    try:
+        pub.publish(make_estimate(10, 10, seq=0))
+        wait_until(lambda: pub.stats()["in_flight"] == 1, "the writer to take the first message")
+
+        def burst() -> None:
+            for k in range(1, 201):
+                pub.publish(make_estimate(10, 10, seq=k))
+
+        within(HANG_GUARD_S, burst)
+        stats = pub.stats()
+        # Structural: the writer still holds message 0 in its write; every later message went to
+        # the mailbox and all but the newest were overwritten there. publish() never waited on it.
+        assert stats["in_flight"] == 1 and stats["written"] == 0
+        assert stats["dropped_overwritten"] == 199 and stats["pending"] == 1
+        assert accounted(stats) == stats["published"] == 201
+        within(HANG_GUARD_S, pub.close)
+        stats = pub.stats()
+        assert not stats["writer_alive"] and not stats["port_open"]
+        assert stats["dropped_write_timeout"] == 1 and stats["in_flight"] == 0  # the abandoned write
+        assert accounted(stats) == 201
+    finally:
+        pub.close()
+
+
+def test_stalled_reader_drops_are_counted_and_sentences_flow_again_when_it_reads(pty):
+    pub = SerialPublisher(pty.name, format="nmea", write_timeout_s=0.05, backoff_s=(0.01, 0.1))
+    reader = None
+    try:
+        # Nobody reads the master: the kernel buffer fills and writes start to time out.
+        seq = 0
+        while pub.stats()["dropped_write_timeout"] < 2:
+            seq += 1
+            assert seq < 5000, "the pty never filled"
+            pub.publish(make_estimate(30, 20, seq=seq))
+            wait_until(lambda: pub.stats()["pending"] == 0 or pub.stats()["dropped_write_timeout"] >= 2,
+                       "the writer to take the message")
+        stalled = pub.stats()
+        assert stalled["written"] > 0 and stalled["reopens"] >= 1  # closed on the timeout, then reopened
+        assert accounted(stalled) == stalled["published"]
+
+        # The reader comes back: new sentences arrive, whole.
+        reader = MasterReader(pty.master, NmeaLineReader())
+        publish_until_seen(pub, reader, 90000, "a sentence published after the reader came back")
+        resumed = pub.stats()
+        assert resumed["written"] > stalled["written"]
+        assert accounted(resumed) == resumed["published"]
+        assert reader.reader.counts["bad_checksum"] == 0
+    finally:
+        if reader is not None:
+            reader.stop()
+        within(HANG_GUARD_S, pub.close)
+
+
+def test_vanished_reader_counts_errors_and_the_url_is_reopened_when_it_returns(tmp_path):
+    """Like a USB adapter unplugged and plugged back under its udev symlink: the master side
+    closes (the device goes), writes fail, and the publisher reopens the path once it exists."""
+    first, second = Pty(), None
+    link = tmp_path / "ttySUN"
+    os.symlink(first.name, link)
+    pub = SerialPublisher(str(link), format="nmea", write_timeout_s=0.05, backoff_s=(0.01, 0.1))
+    reader = MasterReader(first.master, NmeaLineReader())
+    try:
+        publish_until_seen(pub, reader, 1, "the first sentence")
+        reader.stop()
+        first.close()  # the device goes away
+
+        def errors_seen() -> bool:
+            pub.publish(make_estimate(40, 5, seq=2))
+            return pub.stats()["write_errors"] >= 1
+
+        wait_until(errors_seen, "a write error after the device went away")
+        gone = pub.stats()
+        assert accounted(gone) == gone["published"]
+        within(HANG_GUARD_S, lambda: [pub.publish(make_estimate(40, 5, seq=3)) for _ in range(100)])
+
+        second = Pty()  # the device comes back, maybe under another /dev/pts number
+        tmp_link = tmp_path / "ttySUN.new"
+        os.symlink(second.name, tmp_link)
+        os.replace(tmp_link, link)
+        reader = MasterReader(second.master, NmeaLineReader())
+        publish_until_seen(pub, reader, 77, "a sentence on the reopened port")
+        back = pub.stats()
+        assert back["reopens"] >= 1 and back["write_errors"] >= 1
+        assert back["dropped_overwritten"] > 0
+        # Only whole sentences arrive; the first may be the one left in the mailbox during the outage.
+        assert {m["seq"] for m in reader.snapshot()} <= {3, 77}
+        assert reader.reader.counts["bad_checksum"] == reader.reader.counts["malformed"] == 0
+        assert accounted(back) == back["published"]
+    finally:
+        reader.stop()
+        within(HANG_GUARD_S, pub.close)
+        first.close()
+        if second is not None:
+            second.close()
+
+
+def test_socket_url_reconnects_after_the_peer_goes():
+    """A TCP serial bridge (socket://): the peer drops the connection, writes fail, and the
+    publisher makes a new connection from the URL."""
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(HANG_GUARD_S)
+    url = f"socket://127.0.0.1:{server.getsockname()[1]}"
+    pub = SerialPublisher(url, format="binary", write_timeout_s=0.05, backoff_s=(0.01, 0.1))
+    conns: list[socket.socket] = []
+    try:
+        conns.append(server.accept()[0])
+        frames = BinaryFrameReader()
+
+        def received(seq: int) -> bool:
+            pub.publish(make_estimate(60, 30, seq=seq))
+            conns[-1].settimeout(0.02)
+            try:
+                got = frames.feed(conns[-1].recv(4096))
+            except TimeoutError:
+                return False
+            return any(m["seq"] == seq for m in got)
+
+        wait_until(lambda: received(1), "a frame over the first connection")
+        conns[-1].close()  # the peer goes
+
+        def errors_seen() -> bool:
+            pub.publish(make_estimate(60, 30, seq=2))
+            return pub.stats()["write_errors"] >= 1
+
+        wait_until(errors_seen, "a write error after the peer went")
+        conns.append(server.accept()[0])  # the publisher reconnects by itself
+        wait_until(lambda: received(3), "a frame over the new connection")
+        stats = pub.stats()
+        assert stats["reopens"] >= 1 and stats["write_errors"] >= 1
+        assert accounted(stats) == stats["published"]
+    finally:
+        within(HANG_GUARD_S, pub.close)
+        for conn in conns:
+            conn.close()
+        server.close()
+
+
+def test_given_port_object_is_reopened_with_open(pty):
+    port = serial.Serial(pty.name, 115200)
+    reader = MasterReader(pty.master, NmeaLineReader())
+    try:
+        with SerialPublisher(port, format="nmea", backoff_s=(0.01, 0.1)) as pub:
+            publish_and_wait(pub, make_estimate(1, 1, seq=1), 0)
+            port.close()  # as if a write had failed and the port was closed
+            publish_until_seen(pub, reader, 3, "a sentence after the writer reopened the port object")
+            assert pub.stats()["reopens"] >= 1
+        assert not port.is_open  # the publisher owns the port and closed it
+    finally:
+        reader.stop()
+
+
+# --- loop://, close(), errors --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("fmt", ["nmea", "binary"])
+def test_loop_url_round_trip(fmt):
+    port = serial.serial_for_url("loop://", timeout=HANG_GUARD_S)
+    est = make_estimate(321.0, 12.3, heading_deg=45.0, seq=42)
+    encoded = encode_nmea(est) if fmt == "nmea" else encode_binary(est)
+    with SerialPublisher(port, format=fmt) as pub:
+        pub.publish(est)
+        data = port.read(len(encoded))  # loop:// echoes what the writer thread wrote
+        wait_until(lambda: pub.stats()["written"] == 1, "the written count")
+    assert data == encoded
+    assert (decode_nmea if fmt == "nmea" else decode_binary)(data)["seq"] == 42
+
+
+def test_loop_url_string_is_opened_and_closed_by_the_publisher():
+    pub = SerialPublisher("loop://", format="binary")
+    publish_and_wait(pub, make_estimate(5, 5), 0)
+    assert pub.stats()["port"] == "loop://" and pub.stats()["port_open"]
+    within(HANG_GUARD_S, pub.close)
+    within(HANG_GUARD_S, pub.close)  # idempotent
+    assert not pub.stats()["port_open"] and not pub.stats()["writer_alive"]
+    with pytest.raises(PublishError, match="closed"):
+        pub.publish(make_estimate(5, 5))
+
+
+class HungDriverPort(LoopSerial):
+    """A port whose write() hangs below Python until released (a wedged USB driver)."""
+
+    def __init__(self) -> None:
+        super().__init__("loop://")
+        self.release = threading.Event()
+
+    def write(self, data: bytes) -> int:
+        self.release.wait(HANG_GUARD_S)
+        return super().write(data)
+
+
+def test_close_returns_while_the_write_is_stuck_and_the_writer_closes_the_port_later(caplog):
+    port = HungDriverPort()
+    pub = SerialPublisher(port, format="nmea", join_timeout_s=0.2)
+    try:
+        pub.publish(make_estimate(5, 5))
+        wait_until(lambda: pub.stats()["in_flight"] == 1, "the writer to enter the hung write")
+        with caplog.at_level(logging.WARNING, logger="rig.publishers"):
+            within(HANG_GUARD_S, pub.close)
+        assert "did not stop" in caplog.text
+        within(HANG_GUARD_S, pub.close)  # idempotent, and does not wait again
+        assert pub.stats()["writer_alive"] and port.is_open
+    finally:
+        port.release.set()
+    wait_until(lambda: not pub.stats()["writer_alive"], "the writer to end once the write returned")
+    assert not port.is_open
+
+
+def test_open_and_option_errors_say_what_to_do(tmp_path):
+    missing = str(tmp_path / "ttyUSB9")
+    expected = r"cannot open serial port .*ttyUSB9.*check the cable or pass another --serial"
+    with pytest.raises(PublishError, match=expected):
+        SerialPublisher(missing)
+    with pytest.raises(PublishError, match="unknown serial format 'csv'"):
+        SerialPublisher("loop://", format="csv")
+    for bad in (None, 0, -1.0, math.inf):
+        with pytest.raises(PublishError, match="write_timeout_s"):
+            SerialPublisher("loop://", write_timeout_s=bad)
+    with pytest.raises(PublishError, match="backoff_s"):
+        SerialPublisher("loop://", backoff_s=(1.0, 0.5))
+
+
+# --- JSONL ------------------------------------------------------------------------------------
+
+
+def test_jsonl_file_one_object_per_line_flushed_per_line(tmp_path):
+    path = tmp_path / "est.jsonl"
+    estimates = random_estimates(5, seed=22)
+    pub = JsonlPublisher(path)
+    for i, est in enumerate(estimates):
+        pub.publish(est)
+        lines = path.read_text().splitlines()  # read while still open: flushed per line
+        assert len(lines) == i + 1
+    pub.close()
+    pub.close()
+    assert [json.loads(line) for line in path.read_text().splitlines()] == [
+        json.loads(json.dumps(e.to_json_dict())) for e in estimates
+    ]
+    assert pub.stats()["written"] == 5
+    with pytest.raises(PublishError, match="closed"):
+        pub.publish(estimates[0])
+
+
+def test_jsonl_stream_and_stdout_are_flushed_not_closed(capsys):
+    stream = io.StringIO()
+    with JsonlPublisher(stream) as pub:
+        pub.publish(make_estimate(90, 45, seq=7))
+    assert not stream.closed and json.loads(stream.getvalue())["seq"] == 7
+    with JsonlPublisher("-") as pub:
+        pub.publish(make_estimate(90, 45, seq=8))
+    assert json.loads(capsys.readouterr().out)["seq"] == 8
+
+
+def test_jsonl_unwritable_path_says_what_to_do(tmp_path):
+    with pytest.raises(PublishError, match="cannot write JSONL .*check the folder"):
+        JsonlPublisher(tmp_path / "no" / "such" / "dir" / "est.jsonl")
+
+
+def test_publishers_share_the_protocol(tmp_path: Path):
+    with SerialPublisher("loop://") as serial_pub, JsonlPublisher(tmp_path / "x.jsonl") as jsonl_pub:
+        assert isinstance(serial_pub, Publisher) and isinstance(jsonl_pub, Publisher)
