@@ -304,6 +304,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "backbone": backbone.state_dict(), "aggregator": aggregator.state_dict(),
             "optimizer": opt.state_dict(), "step": step, "elapsed_s": time.monotonic() - start,
             "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "config": asdict(cfg),
+            "data_counts": {"drives": len(drives), "frames": n_frames},
+            "err_deg_ema": None if ema_err is None else round(ema_err, 2),
         }
 
     while True:
@@ -354,21 +356,38 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             last_ckpt = time.monotonic()
 
     _save_checkpoint(ckpt_path, state_dict())
-    data = dict(cfg.data)
-    data.update({"drives": len(drives), "frames": n_frames})
+    return _export(backbone, aggregator, cfg, state_dict(), out_dir)
+
+
+def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path) -> Path:
+    """The two graphs with a contract that records the recipe, the data and how far training got."""
     training = {
         "trained": True,
         "command": cfg.command,
-        "data": data,
+        "data": {**cfg.data, **state.get("data_counts", {})},
         "recipe": {k: v for k, v in asdict(cfg).items() if k not in ("command", "data")},
-        "steps": step,
-        "windows_seen": step * cfg.batch_windows,
-        "minutes": round((time.monotonic() - start) / 60.0, 1),
-        "final_train_err_deg_ema": round(ema_err or float("nan"), 2),
+        "steps": state["step"],
+        "windows_seen": state["step"] * cfg.batch_windows,
+        "minutes": round(state["elapsed_s"] / 60.0, 1),
+        "final_train_err_deg_ema": state.get("err_deg_ema"),
     }
-    contract = net_cfg.contract(crops_per_frame=cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
-                                crop_fov_deg=cfg.crop_fov_deg, training=training)
+    contract = nets.PRESETS[cfg.preset].contract(
+        crops_per_frame=cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
+        crop_fov_deg=cfg.crop_fov_deg, training=training)
     return export_model(backbone, aggregator, contract, out_dir)
+
+
+def export_checkpoint(checkpoint_dir: Path, out_dir: Path) -> Path:
+    """Export the model in ``checkpoint_dir``'s checkpoint as it stands (e.g. while it trains)."""
+    path = Path(checkpoint_dir) / CHECKPOINT
+    if not path.is_file():
+        raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")
+    state = torch.load(path, weights_only=False)
+    cfg = TrainConfig(**state["config"])
+    backbone, aggregator = nets.PRESETS[cfg.preset].build()
+    backbone.load_state_dict(state["backbone"])
+    aggregator.load_state_dict(state["aggregator"])
+    return _export(backbone, aggregator, cfg, state, Path(out_dir))
 
 
 def data_fingerprint(paths: Sequence[Path]) -> str:

@@ -161,6 +161,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     require_torch()
     from estimator.train import TrainConfig, command_line, data_fingerprint, train
 
+    if args.export_only:
+        from estimator.train import export_checkpoint
+
+        out = export_checkpoint(Path(args.out), Path(args.export_only))
+        if not args.quiet:
+            print(f"train: exported the checkpoint in {args.out} to {out}", file=sys.stderr)
+        return 0
+    if not args.logs:
+        raise SunrigError("train: no logs given; pass native logs or folders of them")
     paths = _expand_logs(args.logs)
     from replay.sources import open_frames
 
@@ -240,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("train", help="train a model on logs with ground truth (needs sunrig[train])")
-    p.add_argument("logs", nargs="+", help="native logs, or folders of them")
+    p.add_argument("logs", nargs="*", help="native logs, or folders of them")
     p.add_argument("--out", required=True, metavar="MODEL_DIR",
                    help="model folder; holds checkpoint.pt, and a run resumes from it")
     p.add_argument("--preset", default="fast",
@@ -252,6 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
+    p.add_argument("--export-only", metavar="DIR",
+                   help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_train)
 

@@ -88,6 +88,13 @@ def test_train_checkpoint_resume_export(logs, tmp_path):
     train(logs, out, TrainConfig(preset="tiny", max_steps=5, batch_windows=2, warmup_steps=1))
     assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 5
     assert OnnxModel.load(out).contract.training["steps"] == 5
+    # The checkpoint exports on its own (to watch a run while it trains) to the same model.
+    from estimator.train import export_checkpoint
+
+    again = OnnxModel.load(export_checkpoint(out, tmp_path / "exported"))
+    assert again.contract == OnnxModel.load(out).contract
+    crops = np.random.default_rng(0).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
+    np.testing.assert_allclose(again.embed(crops), OnnxModel.load(out).embed(crops), atol=1e-6)
 
 
 def test_train_refuses_logs_without_truth(tmp_path):
