@@ -46,67 +46,206 @@ class Progress:
         self.stream.flush()
 
 
-def _open_jsonl(target: str) -> TextIO:
-    if target == "-":
-        return sys.stdout
-    try:
-        return open(target, "w", encoding="utf-8")  # noqa: SIM115 - closed by the caller
-    except OSError as exc:
-        raise SunrigError(f"cannot write JSONL to {target}: {exc.strerror}; pass a writable path or -") from None
-
-
 def _load_model(model_dir: str | None):
     from estimator.models import resolve_model_dir
     from estimator.runtime import OnnxModel
 
-    return OnnxModel.load(resolve_model_dir(model_dir))
+    return OnnxModel.load(resolve_model_dir(model_dir or None))
+
+
+def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, full_window: int,
+                record: str | None = None, record_frames: bool = False, nmea_stdout: bool = False) -> list:
+    """The outputs a command asked for. Opened before any work, so a bad port fails at once."""
+    from rig.protocol import StatusRule
+    from rig.publishers import JsonlPublisher, SentencePublisher, SerialPublisher
+
+    rule = StatusRule(full_window=full_window)
+    pubs: list = []
+    try:
+        if serial:
+            pubs.append(SerialPublisher(serial, format=fmt, baudrate=baud, status_rule=rule))
+        elif nmea_stdout:
+            pubs.append(SentencePublisher(sys.stdout, status_rule=rule))
+        if jsonl:
+            pubs.append(JsonlPublisher(jsonl))
+        if record:
+            from rig.recorder import RecorderPublisher
+
+            pubs.append(RecorderPublisher(record, record_frames=record_frames))
+    except BaseException:
+        _close_all(pubs)
+        raise
+    return pubs
+
+
+def _close_all(pubs: list) -> None:
+    for p in pubs:
+        try:
+            p.close()
+        except Exception as exc:  # noqa: BLE001 - closing one output must not hide the others
+            logging.getLogger(__name__).warning("closing %s failed: %s", type(p).__name__, exc)
+
+
+def paced(frames, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep):
+    """Yield frames no faster than their timestamps say (``--realtime``)."""
+    start, first = None, None
+    for frame in frames:
+        if start is None:
+            start, first = clock(), frame.t_mono_s
+        delay = start + (frame.t_mono_s - first) / speed - clock()
+        if delay > 0:
+            sleep(delay)
+        yield frame
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    import math
+
     from estimator.estimator import SunEstimator
-    from replay.sources import open_frames
+    from replay.sources import DEMO_LOG, open_frames
     from rig.offline import OfflineStats, estimate_stream
     from rig.window import SpreadWindowPolicy
 
+    log_path = args.log or str(DEMO_LOG)
     # The log is checked before the model is loaded: a wrong path should fail in milliseconds.
-    if args.log is None:
-        from replay.sources import DEMO_LOG
-
-        args.log = str(DEMO_LOG)
-    source = open_frames(args.log)
+    source = open_frames(log_path)
     model = _load_model(args.model)
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
-    out = _open_jsonl(args.jsonl) if args.jsonl else None
+    pubs = _publishers(serial=args.serial, baud=args.baud, fmt=args.format, jsonl=args.jsonl,
+                       full_window=estimator.frames_per_window)
     stats = OfflineStats()
-    progress = Progress(f"replay {Path(args.log).name}", enabled=None if not args.quiet else False)
+    progress = Progress(f"replay {Path(log_path).name}", enabled=None if not args.quiet else False)
+    frames = paced(source) if args.realtime else source
     errors = []
     try:
-        for n, results in enumerate(estimate_stream(source, estimator, policy, stats=stats), start=1):
+        # Paced, each frame is estimated as it arrives; unpaced, frames are encoded in batches.
+        batch = 1 if args.realtime else 8
+        for n, results in enumerate(estimate_stream(frames, estimator, policy, stats=stats, encode_batch=batch), 1):
             est = results[args.aggregator]
             if est.error_rad is not None:
                 errors.append(est.error_rad)
-            if out is not None:
-                out.write(json.dumps(est.to_json_dict()) + "\n")
+            for p in pubs:
+                p.publish(est)
             progress.update(n, f"frames {stats.frames}")
     finally:
-        if out is not None and out is not sys.stdout:
-            out.close()
-        elif out is not None:
-            out.flush()
+        _close_all(pubs)
     summary = f"{stats.frames} frames, {stats.windows - stats.windows_failed} estimates"
     if stats.frames_without_heading:
         summary += f", {stats.frames_without_heading} frames without heading skipped"
     if stats.windows_failed:
         summary += f", {stats.windows_failed} windows failed"
     if errors:
-        import math
-
         summary += f", mean error {math.degrees(sum(errors) / len(errors)):.2f} deg"
     if getattr(source, "truncated", False):
         summary += " (log truncated: replayed up to its last complete chunk)"
     if not args.quiet:
         progress.close(summary)
+    return 0
+
+
+def _effective_config(args: argparse.Namespace) -> dict:
+    from rig.config import load_config, override
+
+    cfg = load_config(args.config)
+    flags = {
+        "source.camera": getattr(args, "camera", None),
+        "source.heading": getattr(args, "heading", None),
+        "estimator.model": getattr(args, "model", None),
+        "estimator.aggregator": getattr(args, "aggregator", None),
+        "output.serial": getattr(args, "serial", None),
+        "output.baud": getattr(args, "baud", None),
+        "output.format": getattr(args, "format", None),
+        "output.jsonl": getattr(args, "jsonl", None),
+        "output.record": getattr(args, "record", None),
+        "output.record_frames": True if getattr(args, "record_frames", False) else None,
+        "rig.realtime": False if getattr(args, "fast", False) else None,
+    }
+    return override(cfg, flags)
+
+
+def _open_camera(spec: str, heading: str):
+    """A live source from ``--camera``. Until the device drivers land, a log replays through the
+    live path (``file:LOG``)."""
+    from replay.sources import open_frames
+
+    if not spec:
+        raise SunrigError("no camera given: pass --camera file:LOG (or set [source] camera in --config)")
+    kind, _, rest = spec.partition(":")
+    if kind == "file" and rest:
+        if heading not in ("log", ""):
+            raise SunrigError(f"--heading {heading}: a file: camera carries its own heading; use --heading log")
+        return open_frames(rest)
+    raise SunrigError(f"camera {spec!r} is not supported by this version; use --camera file:LOG")
+
+
+def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
+    import math
+
+    from estimator.estimator import SunEstimator
+    from rig.pipeline import RigConfig, RigPipeline
+    from rig.window import SpreadWindowPolicy
+
+    model = _load_model(cfg["estimator"]["model"])
+    estimator = SunEstimator(model, aggregator=cfg["estimator"]["aggregator"], seed=cfg["estimator"]["seed"])
+    policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=cfg["window"]["span_s"],
+                                yaw_scale_rad=math.radians(cfg["window"]["yaw_scale_deg"]))
+    out = cfg["output"]
+    pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
+                       jsonl=out["jsonl"] or None, full_window=estimator.frames_per_window,
+                       record=out["record"] or None, record_frames=out["record_frames"], nmea_stdout=nmea_stdout)
+    recorder = next((p for p in pubs if type(p).__name__ == "RecorderPublisher"), None)
+    r = cfg["rig"]
+    rig_cfg = RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
+                        ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
+                        realtime=r["realtime"])
+
+    live_line = sys.stderr.isatty()
+
+    def status(line: str) -> None:
+        # On a terminal the status is one line rewritten in place; in a log, one line each time.
+        if not quiet:
+            sys.stderr.write(f"\rsunrig: {line}\033[K" if live_line else f"sunrig: {line}\n")
+            sys.stderr.flush()
+
+    from rig.pipeline import PipelineError
+
+    pipe = RigPipeline(source, estimator, policy, pubs, config=rig_cfg, on_status=status,
+                       on_frame=recorder.record_frame if recorder is not None else None)
+    try:
+        stats = pipe.run()
+    except PipelineError as exc:
+        if isinstance(exc.__cause__, BrokenPipeError):
+            return 0  # whoever read our stdout (`| head`) has gone: not an error of ours
+        raise
+    finally:
+        _close_all(pubs)
+    if not quiet:
+        if live_line:
+            sys.stderr.write("\n")
+        print(f"sunrig: done: {stats.status_line(stats.ended_s)}", file=sys.stderr)
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    cfg = _effective_config(args)
+    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"])
+    return _live(cfg, source, nmea_stdout=False, quiet=args.quiet)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from replay.sources import DEMO_LOG, open_frames
+
+    cfg = _effective_config(args)
+    cfg["rig"]["realtime"] = not args.fast
+    cfg["rig"]["status_every_s"] = min(cfg["rig"]["status_every_s"], 1.0)
+    return _live(cfg, open_frames(DEMO_LOG), nmea_stdout=not cfg["output"]["serial"], quiet=args.quiet)
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    from rig.config import dump_toml
+
+    print(dump_toml(_effective_config(args)), end="")
     return 0
 
 
@@ -219,6 +358,15 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _output_flags(p: argparse.ArgumentParser, defaults: bool = True) -> None:
+    p.add_argument("--serial", metavar="PORT", help="serial port or pyserial URL (socket://, loop://, spy://)")
+    p.add_argument("--baud", type=int, default=115200 if defaults else None, help="baud rate (default 115200)")
+    p.add_argument("--format", choices=["nmea", "binary"], default="nmea" if defaults else None,
+                   help="serial format (default nmea; see docs/protocol.md)")
+    if not defaults:
+        p.add_argument("--jsonl", metavar="PATH|-", help="also write one JSON object per estimate here")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sunrig", description="Estimate the sun direction from a camera rig's images and heading."
@@ -229,13 +377,41 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("replay", help="run a recorded log through the estimator")
     p.add_argument("log", nargs="?", help="a native sunrig log (.mcap); default: the bundled demo drive")
     p.add_argument("--jsonl", metavar="PATH|-", help="write one JSON object per estimate here (- for stdout)")
-    p.add_argument("--model", metavar="DIR", help="model folder (backbone.onnx + aggregator.onnx)")
+    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregator", default="transformer", choices=["transformer", "mean", "meanshift", "single"])
     p.add_argument("--seed", type=int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=float, default=4.0, metavar="S",
-                   help="spread each window's frames over the last S seconds (default 4)")
+                   help="choose each window's frames from the last S seconds (default 4)")
+    _output_flags(p)
+    p.add_argument("--realtime", action="store_true", help="pace by the log's timestamps instead of full speed")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("run", help="the live rig: camera and heading in, sun direction out")
+    p.add_argument("--camera", metavar="SOURCE", help="file:LOG (a log through the live path)")
+    p.add_argument("--heading", metavar="SOURCE", help="log (the camera source's own heading)")
+    p.add_argument("--config", metavar="FILE.toml", help="configuration file; flags override it")
+    p.add_argument("--model", metavar="DIR")
+    p.add_argument("--aggregator", choices=["transformer", "mean", "meanshift", "single"])
+    _output_flags(p, defaults=False)
+    p.add_argument("--record", metavar="OUT.mcap", help="record estimates (and frames with --record-frames)")
+    p.add_argument("--record-frames", action="store_true")
+    p.add_argument("--fast", action="store_true", help="do not pace a file: camera by its timestamps")
+    p.add_argument("--quiet", action="store_true", help="no status lines on stderr")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="the bundled drive through the live rig, in real time")
+    p.add_argument("--config", metavar="FILE.toml")
+    p.add_argument("--model", metavar="DIR")
+    _output_flags(p, defaults=False)
+    p.add_argument("--fast", action="store_true", help="as fast as possible instead of real time")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("config", help="show the effective configuration")
+    p.add_argument("--print", action="store_true", required=True, help="print it as TOML")
+    p.add_argument("--config", metavar="FILE.toml")
+    p.set_defaults(func=cmd_config)
 
     p = sub.add_parser("eval", help="angular error of every aggregator over logs with ground truth")
     p.add_argument("logs", nargs="+", help="native logs, or folders of them")

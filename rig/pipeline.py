@@ -23,13 +23,13 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
 from rig.errors import SunrigError
+from rig.publishers import Publisher
 from rig.ring import DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures, SunEstimate
 from rig.window import SpreadWindowPolicy
@@ -42,14 +42,6 @@ _JOIN_S = 2.0  # how long run() waits for a stage to end once stopped
 
 class PipelineError(SunrigError):
     """A stage of the live pipeline failed; the message names the stage and the cause."""
-
-
-class Publisher(Protocol):
-    def publish(self, est: SunEstimate) -> None: ...
-
-    def close(self) -> None: ...
-
-    def stats(self) -> dict: ...
 
 
 @dataclass(frozen=True)

@@ -404,3 +404,32 @@ class JsonlPublisher:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class SentencePublisher:
+    """NMEA sentences as text lines on a stream (``sunrig demo`` without a serial port).
+
+    Writes in the caller's thread, like :class:`JsonlPublisher`: for a terminal or a pipe.
+    """
+
+    def __init__(self, stream: IO[str], *, status_rule: StatusRule = DEFAULT_STATUS_RULE) -> None:
+        self._stream = stream
+        self._rule = status_rule
+        self._closed = False
+        self._counts = {"published": 0, "written": 0}
+
+    def publish(self, est: SunEstimate) -> None:
+        if self._closed:
+            return
+        self._counts["published"] += 1
+        self._stream.write(encode_nmea(est, self._rule).decode("ascii").rstrip("\r\n") + "\n")
+        self._stream.flush()
+        self._counts["written"] += 1
+
+    def stats(self) -> dict[str, Any]:
+        return dict(self._counts)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._stream.flush()
