@@ -31,7 +31,7 @@ from estimator.estimator import SunEstimator
 from rig.errors import SunrigError
 from rig.publishers import Publisher
 from rig.ring import DropOldestQueue, FrameRing
-from rig.types import Frame, FrameFeatures, SunEstimate
+from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
 
 log = logging.getLogger(__name__)
