@@ -1,0 +1,101 @@
+"""The live rig on this machine: frame-to-publish latency, update rate, drops and memory.
+
+Runs the bundled drive (looped to a longer source) through `RigPipeline` with the given model:
+paced at 10 Hz (a camera's rate) and unpaced (a source far faster than the estimator), publishing
+NMEA to a real pseudo-terminal nobody reads after the first second, so the serial publisher's
+drop path is exercised too. Also times single `SerialPublisher.publish` calls against that
+stalled reader. Prints JSON.
+
+    python3 benchmarks/bench_rig.py [--model DIR] [--frames 400]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import machine  # noqa: E402
+
+
+def looped(frames, n: int, dt: float):
+    """``n`` frames from a drive played over and over, renumbered, ``dt`` apart."""
+    from dataclasses import replace
+
+    for i in range(n):
+        yield replace(frames[i % len(frames)], t_mono_s=i * dt, seq=i)
+
+
+def rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", help="model folder (default: the shipped model)")
+    ap.add_argument("--frames", type=int, default=400)
+    args = ap.parse_args()
+
+    from estimator.estimator import SunEstimator
+    from estimator.models import resolve_model_dir
+    from estimator.runtime import OnnxModel
+    from replay.sources import DEMO_LOG, open_frames
+    from rig.pipeline import RigConfig, RigPipeline
+    from rig.publishers import SerialPublisher
+    from rig.window import SpreadWindowPolicy
+
+    model = OnnxModel.load(resolve_model_dir(args.model))
+    drive = list(open_frames(DEMO_LOG))
+    results = {}
+    for name, realtime in (("paced_10hz", True), ("unpaced", False)):
+        master, slave = os.openpty()
+        pub = SerialPublisher(os.ttyname(slave), format="nmea")
+        est = SunEstimator(model)
+        rss_before = rss_mb()
+        pipe = RigPipeline(looped(drive, args.frames, 0.1), est, SpreadWindowPolicy(), [pub],
+                           config=RigConfig(realtime=realtime))
+        t0 = time.monotonic()
+        stats = pipe.run()
+        wall = time.monotonic() - t0
+        pub.close()
+        os.close(master)
+        os.close(slave)
+        d = stats.as_dict()
+        results[name] = {
+            "frames": args.frames, "wall_s": wall, "update_hz": d["update_hz"], "latency": d["latency"],
+            "frames_dropped_queue": d["frames_dropped_queue"], "windows_skipped": d["windows_skipped"],
+            "estimates": d["estimates"], "serial": d["publishers"].get("SerialPublisher", {}),
+            "max_rss_mb_before": rss_before, "max_rss_mb_after": rss_mb(),
+        }
+
+    # One publish() call while the reader has stopped: the estimator's cost of a stalled link.
+    master, slave = os.openpty()
+    pub = SerialPublisher(os.ttyname(slave), format="nmea")
+    est = SunEstimator(model)
+    sample = est.estimate(est.encode_batch(drive[:8]))
+    calls = []
+    for _ in range(5000):
+        t = time.perf_counter()
+        pub.publish(sample)
+        calls.append((time.perf_counter() - t) * 1e3)
+    pub_stats = pub.stats()
+    pub.close()
+    os.close(master)
+    os.close(slave)
+    calls.sort()
+    results["publish_call_stalled_reader"] = {
+        "calls": len(calls), "p50_ms": calls[len(calls) // 2], "p99_ms": calls[int(len(calls) * 0.99)],
+        "max_ms": calls[-1], "serial": pub_stats,
+    }
+    print(json.dumps({"benchmark": "rig", "model": model.model_id, "results": results, "machine": machine()},
+                     indent=2))
+
+
+if __name__ == "__main__":
+    main()
