@@ -358,6 +358,53 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_gnss(args: argparse.Namespace) -> int:
+    """Bring-up of a GNSS compass / INS: print what it decodes, one JSON object per sentence."""
+    from drivers.gnss import GnssReader
+
+    # The source first: a wrong path fails before an output file is created.
+    reader = GnssReader(args.source, baudrate=args.baud, events=4096, require_checksum=args.require_checksum)
+    out = sys.stdout
+    n_lines = 0
+    try:
+        if args.jsonl not in (None, "-"):
+            try:
+                out = open(args.jsonl, "w", encoding="utf-8")  # closed below
+            except OSError as exc:
+                raise SunrigError(f"cannot write {args.jsonl}: {exc.strerror or exc}; pass another --jsonl") from None
+        while True:
+            done = reader.finished  # read first: every update queued before it is taken below
+            updates = reader.get_events(timeout_s=0.5)
+            for update in updates:
+                out.write(json.dumps(update.to_json_dict()) + "\n")
+            n_lines += len(updates)
+            if updates:
+                out.flush()
+            if done and not updates:
+                break
+    except KeyboardInterrupt:
+        pass  # Ctrl-C is how a live port session ends
+    finally:
+        reader.close()
+        if out is not sys.stdout:
+            out.close()
+    if reader.failure:
+        raise RuntimeError(f"the GNSS reader thread failed: {reader.failure}")
+    stats = reader.stats()
+    if not args.quiet:
+        dropped = {k: stats[k] for k in ("bad_checksum", "no_checksum", "truncated", "overlong", "malformed",
+                                         "bad_fields", "no_data", "undated", "read_errors", "events_dropped")
+                   if stats[k]}
+        summary = (f"{n_lines} updates from {stats['sentences']} sentences ({stats['headings']} headings, "
+                   f"{stats['fixes']} fixes)")
+        if dropped:
+            summary += "; " + ", ".join(f"{k} {v}" for k, v in dropped.items())
+        if stats["last_error"]:
+            summary += f"; last error: {stats['last_error']}"
+        print(f"gnss: {summary}", file=sys.stderr)
+    return 0
+
+
 def _output_flags(p: argparse.ArgumentParser, defaults: bool = True) -> None:
     p.add_argument("--serial", metavar="PORT", help="serial port or pyserial URL (socket://, loop://, spy://)")
     p.add_argument("--baud", type=int, default=115200 if defaults else None, help="baud rate (default 115200)")
@@ -453,6 +500,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="internal render size relative to the output (default 0.5, upsampled)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("gnss", help="read a GNSS compass / INS (NMEA 0183) and print what it decodes")
+    p.add_argument("source", metavar="PORT_OR_FILE",
+                   help="serial device, pyserial URL (socket://HOST:PORT) or an NMEA capture file")
+    p.add_argument("--jsonl", metavar="PATH|-", default="-",
+                   help="one JSON object per sentence that gives a heading, fix or time (default: - stdout)")
+    p.add_argument("--baud", type=int, default=115200, help="baud rate of a serial device (default 115200)")
+    p.add_argument("--require-checksum", action="store_true",
+                   help="drop sentences without *HH instead of accepting them")
+    p.add_argument("--quiet", action="store_true", help="no summary on stderr")
+    p.set_defaults(func=cmd_gnss)
     return parser
 
 

@@ -45,6 +45,10 @@ class ProtocolError(SunrigError, ValueError):
         self.reason = reason
 
 
+class GnssError(SunrigError):
+    """A GNSS/INS source cannot be opened or used: no such device or file, no permission, a bad option."""
+
+
 class PublishError(SunrigError):
     """A publisher cannot start or be used: the serial port cannot be opened, a bad option, closed."""
 
