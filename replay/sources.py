@@ -1,12 +1,16 @@
 """Open a recorded source by path: the one place that knows which reader fits which file.
 
 Every command that takes a log (`replay`, `eval`, `train`) comes through here, so a new format
-(a KITTI drive, say) is added once.
+is added once. Today: a native log (.mcap), whose frames with GNSS time and position but no
+truth get the true sun (``replay.groundtruth``), and a KITTI raw drive (a folder,
+``replay.kitti``), whose timestamps need a UTC offset.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 from rig.types import Frame
@@ -15,10 +19,45 @@ from rig.types import Frame
 # shipped so the quick start runs without any download.
 DEMO_LOG = Path(__file__).resolve().parent / "data" / "demo.mcap"
 
+# The UTC offset for sources without a time zone when a caller does not pass one: set by
+# `utc_offset_default` around code that opens logs itself (training opens its logs deep inside).
+_UTC_OFFSET_H: ContextVar[float | None] = ContextVar("sunrig_utc_offset_h", default=None)
 
-def open_frames(path: str | Path) -> Iterable[Frame]:
+
+@contextmanager
+def utc_offset_default(utc_offset_h: float | None) -> Iterator[None]:
+    """Within the block, ``open_frames`` without ``utc_offset_h`` uses this one (None: the reader's
+    own default, with its warning)."""
+    token = _UTC_OFFSET_H.set(utc_offset_h)
+    try:
+        yield
+    finally:
+        _UTC_OFFSET_H.reset(token)
+
+
+def open_frames(path: str | Path, *, utc_offset_h: float | None = None, ground_truth: bool = True) -> Iterable[Frame]:
     """A re-iterable source of Frames for ``path``; raises :class:`rig.errors.LogError` with a
-    one-line message when the path is not a log it can read."""
+    one-line message when the path is not a log it can read.
+
+    - a folder: a KITTI raw drive (its date folder holding one drive, or the drive folder);
+      ``utc_offset_h`` is the hours its timestamps are ahead of UTC (None: the context's
+      :func:`utc_offset_default`, else KITTI's default of +2 h with a warning).
+    - a file: a native log. Its timestamps are UTC already, so ``utc_offset_h`` does not apply.
+      With ``ground_truth``, frames with GNSS time and position but no ``sun_enu_truth`` get it
+      (TRUE or no heading only; see ``replay.groundtruth``).
+    """
+    p = Path(path)
+    if p.is_dir():
+        from replay.kitti import open_kitti
+
+        if utc_offset_h is None:
+            utc_offset_h = _UTC_OFFSET_H.get()
+        return open_kitti(p, utc_offset_h=utc_offset_h)
     from replay.native import open_log
 
-    return open_log(Path(path))
+    source = open_log(p)
+    if not ground_truth:
+        return source
+    from replay.groundtruth import with_ground_truth
+
+    return with_ground_truth(source)

@@ -108,7 +108,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     log_path = args.log or str(DEMO_LOG)
     # The log is checked before the model is loaded: a wrong path should fail in milliseconds.
-    source = open_frames(log_path)
+    source = open_frames(log_path, utc_offset_h=args.utc_offset)
     model = _load_model(args.model)
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
@@ -268,7 +268,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from rig.window import SpreadWindowPolicy
 
     paths = _expand_logs(args.logs)
-    sources = [(str(p), open_frames(p)) for p in paths]  # every log checked before any work
+    sources = [(str(p), open_frames(p, utc_offset_h=args.utc_offset)) for p in paths]  # all checked before any work
     model = _load_model(args.model)
     estimator = SunEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
@@ -313,7 +313,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from replay.sources import open_frames
 
     for p in paths:  # fail on a bad log now, not after loading the others
-        open_frames(p)
+        open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, lr=args.lr, seed=args.seed, threads=args.threads,
                       command=command_line(),
@@ -339,7 +339,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         else:
             progress_line.update(p["step"], f"loss {p['loss']:.3f} err {p['err_deg']:.1f} deg")
 
-    out = train(paths, Path(args.out), cfg, progress=on_progress)
+    from replay.sources import utc_offset_default
+
+    with utc_offset_default(args.utc_offset):  # train() opens the logs itself
+        out = train(paths, Path(args.out), cfg, progress=on_progress)
     if bar is not None:
         bar.close()
     if not args.quiet:
@@ -405,6 +408,72 @@ def cmd_gnss(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sun(args: argparse.Namespace) -> int:
+    """The sun's position by NREL's SPA for one time and place, or for each row of a CSV."""
+    import csv
+
+    import numpy as np
+
+    from rig.solar import parse_utc_iso, standard_pressure_hpa, sun_position
+
+    if args.csv:
+        if args.time or args.lat is not None or args.lon is not None:
+            raise SunrigError("sun: give either --csv or --time/--lat/--lon, not both")
+        name = "stdin" if args.csv == "-" else args.csv
+        try:
+            f = sys.stdin if args.csv == "-" else open(args.csv, newline="", encoding="utf-8")  # closed below
+        except OSError as exc:
+            raise SunrigError(f"sun: cannot read {args.csv}: {exc.strerror or exc}") from None
+        with f:
+            rows = list(csv.reader(f))
+        header = [h.strip().lower() for h in rows[0]] if rows else []
+        if not {"time", "lat", "lon"} <= set(header):
+            raise SunrigError(f"{name} line 1: expected a header row with time,lat,lon (and optionally "
+                              f"elevation_m), got {','.join(header) or 'nothing'}")
+        col = {h: i for i, h in enumerate(header)}
+        times, lat, lon, elev = [], [], [], []
+        for n, row in enumerate(rows[1:], 2):
+            if not any(cell.strip() for cell in row):
+                continue
+            try:
+                cells = {h: row[i].strip() for h, i in col.items() if i < len(row)}
+                times.append(parse_utc_iso(cells.get("time", "")))
+                la, lo = float(cells["lat"]), float(cells["lon"])
+                el = float(cells["elevation_m"]) if cells.get("elevation_m") else args.elevation_m
+                if not (-90.0 <= la <= 90.0 and -180.0 <= lo <= 360.0 and np.isfinite(el)):
+                    raise ValueError(f"lat {la}, lon {lo} or elevation {el} out of range")
+            except (KeyError, ValueError, SunrigError) as exc:
+                raise SunrigError(f"{name} line {n}: {exc} (row {','.join(row)[:60]!r})") from None
+            lat.append(la)
+            lon.append(lo)
+            elev.append(el)
+        if not times:
+            raise SunrigError(f"{name}: no rows after the header")
+        utc = np.array(times)  # numpy promotes to the finest unit written
+    else:
+        if not args.time or args.lat is None or args.lon is None:
+            raise SunrigError("sun: give --time, --lat and --lon (or --csv FILE)")
+        utc = np.array([parse_utc_iso(args.time)])
+        lat, lon, elev = [args.lat], [args.lon], [args.elevation_m]
+    if np.datetime_data(utc.dtype)[0] in ("D", "h", "m"):
+        utc = utc.astype("datetime64[s]")  # so that the output says seconds and Z
+    elev_arr = np.asarray(elev, dtype=np.float64)
+    pressure = standard_pressure_hpa(elev_arr) if args.pressure_hpa is None else args.pressure_hpa
+    pos = sun_position(utc, np.asarray(lat), np.asarray(lon), elev_arr, pressure_hpa=pressure,
+                       temperature_c=args.temperature_c, delta_t_s=args.delta_t_s)
+    iso = np.datetime_as_string(utc, timezone="UTC")
+    for i in range(len(utc)):
+        print(json.dumps({
+            "utc": str(iso[i]), "lat_deg": float(lat[i]), "lon_deg": float(lon[i]), "elevation_m": float(elev[i]),
+            "azimuth_deg": float(np.degrees(pos.azimuth_rad[i])),
+            "elevation_deg": float(np.degrees(pos.elevation_rad[i])),
+            "zenith_deg": float(np.degrees(pos.zenith_rad[i])),
+            "enu": [round(float(x), 9) for x in pos.enu[i]],
+            "delta_t_s": float(pos.delta_t_s[i]),
+        }))
+    return 0
+
+
 def _output_flags(p: argparse.ArgumentParser, defaults: bool = True) -> None:
     p.add_argument("--serial", metavar="PORT", help="serial port or pyserial URL (socket://, loop://, spy://)")
     p.add_argument("--baud", type=int, default=115200 if defaults else None, help="baud rate (default 115200)")
@@ -431,6 +500,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="choose each window's frames from the last S seconds (default 4)")
     _output_flags(p)
     p.add_argument("--realtime", action="store_true", help="pace by the log's timestamps instead of full speed")
+    p.add_argument("--utc-offset", type=float, metavar="HOURS",
+                   help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
+                        "native logs carry UTC and ignore it")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_replay)
 
@@ -468,6 +540,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--aggregators", metavar="A,B", help="comma-separated subset (default: all)")
     p.add_argument("--seed", type=int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=float, default=4.0, metavar="S")
+    p.add_argument("--utc-offset", type=float, metavar="HOURS",
+                   help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
+                        "native logs carry UTC and ignore it")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_eval)
 
@@ -484,6 +559,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
+    p.add_argument("--utc-offset", type=float, metavar="HOURS",
+                   help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
+                        "native logs carry UTC and ignore it")
     p.add_argument("--export-only", metavar="DIR",
                    help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run)")
     p.add_argument("--quiet", action="store_true")
@@ -500,6 +578,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="internal render size relative to the output (default 0.5, upsampled)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("sun", help="the sun's position for a time and place (NREL SPA), as JSON")
+    p.add_argument("--time", metavar="ISO8601", help="UTC time, e.g. 2011-09-26T11:02:26Z (no offset: UTC)")
+    p.add_argument("--lat", type=float, metavar="DEG", help="latitude, north positive")
+    p.add_argument("--lon", type=float, metavar="DEG", help="longitude, east positive")
+    p.add_argument("--csv", metavar="IN|-", help="rows time,lat,lon[,elevation_m] with a header: one JSON line each")
+    p.add_argument("--elevation-m", type=float, default=0.0, metavar="M", help="height above sea level (default 0)")
+    p.add_argument("--pressure-hpa", type=float, metavar="P",
+                   help="for refraction (default: the standard atmosphere at the elevation, 1013.25 at 0 m)")
+    p.add_argument("--temperature-c", type=float, default=12.0, metavar="C", help="for refraction (default 12)")
+    p.add_argument("--delta-t-s", type=float, metavar="S",
+                   help="TT - UT1 in seconds (default: the Espenak & Meeus approximation, 67 s for 2011)")
+    p.set_defaults(func=cmd_sun)
 
     p = sub.add_parser("gnss", help="read a GNSS compass / INS (NMEA 0183) and print what it decodes")
     p.add_argument("source", metavar="PORT_OR_FILE",

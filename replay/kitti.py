@@ -1,0 +1,373 @@
+"""KITTI raw drives as a frame source: the paper's real benchmark, read straight from the files.
+
+Layout (as the dataset ships it)::
+
+    YYYY_MM_DD/                       the date folder
+        calib_cam_to_cam.txt          P_rect_02 and S_rect_02 of the left colour camera
+        YYYY_MM_DD_drive_NNNN_sync/   a drive ("synced + rectified"): one OXTS record per image
+            image_02/timestamps.txt   one line per frame, 9 fractional digits
+            image_02/data/0000000000.png ...
+            oxts/timestamps.txt, oxts/dataformat.txt, oxts/data/0000000000.txt ...
+
+Either the date folder (holding exactly one drive) or a drive folder can be given; the date
+folder is then the drive's parent.
+
+Choices, all stated in ``docs/ground-truth.md``:
+
+- **Camera**: ``image_02`` (left colour), the paper's. Intrinsics from ``P_rect_02`` (fx, fy, cx,
+  cy) and the image size from ``S_rect_02``: 721.5377 px, 1242 x 375, 81.43 x 29.12 deg for
+  2011_09_26. Images of another size (resized copies) get intrinsics scaled to them, so the field
+  of view stays the calibration's.
+- **Time**: the timestamps are wall-clock text without a time zone. They are parsed to the
+  nanosecond with integer arithmetic, and UTC = timestamp - ``utc_offset_h``. The default is
+  :data:`DEFAULT_UTC_OFFSET_H` = +2 h (CEST, in force in Karlsruhe for every KITTI raw date,
+  2011-09-26 .. 2011-10-03): we read the timestamps as the recording PC's local clock. That is a
+  belief, not a documented fact (KITTI does not say), so leaving the offset to the default logs a
+  warning once; pass ``--utc-offset 0`` if you hold them to be UTC. Each hour moves the sun by
+  ~15 deg in azimuth. ``t_mono_s`` is seconds since the drive's first image timestamp.
+- **Attitude**: OXTS (``dataformat.txt``): yaw 0 = east, counter-clockwise positive; pitch
+  positive = front down; roll positive = left side up (a forward-left-up body frame). In sunrig's
+  conventions: heading = 90 deg - yaw (clockwise from true north, so the reference is TRUE);
+  pitch = -OXTS pitch (positive nose up); roll = +OXTS roll (left side up is right side down,
+  sunrig's positive). These are the vehicle's angles: the camera's optical axis is within ~0.5 deg
+  of the IMU's forward axis (calib_imu_to_velo + calib_velo_to_cam: 0.06 deg in yaw for
+  2011_09_26), below what the estimator can resolve, so it is not applied (the paper neither).
+- **Ground truth**: the sun for each frame's UTC time and OXTS position, by NREL's SPA
+  (:mod:`rig.solar`), computed for the whole drive when it is opened.
+- ``dataformat.txt`` is only a check of the field order: its real typo (line 14 says ``ay``
+  where ``az`` is meant) is recognised and taken as ``az``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from replay.groundtruth import sun_truth_enu
+from rig.errors import LogError
+from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_UTC_OFFSET_H = 2.0
+CAMERA = "image_02"
+CALIB_FILE = "calib_cam_to_cam.txt"
+_DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_sync$")
+_TIMESTAMP_RE = re.compile(r"^\d{4}-\d{2}-\d{2} \d{2}:\d{2}:\d{2}(\.\d{1,9})?$")
+_MAX_WARNINGS = 5
+
+# The 30 OXTS fields in the order of the KITTI devkit's dataformat.txt.
+OXTS_FIELDS = (
+    "lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu", "ax", "ay", "az",
+    "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu", "pos_accuracy", "vel_accuracy",
+    "navstat", "numsats", "posmode", "velmode", "orimode",
+)
+_USED = ("lat", "lon", "alt", "roll", "pitch", "yaw")
+
+_warned_default_offset = False
+
+
+# ------------------------------------------------------------------------------------------
+# Pure parsers: text in, arrays out
+
+
+def parse_timestamps_ns(text: str, name: str = "timestamps.txt") -> np.ndarray:
+    """Timestamp lines ``YYYY-MM-DD HH:MM:SS.fffffffff`` -> int64 ns since 1970-01-01 of that wall
+    clock (no time zone applied). Exact: numpy parses the digits as integers, no float on the way.
+
+    Raises :class:`LogError` naming the first bad line. Blank lines (a trailing newline) are skipped.
+    """
+    lines = [ln.strip() for ln in text.splitlines()]
+    rows = []
+    for i, ln in enumerate(lines, 1):
+        if not ln:
+            continue
+        if not _TIMESTAMP_RE.match(ln):
+            raise LogError(f"{name} line {i}: expected 'YYYY-MM-DD HH:MM:SS.fffffffff', got {ln[:40]!r}")
+        rows.append(ln.replace(" ", "T"))
+    try:
+        return np.array(rows, dtype="datetime64[ns]").view(np.int64)
+    except ValueError as exc:  # a well-formed but impossible date, e.g. month 13
+        raise LogError(f"{name}: not a valid date/time: {exc}") from None
+
+
+def utc_offset_ns(utc_offset_h: float) -> int:
+    """An offset in hours as integer ns (fractional hours allowed: India is +5.5)."""
+    if not (isinstance(utc_offset_h, int | float) and math.isfinite(utc_offset_h) and -14 <= utc_offset_h <= 14):
+        raise LogError(f"UTC offset: expected hours within [-14, 14], got {utc_offset_h!r}")
+    return round(utc_offset_h * 3600) * 1_000_000_000
+
+
+def parse_dataformat(text: str) -> list[str]:
+    """Field names of ``oxts/dataformat.txt``, one per line, in order.
+
+    The real file names field 14 ``ay`` (twice); a name that repeats an earlier one where the
+    devkit's order has another name is taken as that name (so its ``ay`` is ``az``).
+    """
+    names: list[str] = []
+    for line in text.splitlines():
+        head, sep, _ = line.partition(":")
+        if not sep or not head.strip():
+            continue
+        name = head.strip()
+        k = len(names)
+        if name in names and k < len(OXTS_FIELDS) and OXTS_FIELDS[k] not in names:
+            name = OXTS_FIELDS[k]  # the known typo, or one like it
+        names.append(name)
+    return names
+
+
+def parse_oxts(text: str, name: str = "oxts") -> np.ndarray:
+    """One OXTS record: 30 numbers on a line -> float64 (30,). Raises :class:`LogError`."""
+    try:
+        values = np.array([float(v) for v in text.split()], dtype=np.float64)
+    except ValueError:
+        raise LogError(f"{name}: expected 30 numbers, got {text.strip()[:60]!r}") from None
+    if values.shape != (len(OXTS_FIELDS),):
+        raise LogError(f"{name}: expected {len(OXTS_FIELDS)} numbers, got {values.size}")
+    if not np.all(np.isfinite(values[:6])):
+        raise LogError(f"{name}: position or attitude is not finite: {values[:6].tolist()}")
+    return values
+
+
+def parse_calib(text: str) -> dict[str, np.ndarray]:
+    """``key: numbers`` lines of a KITTI calibration file; non-numeric ones (calib_time) are left out."""
+    out: dict[str, np.ndarray] = {}
+    for line in text.splitlines():
+        key, sep, rest = line.partition(":")
+        if not sep:
+            continue
+        try:
+            out[key.strip()] = np.array([float(v) for v in rest.split()], dtype=np.float64)
+        except ValueError:
+            continue
+    return out
+
+
+def intrinsics_from_calib(calib: dict[str, np.ndarray], camera: str = "02", name: str = CALIB_FILE) -> Intrinsics:
+    """Rectified intrinsics of camera ``camera``: fx, fy, cx, cy from ``P_rect_XX`` (3 x 4), size
+    from ``S_rect_XX`` (width, height)."""
+    p, s = calib.get(f"P_rect_{camera}"), calib.get(f"S_rect_{camera}")
+    if p is None or p.size != 12 or s is None or s.size != 2:
+        raise LogError(f"{name}: no P_rect_{camera} (12 numbers) and S_rect_{camera} (2 numbers); "
+                       "is it the date's calib_cam_to_cam.txt?")
+    p = p.reshape(3, 4)
+    return Intrinsics(fx=p[0, 0], fy=p[1, 1], cx=p[0, 2], cy=p[1, 2], width=round(s[0]), height=round(s[1]))
+
+
+def attitude_from_oxts(roll_rad, pitch_rad, yaw_rad) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OXTS (forward-left-up, yaw 0 = east counter-clockwise) -> sunrig heading, pitch, roll (rad).
+
+    heading = 90 deg - yaw in [0, 2 pi); pitch = -pitch (OXTS front down -> sunrig nose up);
+    roll = roll (OXTS left side up = sunrig right side down).
+    """
+    heading = np.mod(np.pi / 2.0 - np.asarray(yaw_rad, dtype=np.float64), 2.0 * np.pi)
+    return heading, -np.asarray(pitch_rad, dtype=np.float64), np.asarray(roll_rad, dtype=np.float64)
+
+
+def scaled_intrinsics(k: Intrinsics, width: int, height: int) -> Intrinsics:
+    """``k`` for the same camera at another image size (about the pixel grid's corner)."""
+    sx, sy = width / k.width, height / k.height
+    return Intrinsics(fx=k.fx * sx, fy=k.fy * sy, cx=k.cx * sx, cy=k.cy * sy, width=width, height=height)
+
+
+# ------------------------------------------------------------------------------------------
+# Finding the files
+
+
+def _read_text(path: Path, what: str) -> str:
+    try:
+        return path.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        raise LogError(f"{path}: missing ({what})") from None
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+
+
+def drive_folders(date_dir: Path) -> list[Path]:
+    """The ``*_drive_NNNN_sync`` folders of a date folder, in name order."""
+    return sorted(p for p in Path(date_dir).iterdir() if p.is_dir() and _DRIVE_RE.match(p.name))
+
+
+def _looks_like_drive(path: Path) -> bool:
+    return bool(_DRIVE_RE.match(path.name)) or ((path / "oxts").is_dir() and (path / CAMERA).is_dir())
+
+
+def find_drive(path: str | Path) -> tuple[Path, Path]:
+    """(date folder, drive folder) for a date folder holding one drive, or a drive folder."""
+    p = Path(path)
+    if not p.is_dir():
+        raise LogError(f"{p}: not a folder; a KITTI drive is a YYYY_MM_DD/ folder or one of its *_drive_NNNN_sync/")
+    if _looks_like_drive(p):
+        date_dir, drive_dir = p.resolve().parent, p
+    else:
+        drives = drive_folders(p)
+        if not drives:
+            raise LogError(
+                f"{p}: not a KITTI raw drive (no *_drive_NNNN_sync/ folder in it, and it is not one) and not a "
+                "native log; pass a .mcap file, a KITTI date folder YYYY_MM_DD/ or one of its drive folders")
+        if len(drives) > 1:
+            raise LogError(
+                f"{p}: holds {len(drives)} KITTI drives ({drives[0].name} ... {drives[-1].name}); pass the drive "
+                f"folders (e.g. {p}/*_sync) so that each drive is a log of its own")
+        date_dir, drive_dir = p, drives[0]
+    if not (date_dir / CALIB_FILE).is_file():
+        date = _DRIVE_RE.match(drive_dir.name)
+        zip_name = f"{date.group(1)}_calib.zip" if date else "the date's calib zip"
+        raise LogError(f"{drive_dir}: no {CALIB_FILE} in its date folder {date_dir}; unzip {zip_name} there")
+    for sub in (CAMERA, "oxts"):
+        if not (drive_dir / sub).is_dir():
+            raise LogError(f"{drive_dir}: no {sub}/ folder; is it a complete *_sync drive?")
+    return date_dir, drive_dir
+
+
+# ------------------------------------------------------------------------------------------
+# The source
+
+
+class KittiDrive:
+    """A KITTI raw drive as a frame source: iterate it for Frames (re-iterable; images are read
+    lazily, everything else when it is opened, so a bad drive fails before any work).
+
+    Frames carry the rectified ``image_02``, its intrinsics, a TRUE heading with pitch and roll,
+    UTC time, the OXTS fix and the sun from SPA as ``sun_enu_truth``.
+    """
+
+    def __init__(self, path: str | Path, utc_offset_h: float | None = None) -> None:
+        global _warned_default_offset
+        self.date_dir, self.path = find_drive(path)
+        if utc_offset_h is None:
+            utc_offset_h = DEFAULT_UTC_OFFSET_H
+            if not _warned_default_offset:
+                _warned_default_offset = True
+                logger.warning(
+                    "KITTI timestamps carry no time zone: taking them as UTC%+g h (CEST); if they are UTC, pass "
+                    "--utc-offset 0 (each hour moves the sun ~15 deg). See docs/ground-truth.md",
+                    DEFAULT_UTC_OFFSET_H)
+        self.utc_offset_h = float(utc_offset_h)
+        offset_ns = utc_offset_ns(self.utc_offset_h)
+        name = self.path.name
+        self.corrupt_skipped = 0
+
+        self.intrinsics = intrinsics_from_calib(parse_calib(_read_text(self.date_dir / CALIB_FILE, "calibration")),
+                                                CAMERA[-2:], str(self.date_dir / CALIB_FILE))
+        cam_dir, oxts_dir = self.path / CAMERA, self.path / "oxts"
+        self.images = sorted((cam_dir / "data").glob("*.png"))
+        oxts_files = sorted((oxts_dir / "data").glob("*.txt"))
+        image_ns = parse_timestamps_ns(_read_text(cam_dir / "timestamps.txt", "image timestamps"),
+                                       f"{name}/{CAMERA}/timestamps.txt")
+        oxts_ns = parse_timestamps_ns(_read_text(oxts_dir / "timestamps.txt", "OXTS timestamps"),
+                                      f"{name}/oxts/timestamps.txt")
+        counts = {"images": len(self.images), "image timestamps": len(image_ns),
+                  "OXTS records": len(oxts_files), "OXTS timestamps": len(oxts_ns)}
+        if len(set(counts.values())) != 1 or not self.images:
+            raise LogError(f"{name}: " + ", ".join(f"{v} {k}" for k, v in counts.items())
+                           + "; a sync drive has one of each per frame (re-extract the drive)")
+        stems = [p.stem for p in self.images]
+        if stems != [f"{i:010d}" for i in range(len(stems))] or [p.stem for p in oxts_files] != stems:
+            raise LogError(f"{name}: image and OXTS files are not numbered 0000000000 ... {len(stems) - 1:010d} "
+                           "alike; re-extract the drive")
+
+        fmt = oxts_dir / "dataformat.txt"
+        if fmt.is_file():
+            fields = parse_dataformat(_read_text(fmt, "OXTS data format"))
+            if tuple(fields[:6]) != _USED:
+                raise LogError(f"{fmt}: fields start {fields[:6]}, expected {list(_USED)}; not a KITTI OXTS format")
+
+        n = len(self.images)
+        oxts = np.full((n, 6), np.nan)
+        for i, f in enumerate(oxts_files):
+            try:
+                oxts[i] = parse_oxts(_read_text(f, "OXTS record"), f"{name}/oxts/data/{f.name}")[:6]
+            except LogError as exc:  # one bad record costs that frame its pose, not the drive
+                self._warn(f"{exc}; frame {i} has no heading, position or truth")
+        lat, lon, alt, roll, pitch, yaw = oxts.T
+        self.heading_rad, self.pitch_rad, self.roll_rad = attitude_from_oxts(roll, pitch, yaw)
+        self.lat_deg, self.lon_deg, self.alt_m = lat, lon, alt
+        self.utc_ns = image_ns - offset_ns
+        self.oxts_utc_ns = oxts_ns - offset_ns
+        self.t_mono_s = (image_ns - image_ns[0]) / 1e9  # from an exact integer difference
+        with np.errstate(invalid="ignore"):  # NaN rows (bad records) compare False, as they should
+            self.pose_ok = (np.all(np.isfinite(oxts), axis=1) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
+                            & (np.abs(roll) <= np.pi) & (np.abs(pitch) <= np.pi))
+        for i in np.flatnonzero(~self.pose_ok & np.all(np.isfinite(oxts), axis=1)):
+            self._warn(f"{name}/oxts/data/{oxts_files[i].name}: lat/lon/roll/pitch out of range "
+                       f"{oxts[i, :5].tolist()}; frame {i} has no heading, position or truth")
+        # The timestamps must increase: a step back would break the monotonic clock downstream.
+        self.time_ok = np.ones(n, dtype=bool)
+        latest = image_ns[0]
+        for i in range(1, n):
+            if image_ns[i] <= latest:
+                self.time_ok[i] = False
+                self._warn(f"{name}: frame {i}'s timestamp is not after the previous one's; frame skipped")
+            else:
+                latest = image_ns[i]
+        self.sun_enu = np.full((n, 3), np.nan)
+        ok = self.pose_ok
+        if np.any(ok):
+            self.sun_enu[ok] = sun_truth_enu(self.utc_ns[ok], lat[ok], lon[ok], alt[ok])
+        self._intrinsics_by_size: dict[tuple[int, int], Intrinsics] = {}
+
+    def _warn(self, message: str) -> None:
+        self.corrupt_skipped += 1
+        if self.corrupt_skipped <= _MAX_WARNINGS:
+            logger.warning("%s", message)
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def field_of_view_deg(self) -> tuple[float, float]:
+        return math.degrees(self.intrinsics.hfov_rad), math.degrees(self.intrinsics.vfov_rad)
+
+    def _intrinsics_for(self, width: int, height: int) -> Intrinsics:
+        key = (width, height)
+        k = self._intrinsics_by_size.get(key)
+        if k is None:
+            k = self.intrinsics
+            if key != (k.width, k.height):
+                # Resized copies keep the aspect ratio up to the rounding of each side to whole pixels.
+                off_aspect = abs(height - k.height * width / k.width) > 1.0
+                log = logger.warning if off_aspect else logger.info
+                log("%s: images are %dx%d, the calibration's %dx%d; intrinsics scaled to them%s", self.path.name,
+                    width, height, k.width, k.height,
+                    " (the aspect ratio differs: check the calibration)" if off_aspect else "")
+                k = scaled_intrinsics(k, width, height)
+            self._intrinsics_by_size[key] = k
+        return k
+
+    def frame(self, i: int, image_bgr: np.ndarray) -> Frame:
+        """Frame ``i`` of the drive around an image (pure: no file access)."""
+        attitude = gnss = truth = None
+        if self.pose_ok[i]:
+            attitude = Attitude(self.heading_rad[i], HeadingRef.TRUE, self.pitch_rad[i], self.roll_rad[i])
+            gnss = GnssFix(int(self.oxts_utc_ns[i]), self.lat_deg[i], self.lon_deg[i], self.alt_m[i])
+            truth = self.sun_enu[i]
+        h, w = image_bgr.shape[:2]
+        return Frame(t_mono_s=float(self.t_mono_s[i]), seq=i, image_bgr=image_bgr,
+                     intrinsics=self._intrinsics_for(w, h), attitude=attitude, utc_ns=int(self.utc_ns[i]),
+                     gnss=gnss, sun_enu_truth=truth)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i, path in enumerate(self.images):
+            if not self.time_ok[i]:
+                continue
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if image is None:
+                self._warn(f"{self.path.name}: {path.name} is missing or not an image; frame {i} skipped")
+                continue
+            yield self.frame(i, image)
+
+    def __repr__(self) -> str:
+        return f"KittiDrive({str(self.path)!r}, utc_offset_h={self.utc_offset_h:+g})"
+
+
+def open_kitti(path: str | Path, utc_offset_h: float | None = None) -> KittiDrive:
+    """Check ``path`` is a KITTI raw drive (or its date folder holding one) and open it."""
+    return KittiDrive(path, utc_offset_h=utc_offset_h)

@@ -1,0 +1,363 @@
+"""KITTI raw drives as a frame source (replay/kitti.py), on the real text files of one drive.
+
+The shared fixture (../shared/fixtures/kitti_raw_meta) holds drive 2011_09_26_drive_0001 without
+its images and with only OXTS frame 0. Each test copies it into tmp_path and fills the gaps there:
+small PNGs (414 x 125, a third of the real 1242 x 375, so the reader scales the intrinsics) named
+0000000000.png ..., and OXTS frames 1..107 as copies of frame 0 (the vehicle then stands still at
+frame 0's pose while the timestamps run on: enough for the reader, whose per-frame values are
+tested on frame 0). The eval test builds a drive of its own and needs no fixture.
+"""
+
+from __future__ import annotations
+
+import calendar
+import json
+import logging
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import replay.kitti as kitti
+from replay.kitti import (
+    OXTS_FIELDS,
+    KittiDrive,
+    attitude_from_oxts,
+    open_kitti,
+    parse_dataformat,
+    parse_timestamps_ns,
+)
+from replay.sources import open_frames
+from rig.errors import LogError
+from rig.geometry import az_el_from_enu
+from rig.solar import standard_pressure_hpa, sun_position
+from rig.types import HeadingRef
+from tests.tolerances import EXACT_F64
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+FIXTURE = SHARED / "fixtures" / "kitti_raw_meta"
+DATE = "2011_09_26"
+DRIVE = "2011_09_26_drive_0001_sync"
+N_FRAMES = 108
+SMALL = (414, 125)  # width, height: the real size / 3
+
+
+def _need_fixture() -> None:
+    if not FIXTURE.is_dir():
+        pytest.skip(f"needs the real KITTI text files at {FIXTURE} (an outside checkout has no ../shared)")
+
+
+def _writable_copy(src: Path, dst: Path) -> None:
+    shutil.copytree(src, dst)
+    for root, _dirs, files in os.walk(dst):  # the shared tree is read-only, and copytree keeps modes
+        os.chmod(root, 0o755)
+        for f in files:
+            os.chmod(Path(root) / f, 0o644)
+
+
+def _fill_drive(drive: Path, n: int, size=SMALL, seed: int = 0) -> None:
+    """Images 0..n-1 (smooth noise, small PNGs) and OXTS records 1..n-1 copied from record 0."""
+    (drive / "image_02" / "data").mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    w, h = size
+    base = cv2.resize(rng.integers(0, 256, (8, 24, 3), dtype=np.uint8), (w, h), interpolation=cv2.INTER_LINEAR)
+    for i in range(n):
+        cv2.imwrite(str(drive / "image_02" / "data" / f"{i:010d}.png"), np.roll(base, i, axis=1))
+    record0 = (drive / "oxts" / "data" / "0000000000.txt").read_text()
+    for i in range(1, n):
+        (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(record0)
+
+
+@pytest.fixture
+def kitti_date(tmp_path) -> Path:
+    _need_fixture()
+    root = tmp_path / "kitti"
+    _writable_copy(FIXTURE, root)
+    _fill_drive(root / DATE / DRIVE, N_FRAMES)
+    return root / DATE
+
+
+@pytest.fixture(autouse=True)
+def _fresh_warning_state(monkeypatch):
+    # The default-offset warning is once per process; each test starts as a fresh process would.
+    monkeypatch.setattr(kitti, "_warned_default_offset", False)
+
+
+def _timestamp_ns(line: str) -> int:
+    """Reference parse with plain integers: the wall clock as ns since the epoch."""
+    date, clock = line.split()
+    y, mo, d = (int(v) for v in date.split("-"))
+    hms, frac = clock.split(".")
+    h, mi, s = (int(v) for v in hms.split(":"))
+    return calendar.timegm((y, mo, d, h, mi, s)) * 1_000_000_000 + int(frac.ljust(9, "0"))
+
+
+# --- pure parsers ----------------------------------------------------------------------------
+
+
+def test_timestamps_parse_to_the_nanosecond():
+    _need_fixture()
+    for stream in ("image_02", "oxts", "velodyne_points"):
+        text = (FIXTURE / DATE / DRIVE / stream / "timestamps.txt").read_text()
+        lines = [ln for ln in text.splitlines() if ln.strip()]
+        assert all(len(ln.split(".")[1]) == 9 for ln in lines)  # the files really carry 9 digits
+        got = parse_timestamps_ns(text)
+        assert got.dtype == np.int64 and len(got) == N_FRAMES
+        assert got.tolist() == [_timestamp_ns(ln) for ln in lines]
+    first = parse_timestamps_ns("2011-09-26 13:02:25.961661696\n")[0]
+    assert first % 1_000_000_000 == 961_661_696  # no float on the way: every digit survives
+
+
+def test_timestamps_exact_for_random_nanoseconds():
+    rng = np.random.default_rng(1)
+    secs = rng.integers(0, 2**31, 200)
+    nanos = rng.integers(0, 10**9, 200)
+    pairs = list(zip(secs.tolist(), nanos.tolist(), strict=True))
+    lines = [f"{np.datetime64(s, 's').astype(str).replace('T', ' ')}.{ns:09d}" for s, ns in pairs]
+    got = parse_timestamps_ns("\n".join(lines))
+    assert got.tolist() == [s * 10**9 + ns for s, ns in pairs]
+
+
+@pytest.mark.parametrize("bad", ["2011-09-26 13:02", "2011/09/26 13:02:25.1", "2011-09-26 13:02:25.1234567890",
+                                 "2011-19-26 13:02:25.1"])
+def test_bad_timestamp_is_a_one_line_log_error(bad):
+    with pytest.raises(LogError) as err:
+        parse_timestamps_ns(f"2011-09-26 13:02:25.000000000\n{bad}\n", "x/timestamps.txt")
+    assert "\n" not in str(err.value) and "x/timestamps.txt" in str(err.value)
+
+
+def test_dataformat_typo_is_tolerated():
+    _need_fixture()
+    text = (FIXTURE / DATE / DRIVE / "oxts" / "dataformat.txt").read_text()
+    assert text.splitlines()[13].startswith("ay:")  # the real typo: line 14 names az "ay"
+    assert parse_dataformat(text) == list(OXTS_FIELDS)
+
+
+def test_oxts_attitude_conventions():
+    # OXTS: yaw 0 = east, counter-clockwise positive; pitch positive front down; roll positive left up.
+    heading, pitch, roll = attitude_from_oxts(np.array([0.1, 0.0]), np.array([0.05, 0.0]),
+                                              np.array([0.0, math.pi / 2]))
+    assert heading == pytest.approx([math.pi / 2, 0.0])  # east, north
+    assert pitch[0] == pytest.approx(-0.05)  # front down = nose down = negative in sunrig
+    assert roll[0] == pytest.approx(0.1)  # left side up = right side down = positive in sunrig
+
+
+# --- the drive ---------------------------------------------------------------------------------
+
+
+def test_drive_frames(kitti_date):
+    src = open_frames(kitti_date, utc_offset_h=2.0)
+    assert isinstance(src, KittiDrive) and len(src) == N_FRAMES
+    frames = list(src)
+    assert [f.seq for f in frames] == list(range(N_FRAMES))
+    f0 = frames[0]
+    # Heading of frame 0 from its OXTS yaw (-2.6087 rad): 90 deg - yaw.
+    assert math.degrees(f0.attitude.heading_rad) == pytest.approx(239.47, abs=0.01)
+    assert f0.attitude.reference == HeadingRef.TRUE
+    assert f0.attitude.pitch_rad == pytest.approx(-0.00903)
+    assert f0.attitude.roll_rad == pytest.approx(0.035752)
+    # Field of view from P_rect_02 / S_rect_02, kept by the intrinsics scaled to the small images.
+    hfov, vfov = src.field_of_view_deg
+    assert (hfov, vfov) == (pytest.approx(81.43, abs=0.01), pytest.approx(29.12, abs=0.01))
+    assert src.intrinsics.fx == pytest.approx(721.5377) and (src.intrinsics.width, src.intrinsics.height) == (1242, 375)
+    k = f0.intrinsics
+    assert (k.width, k.height) == SMALL and f0.image_bgr.shape == (SMALL[1], SMALL[0], 3)
+    assert math.degrees(k.hfov_rad) == pytest.approx(81.43, abs=0.01)
+    assert math.degrees(k.vfov_rad) == pytest.approx(29.12, abs=0.01)
+    # Times: UTC = local - 2 h, to the nanosecond; monotonic from the first image.
+    lines = (kitti_date / DRIVE / "image_02" / "timestamps.txt").read_text().split("\n")
+    assert f0.utc_ns == _timestamp_ns(lines[0]) - 2 * 3600 * 10**9
+    assert frames[-1].utc_ns == _timestamp_ns(lines[N_FRAMES - 1]) - 2 * 3600 * 10**9
+    assert f0.t_mono_s == 0.0
+    assert frames[-1].t_mono_s == (_timestamp_ns(lines[N_FRAMES - 1]) - _timestamp_ns(lines[0])) / 1e9
+    assert all(b.t_mono_s > a.t_mono_s for a, b in zip(frames, frames[1:], strict=False))
+    # GNSS fix from OXTS at the OXTS time.
+    oxts_line = (kitti_date / DRIVE / "oxts" / "timestamps.txt").read_text().split("\n")[0]
+    assert f0.gnss.utc_ns == _timestamp_ns(oxts_line) - 2 * 3600 * 10**9
+    assert (f0.gnss.lat_deg, f0.gnss.lon_deg, f0.gnss.alt_m) == pytest.approx((49.015003823272, 8.4342971002335,
+                                                                                116.43032836914))
+
+
+def test_drive_ground_truth_is_the_ephemeris(kitti_date):
+    f0 = next(iter(open_frames(kitti_date, utc_offset_h=2.0)))
+    want = sun_position(np.int64(f0.utc_ns), f0.gnss.lat_deg, f0.gnss.lon_deg, f0.gnss.alt_m,
+                        pressure_hpa=standard_pressure_hpa(f0.gnss.alt_m))
+    np.testing.assert_allclose(f0.sun_enu_truth, want.enu, atol=EXACT_F64)
+    az, el = (math.degrees(v) for v in az_el_from_enu(f0.sun_enu_truth))
+    assert (az, el) == (pytest.approx(175.0, abs=0.5), pytest.approx(39.7, abs=0.5))  # 11:02 UTC, Karlsruhe
+    # Read as UTC instead, the same timestamp is two hours later: the sun ~37 deg further west.
+    g0 = next(iter(open_frames(kitti_date, utc_offset_h=0.0)))
+    assert g0.utc_ns - f0.utc_ns == 2 * 3600 * 10**9
+    az_utc = math.degrees(az_el_from_enu(g0.sun_enu_truth)[0])
+    assert az_utc == pytest.approx(212.5, abs=0.5)
+
+
+def test_default_offset_warns_once(kitti_date, caplog):
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        a = open_kitti(kitti_date)
+        b = open_kitti(kitti_date / DRIVE)
+    warnings = [r for r in caplog.records if "time zone" in r.getMessage()]
+    assert len(warnings) == 1 and "--utc-offset" in warnings[0].getMessage()
+    assert a.utc_offset_h == b.utc_offset_h == kitti.DEFAULT_UTC_OFFSET_H
+    caplog.clear()
+    kitti._warned_default_offset = False
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        open_kitti(kitti_date, utc_offset_h=0.0)
+    assert not [r for r in caplog.records if "time zone" in r.getMessage()]
+
+
+def test_offset_default_for_code_that_opens_logs_itself(kitti_date):
+    from replay.sources import utc_offset_default
+
+    with utc_offset_default(0.0):  # how `sunrig train --utc-offset 0` reaches the logs train() opens
+        inner = open_frames(kitti_date)
+        explicit = open_frames(kitti_date, utc_offset_h=1.0)
+    assert inner.utc_offset_h == 0.0 and explicit.utc_offset_h == 1.0
+    assert open_frames(kitti_date).utc_offset_h == kitti.DEFAULT_UTC_OFFSET_H
+
+
+def test_drive_folder_and_date_folder_agree(kitti_date):
+    a = open_kitti(kitti_date, utc_offset_h=2.0)
+    b = open_kitti(kitti_date / DRIVE, utc_offset_h=2.0)
+    assert a.path.resolve() == b.path.resolve() and a.date_dir.resolve() == b.date_dir.resolve()
+    np.testing.assert_array_equal(a.utc_ns, b.utc_ns)
+    np.testing.assert_array_equal(a.sun_enu, b.sun_enu)
+
+
+def _one_line_log_error(path, needle: str) -> str:
+    with pytest.raises(LogError) as err:
+        open_frames(path, utc_offset_h=2.0)
+    text = str(err.value)
+    assert "\n" not in text and needle in text, text
+    return text
+
+
+def test_not_a_kitti_folder(tmp_path):
+    (tmp_path / "notes.txt").write_text("hello")
+    _one_line_log_error(tmp_path, "not a KITTI raw drive")
+
+
+def test_missing_calibration(kitti_date):
+    (kitti_date / "calib_cam_to_cam.txt").unlink()
+    text = _one_line_log_error(kitti_date, "calib_cam_to_cam.txt")
+    assert "2011_09_26_calib.zip" in text
+    _one_line_log_error(kitti_date / DRIVE, "calib_cam_to_cam.txt")
+
+
+def test_image_and_oxts_counts_disagree(kitti_date):
+    (kitti_date / DRIVE / "oxts" / "data" / f"{N_FRAMES - 1:010d}.txt").unlink()
+    text = _one_line_log_error(kitti_date, "107 OXTS records")
+    assert "108 images" in text
+
+
+def test_date_folder_with_several_drives(kitti_date):
+    _writable_copy(kitti_date / DRIVE, kitti_date / "2011_09_26_drive_0002_sync")
+    _one_line_log_error(kitti_date, "holds 2 KITTI drives")
+    assert len(open_kitti(kitti_date / DRIVE, utc_offset_h=2.0)) == N_FRAMES  # each drive still opens
+
+
+def test_bad_calibration(kitti_date):
+    (kitti_date / "calib_cam_to_cam.txt").write_text("calib_time: today\nP_rect_00: 1 2 3\n")
+    _one_line_log_error(kitti_date, "P_rect_02")
+
+
+def test_corrupt_oxts_record_costs_only_its_frame(kitti_date, caplog):
+    (kitti_date / DRIVE / "oxts" / "data" / "0000000005.txt").write_text("garbage\n")
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        frames = list(open_frames(kitti_date, utc_offset_h=2.0))
+    assert len(frames) == N_FRAMES
+    assert frames[5].attitude is None and frames[5].gnss is None and frames[5].sun_enu_truth is None
+    assert frames[6].attitude is not None and frames[6].sun_enu_truth is not None
+    assert any("0000000005.txt" in r.getMessage() for r in caplog.records)
+
+
+def test_unreadable_image_is_skipped(kitti_date):
+    (kitti_date / DRIVE / "image_02" / "data" / "0000000003.png").write_bytes(b"not a png")
+    frames = list(open_frames(kitti_date, utc_offset_h=2.0))
+    assert len(frames) == N_FRAMES - 1 and 3 not in [f.seq for f in frames]
+
+
+def test_cli_error_for_a_broken_drive_is_one_line(kitti_date):
+    (kitti_date / "calib_cam_to_cam.txt").unlink()
+    res = subprocess.run([sys.executable, "-m", "rig.cli", "replay", str(kitti_date), "--utc-offset", "2"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("sunrig: error: ") and "calib_cam_to_cam.txt" in lines[0]
+
+
+# --- eval on a KITTI drive -----------------------------------------------------------------------
+
+_CALIB = """calib_time: 09-Jan-2012 13:57:47
+S_rect_02: 1.242000e+03 3.750000e+02
+P_rect_02: 7.215377e+02 0.000000e+00 6.095593e+02 4.485728e+01 0.000000e+00 7.215377e+02 1.728540e+02 \
+2.163791e-01 0.000000e+00 0.000000e+00 1.000000e+00 2.745884e-03
+"""
+
+
+def make_drive(root: Path, n: int, size=(138, 42), seed: int = 0) -> Path:
+    """A KITTI date folder with one generated drive of ``n`` frames at 10 Hz, turning 5 deg a frame
+    (no fixture needed): real calibration values, images at 1/9 of the real size."""
+    date = root / DATE
+    drive = date / DRIVE
+    (drive / "oxts" / "data").mkdir(parents=True)
+    (date / "calib_cam_to_cam.txt").write_text(_CALIB)
+    stamps = "".join(f"2011-09-26 13:02:{25 + i // 10:02d}.{(i % 10) * 100_000_000 + 1234567:09d}\n" for i in range(n))
+    (drive / "image_02").mkdir()
+    (drive / "image_02" / "timestamps.txt").write_text(stamps)
+    (drive / "oxts" / "timestamps.txt").write_text(stamps)
+    rest = " ".join(["0"] * 24)
+    for i in range(n):
+        yaw = -2.6 + math.radians(5.0 * i)
+        (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(f"49.015 8.4343 116.4 0.01 0.005 {yaw} {rest}\n")
+    (drive / "image_02" / "data").mkdir()
+    rng = np.random.default_rng(seed)
+    w, h = size
+    for i in range(n):
+        cv2.imwrite(str(drive / "image_02" / "data" / f"{i:010d}.png"), rng.integers(0, 256, (h, w, 3), np.uint8))
+    return date
+
+
+def test_generated_drive_reads(tmp_path):
+    date = make_drive(tmp_path, 12)
+    frames = list(open_frames(date, utc_offset_h=2.0))
+    assert len(frames) == 12 and all(f.sun_enu_truth is not None for f in frames)
+    assert frames[1].t_mono_s == pytest.approx(0.1)
+
+
+@pytest.mark.torch
+def test_eval_runs_on_a_kitti_drive(tmp_path, tiny_model_dir):
+    date = make_drive(tmp_path / "kitti", 12)
+    out, png = tmp_path / "eval.json", tmp_path / "eval.png"
+    res = subprocess.run([sys.executable, "-m", "rig.cli", "eval", str(date / DRIVE), "--model", str(tiny_model_dir),
+                          "--json", str(out), "--plot", str(png), "--quiet", "--utc-offset", "2"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(out.read_text())
+    assert set(summary["aggregators"]) == {"transformer", "mean", "meanshift", "single"}
+    for s in summary["aggregators"].values():
+        assert s["n_windows"] == 5  # 12 frames, windows full from the 8th frame on
+        assert 0.0 <= s["median_deg"] <= s["max_deg"] <= 180.0
+    assert summary["windows_without_truth"] == 0
+    assert png.stat().st_size > 10_000 and (tmp_path / "eval-tokens.png").stat().st_size > 10_000
+
+
+@pytest.mark.torch
+def test_training_reads_a_kitti_drive(tmp_path):
+    pytest.importorskip("torch", reason="estimator.train needs the train extra: pip install 'sunrig[train]'")
+    from estimator.train import load_drives
+    from replay.sources import utc_offset_default
+
+    date = make_drive(tmp_path, 12)
+    with utc_offset_default(2.0):
+        (drive,) = load_drives([date / DRIVE], crop_size=32, crop_fov_rad=math.radians(40.0))
+    assert drive.images.shape[0] == 12 and drive.sun_enu.shape == (12, 3)
+    want = list(open_frames(date, utc_offset_h=2.0))
+    np.testing.assert_allclose(drive.sun_enu, [f.sun_enu_truth for f in want])
+    np.testing.assert_allclose(drive.yaw_rad, [f.heading_rad for f in want])

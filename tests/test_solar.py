@@ -1,0 +1,296 @@
+"""NREL's SPA (rig/solar.py): the report's worked example step by step, pvlib as an independent
+implementation over random times and places, and `sunrig sun`.
+
+Tolerances: the worked example to one unit of the last digit the report prints (and 1e-4 deg on
+zenith and azimuth, the requirement); pvlib to 0.001 deg (they agree to ~1e-6 in practice).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.errors import ValidationError
+from rig.geometry import az_el_from_enu
+from rig.solar import (
+    delta_t_approx_s,
+    julian_day,
+    parse_utc_iso,
+    spa_steps,
+    standard_pressure_hpa,
+    sun_position,
+)
+from tests.tolerances import EXACT_F64
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+FIXTURE = SHARED / "fixtures" / "solar" / "nrel_spa_paper_testcase.json"
+TOL_EXAMPLE_DEG = 1e-4
+TOL_PVLIB_DEG = 1e-3
+
+
+@pytest.fixture(scope="module")
+def example():
+    if not FIXTURE.is_file():
+        pytest.skip(f"needs the shared fixtures at {FIXTURE.parent} (an outside checkout has no ../shared)")
+    return json.loads(FIXTURE.read_text())
+
+
+def _example_steps(fx, utc=None):
+    i = fx["inputs"]
+    utc = parse_utc_iso(i["utc_time"]) if utc is None else utc
+    return spa_steps(utc, i["latitude"], i["longitude"], i["elevation_m"], i["pressure_mbar"],
+                     i["temperature_C"], i["delta_t_s"], i["atmos_refract_deg"])
+
+
+def _decimals(value: float) -> int:
+    text = repr(value)
+    return len(text.split(".")[1]) if "." in text and "e" not in text else 0
+
+
+# The centuries are printed with more digits than the Julian day they come from (6 decimals,
+# +-5e-7 d); that rounding, carried through, is their tolerance.
+_TIME_TOL = {"JC": 5e-7 / 36525 * 1.01, "JCE": 5e-7 / 36525 * 1.01, "JME": 5e-7 / 365250 * 1.01}
+
+
+def test_worked_example_intermediates(example):
+    """Every intermediate the report prints, to one unit of its last printed digit."""
+    steps = _example_steps(example)
+    inputs = {"lat", "lon", "elev", "pressure", "temp", "delta_t", "atmos_refract"}
+    checked = 0
+    for key, want in example["intermediates_from_pvlib_test_spa"].items():
+        if key in inputs:
+            continue
+        got = float(steps[key])
+        tol = max(10.0 ** -_decimals(want), _TIME_TOL.get(key, 0.0))
+        assert got == pytest.approx(want, abs=tol), f"{key}: got {got!r}, report {want!r} (tol {tol:g})"
+        checked += 1
+    assert checked == 37
+
+
+def test_worked_example_outputs(example):
+    out = example["outputs"]
+    i = example["inputs"]
+    pos = sun_position(parse_utc_iso(i["utc_time"]), i["latitude"], i["longitude"], i["elevation_m"],
+                       pressure_hpa=i["pressure_mbar"], temperature_c=i["temperature_C"], delta_t_s=i["delta_t_s"],
+                       refraction_deg=i["atmos_refract_deg"])
+    assert math.degrees(pos.zenith_rad) == pytest.approx(out["topocentric_zenith_deg"], abs=TOL_EXAMPLE_DEG)
+    assert math.degrees(pos.azimuth_rad) == pytest.approx(out["topocentric_azimuth_deg"], abs=TOL_EXAMPLE_DEG)
+    assert math.degrees(pos.elevation_rad) == pytest.approx(out["topocentric_elevation_refracted_deg"],
+                                                            abs=TOL_EXAMPLE_DEG)
+    assert math.degrees(pos.elevation_geometric_rad) == pytest.approx(
+        out["topocentric_elevation_uncorrected_deg"], abs=TOL_EXAMPLE_DEG)
+    az, el = az_el_from_enu(pos.enu)
+    assert math.degrees(az) == pytest.approx(out["topocentric_azimuth_deg"], abs=TOL_EXAMPLE_DEG)
+    assert math.degrees(el) == pytest.approx(out["topocentric_elevation_refracted_deg"], abs=TOL_EXAMPLE_DEG)
+
+
+def test_worked_example_local_time_is_the_same_instant(example):
+    i = example["inputs"]
+    local = parse_utc_iso(f"{i['local_time']}{i['utc_offset_hours']:+03d}:00")
+    assert local == parse_utc_iso(i["utc_time"])
+
+
+def test_second_case_next_day(example):
+    case = example["second_case_pvlib_expected_solpos_multi"]
+    steps = _example_steps(example, parse_utc_iso(case["utc_time"]))
+    assert float(steps["e0"]) == pytest.approx(case["elevation_uncorrected"], abs=TOL_EXAMPLE_DEG)
+    assert float(steps["e"]) == pytest.approx(case["apparent_elevation"], abs=TOL_EXAMPLE_DEG)
+    assert float(steps["theta"]) == pytest.approx(case["apparent_zenith"], abs=TOL_EXAMPLE_DEG)
+    assert float(steps["Phi"]) == pytest.approx(case["azimuth"], abs=TOL_EXAMPLE_DEG)
+
+
+def _random_cases(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    # Years 1000..3000 (datetime64[s] reaches them; ns would stop at 1678..2262), so well before
+    # 1950 and after 2100; a tenth of the places polar (|lat| 80..90).
+    lo = np.datetime64("1000-01-01T00:00:00", "s").astype(np.int64)
+    hi = np.datetime64("3000-01-01T00:00:00", "s").astype(np.int64)
+    sec = rng.integers(lo, hi, n)
+    lat = rng.uniform(-90.0, 90.0, n)
+    polar = rng.random(n) < 0.1
+    lat[polar] = rng.choice([-1.0, 1.0], polar.sum()) * rng.uniform(80.0, 90.0, polar.sum())
+    return dict(
+        sec=sec, lat=lat, lon=rng.uniform(-180.0, 180.0, n), elev=rng.uniform(-400.0, 5000.0, n),
+        pressure=rng.uniform(500.0, 1050.0, n), temp=rng.uniform(-40.0, 45.0, n),
+        delta_t=rng.uniform(-5.0, 2000.0, n), refraction=np.full(n, 0.5667),
+    )
+
+
+def _wrap180(d):
+    return (np.asarray(d) + 180.0) % 360.0 - 180.0
+
+
+def test_agrees_with_pvlib_over_random_times_and_places():
+    spa = pytest.importorskip("pvlib.spa", reason="the pvlib comparison needs pvlib (dev extra)")
+    c = _random_cases(1000, seed=2026)
+    mine = spa_steps(c["sec"].astype("datetime64[s]"), c["lat"], c["lon"], c["elev"], c["pressure"], c["temp"],
+                     c["delta_t"], c["refraction"])
+    theta, _theta0, e, e0, phi, _eot = spa.solar_position_numpy(
+        c["sec"].astype(np.float64), c["lat"], c["lon"], c["elev"], c["pressure"], c["temp"], c["delta_t"],
+        c["refraction"], 1, sst=False, esd=False)
+    worst = {
+        "zenith": np.abs(mine["theta"] - theta).max(),
+        "elevation": np.abs(mine["e"] - e).max(),
+        "elevation_geometric": np.abs(mine["e0"] - e0).max(),
+        "azimuth": np.abs(_wrap180(mine["Phi"] - phi)).max(),
+    }
+    assert max(worst.values()) < TOL_PVLIB_DEG, worst
+
+
+def test_delta_t_approximation_matches_pvlib():
+    spa = pytest.importorskip("pvlib.spa", reason="the pvlib comparison needs pvlib (dev extra)")
+    years = np.array([-1000, 0, 1000, 1650, 1750, 1830, 1880, 1910, 1930, 1950, 1970, 1995, 2011, 2024, 2100, 2500])
+    months = np.full(years.shape, 6)
+    want = spa.calculate_deltat(years, months)
+    got = delta_t_approx_s(years + (months - 0.5) / 12.0)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-6)
+    assert 66.0 < float(delta_t_approx_s(2011.7)) < 68.0
+
+
+def test_scalar_and_batched_agree():
+    c = _random_cases(50, seed=7)
+    t = c["sec"].astype("datetime64[s]")
+    batch = sun_position(t, c["lat"], c["lon"], c["elev"], delta_t_s=c["delta_t"])
+    for k in range(0, 50, 7):
+        one = sun_position(t[k], c["lat"][k], c["lon"][k], c["elev"][k], delta_t_s=c["delta_t"][k])
+        assert float(one.zenith_rad) == pytest.approx(batch.zenith_rad[k], abs=EXACT_F64)
+        assert float(one.azimuth_rad) == pytest.approx(batch.azimuth_rad[k], abs=EXACT_F64)
+        np.testing.assert_allclose(one.enu, batch.enu[k], atol=EXACT_F64)
+    assert batch.enu.shape == (50, 3)
+    np.testing.assert_allclose(np.linalg.norm(batch.enu, axis=-1), 1.0, atol=EXACT_F64)
+
+
+def test_time_forms_agree():
+    ns = 1_317_034_945_961_661_696  # 2011-09-26T11:02:25.961661696Z
+    forms = [
+        ns,
+        np.int64(ns),
+        np.array([ns]),
+        np.datetime64(ns, "ns"),
+        np.datetime64("2011-09-26T11:02:25.961661696"),
+        dt.datetime(2011, 9, 26, 13, 2, 25, 961662, tzinfo=dt.timezone(dt.timedelta(hours=2))),
+    ]
+    jds = [float(np.ravel(julian_day(f))[0]) for f in forms]
+    assert max(jds) - min(jds) < 1e-11  # under a microsecond
+    assert jds[0] == pytest.approx(2440587.5 + ns / 86_400e9, abs=1e-9)
+
+
+def test_refraction_only_above_the_horizon():
+    t = np.datetime64("2011-09-26T00:00:00")  # night in Karlsruhe
+    pos = sun_position(t, 49.0, 8.4)
+    assert pos.elevation_rad < math.radians(-20)
+    assert pos.elevation_rad == pos.elevation_geometric_rad
+    noon = sun_position(np.datetime64("2011-09-26T11:15:00"), 49.0, 8.4)
+    assert 0.0 < math.degrees(noon.elevation_rad - noon.elevation_geometric_rad) < 0.03
+
+
+def test_standard_pressure():
+    assert float(standard_pressure_hpa(0.0)) == pytest.approx(1013.25)
+    assert float(standard_pressure_hpa(1000.0)) == pytest.approx(898.7, abs=0.2)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(lat_deg=91.0), "latitude"),
+        (dict(lat_deg=float("nan")), "latitude"),
+        (dict(lon_deg=400.0), "longitude"),
+        (dict(pressure_hpa=0.0), "pressure"),
+        (dict(temperature_c=-300.0), "temperature"),
+        (dict(delta_t_s=1e5), "delta_t"),
+        (dict(utc=1.5e18), "integer ns"),
+        (dict(utc=dt.datetime(2011, 9, 26)), "naive"),
+        (dict(utc=np.datetime64("NaT")), "NaT"),
+        (dict(utc=2**70), "int64"),
+        (dict(utc=np.datetime64("6001-01-01T00:00:01", "s")), "-2000..6000"),
+        (dict(utc=np.datetime64("-2001-12-31T23:59", "s")), "-2000..6000"),
+    ],
+)
+def test_bad_input_is_a_one_line_validation_error(kwargs, message):
+    args = dict(utc=1_317_034_945_961_661_696, lat_deg=49.0, lon_deg=8.4) | kwargs
+    with pytest.raises(ValidationError, match=message) as err:
+        sun_position(**args)
+    assert "\n" not in str(err.value)
+
+
+def test_parse_utc_iso():
+    want = np.datetime64("2003-10-17T19:30:30")
+    assert parse_utc_iso("2003-10-17T19:30:30Z") == want
+    assert parse_utc_iso("2003-10-17 12:30:30-07:00") == want
+    assert parse_utc_iso("2003-10-18T01:00:30+0530") == want
+    assert parse_utc_iso("2003-10-17T19:30:30") == want  # no offset: UTC
+    t = parse_utc_iso("2011-09-26T11:02:25.961661696Z")
+    assert t.astype(np.int64) == 1_317_034_945_961_661_696 and np.datetime_data(t.dtype)[0] == "ns"
+    for bad in ("yesterday", "2003-13-01T00:00Z", "2003-10-17T19:30:30+25", ""):
+        with pytest.raises(ValidationError):
+            parse_utc_iso(bad)
+
+
+# --- `sunrig sun` --------------------------------------------------------------------------
+
+
+def _sun(capsys, *args):
+    from rig.cli import main
+
+    rc = main(["sun", *args])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_cli_sun_worked_example(capsys, example):
+    i, out = example["inputs"], example["outputs"]
+    rc, stdout, _ = _sun(capsys, "--lat", str(i["latitude"]), "--lon", str(i["longitude"]),
+                         "--time", "2003-10-17T12:30:30-07:00", "--elevation-m", str(i["elevation_m"]),
+                         "--pressure-hpa", str(i["pressure_mbar"]), "--temperature-c", str(i["temperature_C"]),
+                         "--delta-t-s", str(i["delta_t_s"]))
+    assert rc == 0
+    d = json.loads(stdout)
+    assert d["zenith_deg"] == pytest.approx(out["topocentric_zenith_deg"], abs=TOL_EXAMPLE_DEG)
+    assert d["azimuth_deg"] == pytest.approx(out["topocentric_azimuth_deg"], abs=TOL_EXAMPLE_DEG)
+    assert d["elevation_deg"] == pytest.approx(out["topocentric_elevation_refracted_deg"], abs=TOL_EXAMPLE_DEG)
+    assert np.linalg.norm(d["enu"]) == pytest.approx(1.0, abs=1e-8)
+    assert d["utc"] == "2003-10-17T19:30:30Z"
+
+
+def test_cli_sun_csv(capsys, tmp_path):
+    path = tmp_path / "in.csv"
+    path.write_text("time,lat,lon,elevation_m\n2011-09-26T11:02:25Z,49.015,8.434,116\n\n"
+                    "2003-10-17T19:30:30Z,39.742476,-105.1786,\n")
+    rc, stdout, _ = _sun(capsys, "--csv", str(path), "--delta-t-s", "67")
+    assert rc == 0
+    rows = [json.loads(line) for line in stdout.splitlines()]
+    assert len(rows) == 2
+    assert rows[1]["elevation_m"] == 0.0
+    one = sun_position(np.datetime64("2011-09-26T11:02:25"), 49.015, 8.434, 116.0,
+                       pressure_hpa=standard_pressure_hpa(116.0), delta_t_s=67.0)
+    assert rows[0]["azimuth_deg"] == pytest.approx(math.degrees(one.azimuth_rad), abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("args", "csv_text", "needle"),
+    [
+        (["--lat", "1", "--lon", "2", "--time", "tomorrow"], None, "time"),
+        (["--lat", "95", "--lon", "2", "--time", "2020-01-01T00:00Z"], None, "latitude"),
+        (["--lat", "1", "--time", "2020-01-01T00:00Z"], None, "--lon"),
+        (["--csv"], "time,lat,lon\n2020-01-01T00:00Z,1,2\n2020-01-01T00:00Z,x,2\n", "line 3"),
+        (["--csv"], "time,lat,lon\nnot-a-time,1,2\n", "line 2"),
+        (["--csv"], "time,lat,lon\n2020-01-01T00:00Z,-91,2\n", "line 2"),
+        (["--csv"], "when,where\n2020-01-01T00:00Z,1\n", "header"),
+        (["--csv"], "", "header"),
+    ],
+)
+def test_cli_sun_bad_input_one_line_exit_2(capsys, tmp_path, args, csv_text, needle):
+    if csv_text is not None:
+        path = tmp_path / "bad.csv"
+        path.write_text(csv_text)
+        args = [*args, str(path)]
+    rc, stdout, err = _sun(capsys, *args)
+    assert rc == 2
+    assert stdout == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("sunrig: error: ") and needle in lines[0], err
