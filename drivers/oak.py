@@ -1,0 +1,727 @@
+"""OAK colour camera + IMU as a Frame source (DepthAI v3): the I/O shell.
+
+Three layers, so that everything but device creation runs without a device, through the real
+depthai library (``docs/oak.md`` is the specification, ``tests/test_oak.py`` the tests):
+
+- :func:`open_device_session` is the only device-specific part: it opens a device, reads its
+  calibration and IMU type, and builds a pipeline with a ``dai.node.Camera`` colour output and a
+  ``dai.node.IMU``. It returns an :class:`OakSession`: a pipeline and its two outputs. A test
+  hands :class:`OakCamera` a factory returning a host-only pipeline instead (a
+  ``dai.node.ThreadedHostNode`` sending real ``dai.ImgFrame`` / ``dai.IMUData`` messages).
+- :class:`OakMessageHandler` turns ``dai.ImgFrame`` and ``dai.IMUData`` messages into
+  :class:`rig.types.Frame`: image, mid-exposure time, sequence number, and the attitude
+  interpolated from the IMU at that time (:class:`drivers.imu_heading.AttitudeTracker`). No I/O
+  and no clock: the time of arrival is an argument.
+- :class:`OakCamera` owns one reader thread that starts a session's pipeline, drains its output
+  queues with bounded waits, hands messages to the handler and queues the Frames for the caller
+  (drop-oldest). A lost device (an exception from depthai, a stopped pipeline, no frame for
+  ``stall_timeout_s``) is counted and logged, the session is torn down, and a new one is opened
+  with a backoff that doubles up to ``backoff_s[1]``. ``close()`` is idempotent and bounded.
+
+depthai is imported lazily (:func:`_dai`), so ``import drivers.oak`` works and costs nothing on a
+machine without it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import timedelta
+from typing import Any
+
+import numpy as np
+
+from drivers.imu_heading import (
+    ENU_FROM_SENSOR_WORLD,
+    IMU_PENDING,
+    OK,
+    WANTS,
+    AttitudeTracker,
+    ImuMode,
+    cam_from_imu_default,
+    choose_imu_mode,
+    imu_sensors,
+    validate_rotation,
+)
+from rig.errors import SunrigError, ValidationError
+from rig.types import Frame, Intrinsics
+
+log = logging.getLogger(__name__)
+
+NO_DEVICE_MESSAGE = (
+    "no OAK device found; check the USB cable and permissions (udev rules), or use --camera opencv:N"
+)
+_HEADING_REASONS = ("no_imu", "no_imu_yet", "too_old", "imu_pending", "imu_gap", "vertical")
+HANDLER_COUNTS = (
+    "frames_in",  # ImgFrames received
+    "frames_out",  # Frames made
+    "frames_with_heading",  # ... of which carry an attitude
+    "bad_frames",  # an ImgFrame that is not a BGR image of the configured size: dropped
+    "frames_dropped_device",  # gaps in the device's sequence numbers (frames it never sent us)
+    "seq_backwards",  # a device sequence number not above the previous one: dropped
+    "pending_overflow",  # frames released without waiting for the IMU because too many waited
+    "imu_messages",  # IMUData received
+    "imu_reports",  # reports in them that were used
+    "bad_imu",  # IMU messages that could not be read
+    *(f"no_heading_{r}" for r in _HEADING_REASONS),  # frames without attitude, by reason
+)
+CAMERA_COUNTS = (
+    "frames_dropped_consumer",  # Frames dropped because the caller did not take them in time
+    "sessions",  # pipelines started
+    "open_failures",  # attempts to open a device that failed
+    "device_lost",  # sessions that ended by an error, a stopped pipeline or a stall
+    "reconnects",  # sessions started after a lost one
+)
+
+
+class OakError(SunrigError):
+    """The OAK source cannot be opened or used: no device, no calibration, a bad option, a lost device."""
+
+
+def _dai():
+    """depthai, imported on first use, with an error that says what to install."""
+    try:
+        import depthai as dai
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise OakError("the OAK driver needs DepthAI v3: pip install 'depthai>=3'") from exc
+    if not hasattr(dai.node, "Camera") or not hasattr(dai.node, "ThreadedHostNode"):  # pragma: no cover
+        raise OakError(f"the OAK driver needs DepthAI v3, found depthai {dai.__version__}: pip install 'depthai>=3'")
+    return dai
+
+
+# ---------------------------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class OakConfig:
+    """What to open and how. Degrees only here, at the interface (``declination_deg``)."""
+
+    width: int = 640
+    height: int = 400
+    fps: float = 15.0
+    socket: str = "CAM_A"  # dai.CameraBoardSocket name of the colour camera
+    frame_type: str | None = None  # dai.ImgFrame.Type name; None: the device's choice (converted to BGR)
+    device_id: str | None = None  # device id / name / IP; None: the first one found
+    imu_mode: str = "auto"  # auto | rotation_vector | game_rotation_vector | gyro | none
+    imu_rate_hz: int = 100
+    declination_deg: float | None = None  # east positive; with the rotation vector gives true heading
+    sensor_world: str = "enu"  # the rotation vector's world frame (enu per the BNO08x datasheet)
+    cam_from_imu: tuple | None = None  # 3x3 override; else the calibration; else a per-product default
+    intrinsics: Intrinsics | None = None  # override for a device without a colour calibration
+    max_rv_accuracy_deg: float = 45.0  # rotation vectors less accurate than this are not used
+    imu_history_s: float = 2.0  # how far back IMU orientations are kept
+    max_imu_gap_s: float = 0.1  # no interpolation across a longer gap between IMU reports
+    imu_wait_s: float = 0.15  # how long a frame waits for the IMU reports that bracket it
+    queue_size: int = 4  # device -> host frame queue (non-blocking: the device drops the oldest)
+    poll_s: float = 0.05  # the longest single wait of the reader thread
+    startup_timeout_s: float = 15.0  # no first frame within this: the session failed
+    stall_timeout_s: float = 3.0  # no frame for this long after the first: the device is lost
+    backoff_s: tuple[float, float] = (0.5, 8.0)  # reconnect backoff: first and longest wait
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height", "imu_rate_hz", "queue_size"):
+            v = getattr(self, name)
+            if not isinstance(v, int | np.integer) or isinstance(v, bool) or v <= 0:
+                raise ValidationError(f"OakConfig.{name}: expected a positive integer, got {v!r}")
+        for name in ("fps", "max_rv_accuracy_deg", "imu_history_s", "max_imu_gap_s", "poll_s",
+                     "startup_timeout_s", "stall_timeout_s"):
+            v = getattr(self, name)
+            if not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+                raise ValidationError(f"OakConfig.{name}: expected a finite number > 0, got {v!r}")
+        if not (isinstance(self.imu_wait_s, int | float) and 0 <= self.imu_wait_s < 10):
+            raise ValidationError(f"OakConfig.imu_wait_s: expected seconds in [0, 10), got {self.imu_wait_s!r}")
+        if self.sensor_world not in ENU_FROM_SENSOR_WORLD:
+            raise ValidationError(
+                f"OakConfig.sensor_world: expected one of {', '.join(ENU_FROM_SENSOR_WORLD)}, got {self.sensor_world!r}"
+            )
+        if self.imu_mode not in WANTS:
+            raise ValidationError(f"OakConfig.imu_mode: expected one of {', '.join(WANTS)}, got {self.imu_mode!r}")
+        d = self.declination_deg
+        if d is not None and not (isinstance(d, int | float) and math.isfinite(d) and -180 <= d <= 180):
+            raise ValidationError(f"OakConfig.declination_deg: expected within [-180, 180] (east +), got {d!r}")
+        lo, hi = self.backoff_s
+        if not 0 < lo <= hi:
+            raise ValidationError(f"OakConfig.backoff_s: expected 0 < first <= longest seconds, got {self.backoff_s!r}")
+        if self.cam_from_imu is not None:
+            validate_rotation("OakConfig.cam_from_imu", self.cam_from_imu)
+        if self.intrinsics is not None and (self.intrinsics.width, self.intrinsics.height) != (self.width, self.height):
+            raise ValidationError(
+                f"OakConfig.intrinsics: expected {self.width}x{self.height} to match the output size, "
+                f"got {self.intrinsics.width}x{self.intrinsics.height}"
+            )
+
+    @property
+    def declination_rad(self) -> float | None:
+        return None if self.declination_deg is None else math.radians(self.declination_deg)
+
+
+# ---------------------------------------------------------------------------------------------
+# Calibration (real dai.CalibrationHandler objects; no device needed)
+# ---------------------------------------------------------------------------------------------
+
+
+def intrinsics_from_matrix(k, width: int, height: int) -> Intrinsics:
+    """Intrinsics of a 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] for an image size."""
+    m = np.asarray(k, dtype=np.float64)
+    if m.shape != (3, 3):
+        raise ValidationError(f"camera matrix: expected shape (3, 3), got {m.shape}")
+    return Intrinsics(fx=m[0, 0], fy=m[1, 1], cx=m[0, 2], cy=m[1, 2], width=width, height=height)
+
+
+def read_intrinsics(calib: Any, socket: Any, width: int, height: int) -> Intrinsics:
+    """The colour camera's intrinsics at the output size from a ``dai.CalibrationHandler``.
+
+    ``keepAspectRatio=True`` (depthai's default) scales and centre-crops like the Camera node's
+    ``ImgResizeMode.CROP``, which :func:`open_device_session` asks for.
+    """
+    try:
+        k = calib.getCameraIntrinsics(socket, width, height)
+    except RuntimeError as exc:
+        raise OakError(
+            f"the OAK calibration has no intrinsics for {socket}: {exc}; "
+            "recalibrate the device or pass OakConfig.intrinsics"
+        ) from None
+    return intrinsics_from_matrix(k, width, height)
+
+
+def read_cam_from_imu(calib: Any, socket: Any, product_name: str = "") -> tuple[np.ndarray, str]:
+    """Rotation taking IMU axes to the colour camera's (OpenCV) axes, and where it came from.
+
+    ``getImuToCameraExtrinsics(socket)`` is the 4x4 transform p_cam = R p_imu + t; its rotation is
+    used when the calibration has one that is a proper rotation. Otherwise (many devices carry
+    no IMU extrinsics, or an all-zero matrix) the per-product default of
+    :func:`drivers.imu_heading.cam_from_imu_default`.
+    """
+    try:
+        t = np.asarray(calib.getImuToCameraExtrinsics(socket), dtype=np.float64)
+        return validate_rotation("imu extrinsics", t[:3, :3]), "calibration"
+    except (RuntimeError, ValidationError, IndexError, ValueError) as exc:
+        r, source = cam_from_imu_default(product_name)
+        return r, f"{source}; calibration has none ({str(exc).splitlines()[0][:80]})"
+
+
+# ---------------------------------------------------------------------------------------------
+# Messages -> Frames (shared by the device and by host-only pipelines)
+# ---------------------------------------------------------------------------------------------
+
+
+def _stamped(report: Any) -> bool:
+    """A report the device filled in: an unused report in an IMUPacket keeps timestamp 0."""
+    return report.getTimestamp() != timedelta(0)
+
+
+def mid_exposure_s(msg: Any) -> float:
+    """Monotonic seconds at mid-exposure of an ImgFrame. DepthAI's ``getTimestamp()`` marks the
+    END of exposure (``getTimestamp(CameraExposureOffset.MIDDLE)`` is ``ts - exposure / 2``)."""
+    return (msg.getTimestamp() - msg.getExposureTime() / 2).total_seconds()
+
+
+class OakMessageHandler:
+    """``dai.IMUData`` and ``dai.ImgFrame`` in, :class:`Frame` out. No I/O, no clock.
+
+    A frame waits (up to ``imu_wait_s`` after it arrived, at most ``max_pending`` frames) until
+    the IMU reports that bracket its mid-exposure time are in; then it gets the interpolated
+    attitude, or none with the reason counted (``no_heading_<reason>``). Frame sequence numbers
+    are the device's plus an offset that makes them continue from ``first_seq``, so a frame the
+    device dropped leaves a gap, and a new session never repeats a number.
+    """
+
+    def __init__(
+        self,
+        intrinsics: Intrinsics,
+        tracker: AttitudeTracker | None,
+        *,
+        imu_wait_s: float = 0.15,
+        max_pending: int = 16,
+        first_seq: int = 0,
+        counts: dict[str, int] | None = None,
+    ) -> None:
+        self.intrinsics = intrinsics
+        self.tracker = tracker
+        self.imu_wait_s = float(imu_wait_s)
+        self.max_pending = int(max_pending)
+        self.next_seq = int(first_seq)
+        self._offset: int | None = None
+        self._last_dev_seq: int | None = None
+        self._pending: deque[tuple[float, int, np.ndarray, float]] = deque()
+        self.counts = counts if counts is not None else dict.fromkeys(HANDLER_COUNTS, 0)
+
+    # -- IMU --------------------------------------------------------------------------------
+    def on_imu(self, msg: Any) -> None:
+        tr = self.tracker
+        self.counts["imu_messages"] += 1
+        if tr is None:
+            return
+        try:
+            for packet in msg.packets:
+                a = packet.acceleroMeter
+                if _stamped(a):
+                    tr.add_accelerometer(a.getTimestamp().total_seconds(), (a.x, a.y, a.z))
+                    self.counts["imu_reports"] += 1
+                if tr.mode is ImuMode.GYRO:
+                    g = packet.gyroscope
+                    if _stamped(g) and tr.add_gyro(g.getTimestamp().total_seconds(), (g.x, g.y, g.z)):
+                        self.counts["imu_reports"] += 1
+                else:
+                    rv = packet.rotationVector  # DepthAI puts every rotation-vector kind here
+                    if _stamped(rv) and tr.add_rotation_vector(
+                        rv.getTimestamp().total_seconds(), (rv.real, rv.i, rv.j, rv.k), rv.rotationVectorAccuracy
+                    ):
+                        self.counts["imu_reports"] += 1
+        except (AttributeError, TypeError, ValueError) as exc:  # not IMUData, or a zero quaternion
+            self.counts["bad_imu"] += 1
+            log.debug("unusable IMU message: %s", exc)
+
+    # -- frames -----------------------------------------------------------------------------
+    def on_frame(self, msg: Any, now_s: float) -> None:
+        """Take an ImgFrame that arrived at monotonic ``now_s``; :meth:`ready` hands it out."""
+        self.counts["frames_in"] += 1
+        try:
+            img = msg.getCvFrame()
+            t_mid = mid_exposure_s(msg)
+            dev_seq = int(msg.getSequenceNum())
+        except (AttributeError, TypeError, RuntimeError) as exc:
+            self.counts["bad_frames"] += 1
+            log.debug("unusable frame message: %s", exc)
+            return
+        want = (self.intrinsics.height, self.intrinsics.width, 3)
+        if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.shape != want:
+            self.counts["bad_frames"] += 1
+            log.debug("frame is %s %s, expected uint8 %s", getattr(img, "dtype", None), getattr(img, "shape", None),
+                      want)
+            return
+        if self._last_dev_seq is not None:
+            if dev_seq <= self._last_dev_seq:
+                self.counts["seq_backwards"] += 1
+                return
+            self.counts["frames_dropped_device"] += dev_seq - self._last_dev_seq - 1
+        if self._offset is None:
+            self._offset = self.next_seq - dev_seq
+        self._last_dev_seq = dev_seq
+        if not img.flags.owndata:
+            img = img.copy()  # the message's buffer is not ours to keep
+        self._pending.append((t_mid, dev_seq + self._offset, img, float(now_s)))
+
+    def ready(self, now_s: float) -> list[Frame]:
+        """Frames whose attitude is settled at monotonic ``now_s``, in order."""
+        out: list[Frame] = []
+        while self._pending:
+            t_mid, seq, img, arrived = self._pending[0]
+            if self.tracker is None:
+                att, reason = None, "no_imu"
+            else:
+                att, reason = self.tracker.attitude_at(t_mid)
+                if reason == IMU_PENDING and now_s - arrived < self.imu_wait_s:
+                    if len(self._pending) <= self.max_pending:
+                        break
+                    self.counts["pending_overflow"] += 1
+            self._pending.popleft()
+            frame = self._make(t_mid, seq, img, att, reason)
+            if frame is not None:
+                out.append(frame)
+        return out
+
+    def drain(self) -> list[Frame]:
+        """Every waiting frame, settled now (a session is ending: no more IMU will come)."""
+        return self.ready(math.inf)
+
+    def _make(self, t_mid: float, seq: int, img: np.ndarray, att: Any, reason: str) -> Frame | None:
+        try:
+            frame = Frame(t_mono_s=t_mid, seq=seq, image_bgr=img, intrinsics=self.intrinsics, attitude=att)
+        except ValidationError as exc:
+            self.counts["bad_frames"] += 1
+            log.debug("frame rejected: %s", exc)
+            return None
+        self.next_seq = seq + 1
+        self.counts["frames_out"] += 1
+        if att is not None:
+            self.counts["frames_with_heading"] += 1
+        elif reason != OK:
+            self.counts[f"no_heading_{reason}"] += 1
+        return frame
+
+
+# ---------------------------------------------------------------------------------------------
+# Sessions: the device-specific part
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class OakSession:
+    """A built (not yet started) pipeline and what the shared code needs to read it."""
+
+    pipeline: Any  # dai.Pipeline
+    video: Any  # dai.Node.Output of ImgFrames
+    imu: Any | None  # dai.Node.Output of IMUData, or None (no IMU, imu_mode none)
+    intrinsics: Intrinsics
+    imu_mode: ImuMode | None
+    cam_from_imu: np.ndarray | None
+    cam_from_imu_source: str = ""
+    imu_name: str = ""
+    description: str = "OAK"
+    on_close: list[Callable[[], None]] = field(default_factory=list)  # e.g. device.close
+
+    def close(self) -> None:
+        """Stop the pipeline and release the device (may block inside depthai: call it bounded).
+
+        ``wait()`` after ``stop()`` matters: it joins the pipeline's host-node threads with the GIL
+        released. Without it the last reference to the pipeline, dropped anywhere, runs a destructor
+        that joins them while holding the GIL, and a Python host node can never finish (deadlock).
+        """
+        for step in [self.pipeline.stop, self.pipeline.wait, *self.on_close]:
+            try:
+                step()
+            except Exception as exc:  # noqa: BLE001 - a dead device fails in many ways; keep tearing down
+                log.debug("OAK teardown step failed: %s", exc)
+
+
+def _find_device(dai: Any, device_id: str | None) -> Any:
+    """The DeviceInfo to open, found without DepthAI's ~10 s search when nothing is connected."""
+    infos = dai.Device.getAllAvailableDevices()
+    if device_id is None:
+        if not infos:
+            raise OakError(NO_DEVICE_MESSAGE)
+        return infos[0]
+    for info in infos:
+        if device_id in (info.getDeviceId(), info.name):
+            return info
+    found = ", ".join(f"{i.getDeviceId()} ({i.name})" for i in infos) or "none"
+    raise OakError(f"no OAK device {device_id!r} found (available: {found}); check the id and the cable")
+
+
+def open_device_session(config: OakConfig) -> OakSession:
+    """Open an OAK and build its pipeline: ``Camera`` colour output and ``IMU`` in the chosen mode."""
+    dai = _dai()
+    info = _find_device(dai, config.device_id)
+    try:
+        device = dai.Device(info)
+    except RuntimeError as exc:
+        raise OakError(f"cannot open OAK {info.getDeviceId()}: {exc}; it may be in use by another process, "
+                       "or unplug and replug it") from None
+    try:
+        # This driver reconnects itself (with backoff, counted, logged); depthai's own attempts
+        # would hide the loss and block the reader thread meanwhile.
+        device.setMaxReconnectionAttempts(0)
+        try:
+            socket = getattr(dai.CameraBoardSocket, config.socket)
+        except AttributeError:
+            raise OakError(f"OakConfig.socket {config.socket!r} is not a dai.CameraBoardSocket; use CAM_A") from None
+        calib = device.readCalibration()
+        try:
+            product = device.getProductName()
+        except RuntimeError:  # older EEPROMs carry no product name: the default mount then applies
+            product = ""
+        imu_name = device.getConnectedIMU()
+        intrinsics = config.intrinsics or read_intrinsics(calib, socket, config.width, config.height)
+        mode = choose_imu_mode(imu_name, config.imu_mode)
+        cam_from_imu, source = None, ""
+        if mode is not None:
+            if config.cam_from_imu is not None:
+                cam_from_imu, source = validate_rotation("cam_from_imu", config.cam_from_imu), "config"
+            else:
+                cam_from_imu, source = read_cam_from_imu(calib, socket, product)
+        pipeline = dai.Pipeline(device)
+        cam = pipeline.create(dai.node.Camera).build(socket)
+        ftype = getattr(dai.ImgFrame.Type, config.frame_type) if config.frame_type else None
+        video = cam.requestOutput((config.width, config.height), type=ftype, resizeMode=dai.ImgResizeMode.CROP,
+                                  fps=float(config.fps))
+        imu_out = None
+        if mode is not None:
+            imu = pipeline.create(dai.node.IMU)
+            imu.enableIMUSensor([getattr(dai.IMUSensor, s) for s in imu_sensors(mode, imu_name)],
+                                int(config.imu_rate_hz))
+            imu.setBatchReportThreshold(1)  # send every report at once: latency over USB efficiency
+            imu.setMaxBatchReports(10)
+            imu_out = imu.out
+    except (ValidationError, OakError):
+        device.close()
+        raise
+    except RuntimeError as exc:
+        device.close()
+        raise OakError(f"cannot set up OAK {info.getDeviceId()}: {exc}") from None
+    return OakSession(pipeline=pipeline, video=video, imu=imu_out, intrinsics=intrinsics, imu_mode=mode,
+                      cam_from_imu=cam_from_imu, cam_from_imu_source=source, imu_name=imu_name,
+                      description=f"{product or 'OAK'} {info.getDeviceId()}", on_close=[device.close])
+
+
+# ---------------------------------------------------------------------------------------------
+# The shell
+# ---------------------------------------------------------------------------------------------
+
+
+class _DeviceLost(Exception):
+    """The session's device stopped delivering (a stopped pipeline, a stall)."""
+
+
+class OakCamera:
+    """Frames from an OAK's colour camera with the IMU's attitude at each frame's mid-exposure.
+
+    Iterate it (or call :meth:`get`) for :class:`rig.types.Frame`; use it as a context manager.
+    The constructor opens the device at once and raises :class:`OakError` with what to do when
+    it cannot (``wait_for_device=True`` instead keeps trying in the background). ``open_session``
+    replaces :func:`open_device_session`, e.g. by a host-only pipeline in tests.
+
+    Frames wait for the caller in a queue of ``output_queue``; when it is full the oldest is
+    dropped and counted (``frames_dropped_consumer``): a slow caller sees fresh frames, never
+    a growing lag.
+    """
+
+    def __init__(
+        self,
+        config: OakConfig | None = None,
+        *,
+        open_session: Callable[[OakConfig], OakSession] | None = None,
+        wait_for_device: bool = False,
+        output_queue: int = 8,
+        clock: Callable[[], float] = time.monotonic,
+        join_timeout_s: float = 3.0,
+    ) -> None:
+        self.config = config or OakConfig()
+        self._open = open_session or open_device_session
+        self._clock = clock
+        self._join_timeout_s = float(join_timeout_s)
+        self._out_max = int(output_queue)
+        self._cond = threading.Condition()  # guards everything below
+        self._frames: deque[Frame] = deque()
+        self._counts = dict.fromkeys(HANDLER_COUNTS, 0)
+        self._counts.update(dict.fromkeys(CAMERA_COUNTS, 0))
+        self._info: dict[str, Any] = {"device": None, "imu": None, "imu_mode": None, "heading_ref": None,
+                                      "cam_from_imu_source": None, "gravity_mismatch_deg": None,
+                                      "imu_counts": {}}
+        self._last_error: str | None = None
+        self._failure: str | None = None
+        self._closed = False
+        self._next_seq = 0
+        self._stop = threading.Event()
+        self._finished = threading.Event()
+        self._warned: set[str] = set()
+        self._got_frame = False  # the current session has delivered a frame (resets the backoff)
+        first = None if wait_for_device else self._open(self.config)
+        self._thread = threading.Thread(target=self._run, args=(first,), name="sunrig-oak", daemon=True)
+        self._thread.start()
+
+    # --- the caller's side ------------------------------------------------------------------
+    def get(self, timeout_s: float = 0.5) -> Frame | None:
+        """The oldest queued Frame, waiting at most ``timeout_s``; None if none came."""
+        with self._cond:
+            if not self._frames and not self._finished.is_set():
+                self._cond.wait(timeout_s)
+            return self._frames.popleft() if self._frames else None
+
+    def __iter__(self) -> Iterator[Frame]:
+        """Frames until :meth:`close`; raises :class:`OakError` if the reader thread died of a bug."""
+        while True:
+            frame = self.get(0.2)
+            if frame is not None:
+                yield frame
+                continue
+            if self._closed or self._finished.is_set():
+                if self._failure is not None:
+                    raise OakError(f"OAK reader failed: {self._failure}")
+                return
+
+    def stats(self) -> dict[str, Any]:
+        """Counters (HANDLER_COUNTS, CAMERA_COUNTS) and state: device, imu, imu_mode, heading_ref, ..."""
+        with self._cond:
+            out: dict[str, Any] = {**self._counts, **self._info}
+            out["last_error"] = self._last_error
+            out["failure"] = self._failure
+            out["queued"] = len(self._frames)
+            out["reader_alive"] = self._thread.is_alive()
+        return out
+
+    @property
+    def finished(self) -> bool:
+        return self._finished.is_set()
+
+    def close(self) -> None:
+        """Stop the reader and release the device. Idempotent; returns within about ``join_timeout_s``."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._stop.set()
+            self._cond.notify_all()
+        self._thread.join(self._join_timeout_s)
+        if self._thread.is_alive():
+            log.warning("OAK reader did not stop within %.1f s; leaving it (daemon) to finish its depthai call",
+                        self._join_timeout_s)
+
+    def __enter__(self) -> OakCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- the reader thread: all depthai I/O happens here --------------------------------------
+    def _warn_once(self, key: str, msg: str, *args: Any) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning(msg, *args)
+
+    def _run(self, session: OakSession | None) -> None:
+        lo, hi = self.config.backoff_s
+        backoff = lo
+        had_session = False
+        loss_errors = _loss_errors()
+        try:
+            while not self._stop.is_set():
+                if session is None:
+                    try:
+                        session = self._open(self.config)
+                    except OakError as exc:
+                        with self._cond:
+                            self._counts["open_failures"] += 1
+                            self._last_error = str(exc)
+                        self._warn_once("open", "OAK: %s; retrying every %.1f-%.0f s", exc, lo, hi)
+                        self._stop.wait(backoff)
+                        backoff = min(2 * backoff, hi)
+                        continue
+                if had_session:
+                    with self._cond:
+                        self._counts["reconnects"] += 1
+                    log.info("OAK %s reconnected", session.description)
+                had_session = True
+                self._warned.discard("open")
+                self._got_frame = False
+                try:
+                    self._serve(session)
+                except loss_errors as exc:
+                    message = f"{type(exc).__name__}: {exc}"
+                    with self._cond:
+                        self._counts["device_lost"] += 1
+                        self._last_error = message
+                    log.warning("OAK %s lost (%s); reconnecting with backoff", session.description, message)
+                finally:
+                    self._close_session(session)
+                    session = None
+                if self._got_frame:
+                    backoff = lo  # it worked for a while: a new outage starts the backoff again
+                if self._stop.wait(backoff):
+                    break
+                backoff = min(2 * backoff, hi)
+        except BaseException as exc:  # a bug: report it rather than die silently
+            with self._cond:
+                self._failure = f"{type(exc).__name__}: {exc}"
+                self._last_error = f"reader thread failed: {self._failure}"
+            log.exception("OAK reader failed")
+        finally:
+            if session is not None:
+                self._close_session(session)
+            with self._cond:
+                self._finished.set()
+                self._cond.notify_all()
+
+    def _tracker(self, session: OakSession) -> AttitudeTracker | None:
+        cfg = self.config
+        if session.imu is None or session.imu_mode is None:
+            self._warn_once("no_imu", "OAK %s: no IMU heading (IMU %r, imu_mode %s): frames carry no attitude",
+                            session.description, session.imu_name, cfg.imu_mode)
+            return None
+        if session.cam_from_imu_source.startswith("default"):
+            self._warn_once("mount", "OAK %s: IMU-to-camera rotation is the %s: check it (docs/oak.md) or set "
+                            "cam_from_imu", session.description, session.cam_from_imu_source)
+        return AttitudeTracker(session.imu_mode, session.cam_from_imu, declination_rad=cfg.declination_rad,
+                               sensor_world=cfg.sensor_world, history_s=cfg.imu_history_s,
+                               max_gap_s=cfg.max_imu_gap_s, max_accuracy_rad=math.radians(cfg.max_rv_accuracy_deg))
+
+    def _serve(self, session: OakSession) -> None:
+        """Run one session until close() (returns) or a loss (raises)."""
+        dai = _dai()
+        cfg = self.config
+        tracker = self._tracker(session)
+        handler = OakMessageHandler(session.intrinsics, tracker, imu_wait_s=cfg.imu_wait_s,
+                                    first_seq=self._next_seq, counts=self._counts)
+        with self._cond:
+            self._counts["sessions"] += 1
+            self._info.update(device=session.description, imu=session.imu_name,
+                              imu_mode=None if tracker is None else tracker.mode.value,
+                              heading_ref=None if tracker is None else tracker.heading_ref.value,
+                              cam_from_imu_source=session.cam_from_imu_source or None)
+        qv = session.video.createOutputQueue(maxSize=cfg.queue_size, blocking=False)
+        qi = None if session.imu is None else session.imu.createOutputQueue(maxSize=64, blocking=False)
+        queues = [q for q in (qv, qi) if q is not None]
+        wait = timedelta(seconds=cfg.poll_s)
+        session.pipeline.start()
+        started = self._clock()
+        last_frame: float | None = None
+        try:
+            while not self._stop.is_set():
+                dai.MessageQueue.waitAny(queues, wait)  # bounded: returns at the timeout or on close
+                if qi is not None:
+                    for msg in qi.tryGetAll():
+                        handler.on_imu(msg)
+                now = self._clock()
+                for msg in qv.tryGetAll():
+                    handler.on_frame(msg, now)
+                    last_frame = now
+                    self._got_frame = True
+                self._publish(handler.ready(self._clock()))
+                self._check_tracker(tracker)
+                if not session.pipeline.isRunning():
+                    raise _DeviceLost("the pipeline stopped")
+                quiet = now - (started if last_frame is None else last_frame)
+                limit = cfg.startup_timeout_s if last_frame is None else cfg.stall_timeout_s
+                if quiet > limit:
+                    raise _DeviceLost(f"no frame for {quiet:.1f} s")
+        finally:
+            self._publish(handler.drain())
+            self._next_seq = handler.next_seq
+
+    def _check_tracker(self, tracker: AttitudeTracker | None) -> None:
+        if tracker is None:
+            return
+        imu_counts = {**tracker.counts, **tracker.buffer.counts, **(tracker.gyro.counts if tracker.gyro else {})}
+        with self._cond:
+            self._info["imu_counts"] = imu_counts
+        g = tracker.gravity_mismatch_rad
+        if g is not None and math.isfinite(g):
+            with self._cond:
+                self._info["gravity_mismatch_deg"] = math.degrees(g)
+            if g > math.radians(20.0):
+                self._warn_once("gravity", "OAK: the rotation vector's up and the accelerometer's disagree by "
+                                "%.0f deg: its world frame is not %s (set sensor_world; docs/oak.md)",
+                                math.degrees(g), tracker.sensor_world)
+        if tracker.counts["inaccurate"] and not tracker.buffer.counts["added"]:
+            self._warn_once("accuracy", "OAK: the IMU's rotation vector is not accurate yet (magnetometer not "
+                            "calibrated): move the camera in a figure-eight, or use imu_mode game_rotation_vector")
+
+    def _publish(self, frames: list[Frame]) -> None:
+        if not frames:
+            return
+        with self._cond:
+            for f in frames:
+                if len(self._frames) >= self._out_max:
+                    self._frames.popleft()
+                    self._counts["frames_dropped_consumer"] += 1
+                self._frames.append(f)
+            self._cond.notify_all()
+
+    def _close_session(self, session: OakSession) -> None:
+        """session.close() in a helper thread, waited on for at most join_timeout_s: a dead
+        device can block inside depthai, and the reader must stay responsive to close()."""
+        t = threading.Thread(target=session.close, name="sunrig-oak-close", daemon=True)
+        t.start()
+        t.join(self._join_timeout_s)
+        if t.is_alive():
+            log.warning("OAK %s: teardown did not finish within %.1f s; leaving it", session.description,
+                        self._join_timeout_s)
+
+
+def _loss_errors() -> tuple[type[BaseException], ...]:
+    """What a failing device raises: depthai's RuntimeErrors (XLink), a closed queue, a stall."""
+    errors: list[type[BaseException]] = [_DeviceLost, RuntimeError, OakError]
+    try:
+        import depthai as dai
+
+        errors.append(dai.MessageQueue.QueueException)
+    except (ImportError, AttributeError):  # pragma: no cover - depends on the environment
+        pass
+    return tuple(errors)
