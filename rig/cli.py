@@ -164,19 +164,22 @@ def _effective_config(args: argparse.Namespace) -> dict:
     return override(cfg, flags)
 
 
-def _open_camera(spec: str, heading: str):
-    """A live source from ``--camera``. Until the device drivers land, a log replays through the
-    live path (``file:LOG``)."""
-    from replay.sources import open_frames
+def _source_options(args: argparse.Namespace):
+    """The source flags of ``run`` and ``record`` (drivers.sources.SourceOptions)."""
+    from drivers.sources import SourceOptions
 
-    if not spec:
-        raise SunrigError("no camera given: pass --camera file:LOG (or set [source] camera in --config)")
-    kind, _, rest = spec.partition(":")
-    if kind == "file" and rest:
-        if heading not in ("log", ""):
-            raise SunrigError(f"--heading {heading}: a file: camera carries its own heading; use --heading log")
-        return open_frames(rest)
-    raise SunrigError(f"camera {spec!r} is not supported by this version; use --camera file:LOG")
+    fields = {name: getattr(args, name, None) for name in ("calibration", "hfov_deg", "width", "height", "fps",
+                                                           "max_gap_s", "max_age_s", "heading_latency_s",
+                                                           "declination_deg")}
+    fields["baud"] = getattr(args, "source_baud", None)
+    return SourceOptions(**{k: v for k, v in fields.items() if v is not None})
+
+
+def _open_camera(spec: str, heading: str, options=None):
+    """A live source from ``--camera`` and ``--heading`` (drivers.sources; docs/drivers.md)."""
+    from drivers.sources import open_source
+
+    return open_source(spec, heading, options=options)
 
 
 def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
@@ -229,8 +232,122 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
-    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"])
-    return _live(cfg, source, nmea_stdout=False, quiet=args.quiet)
+    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(args))
+    try:
+        return _live(cfg, source, nmea_stdout=False, quiet=args.quiet)
+    finally:
+        source.close()  # release the devices: the rig only iterates its source
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    """Live sources to a native log: frames with heading, GNSS fix and UTC (nmea:), intrinsics.
+
+    Ctrl-C ends the recording, and the log is finished (summary and index); a Ctrl-C while a
+    frame (or the summary) is being written lets that write finish first.
+    """
+    import signal
+    import threading
+
+    from replay.native import LogWriter
+
+    if args.seconds is not None and not args.seconds > 0:
+        raise SunrigError(f"--seconds: expected a duration > 0, got {args.seconds}")
+    if args.frames is not None and args.frames < 1:
+        raise SunrigError(f"--frames: expected at least 1, got {args.frames}")
+    cfg = _effective_config(args)
+    # The sources first: a wrong camera or port fails before the output file is created.
+    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(args))
+    state = {"writing": False, "stop": False}
+
+    def on_sigint(signum, frame):  # noqa: ARG001 - the signal handler's signature
+        if state["writing"]:
+            state["stop"] = True  # finish this frame first: a frame is written whole or not at all
+        else:
+            raise KeyboardInterrupt
+
+    quiet = args.quiet
+    live_line = sys.stderr.isatty()
+    n = n_heading = 0
+    start = time.monotonic()
+    next_status = start + 5.0
+    interrupted = False
+    previous = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    # A backstop for --seconds: a camera that stops sending frames must not keep the recording open.
+    deadline = threading.Timer(args.seconds + 2.0, source.stop) if args.seconds is not None else None
+    if deadline is not None:
+        deadline.daemon = True
+        deadline.start()
+    try:
+        writer = LogWriter(args.out)
+        try:
+            for frame in source:
+                state["writing"] = True
+                try:
+                    writer.write_frame(frame, jpeg_quality=args.jpeg_quality)
+                finally:
+                    state["writing"] = False
+                n += 1
+                n_heading += frame.attitude is not None
+                now = time.monotonic()
+                if not quiet and (live_line or now >= next_status):
+                    line = f"{n} frames ({n_heading} with heading) in {now - start:.1f} s"
+                    if live_line:
+                        sys.stderr.write(f"\rrecord: {line}\033[K")
+                    else:
+                        sys.stderr.write(f"record: {line}\n")
+                        next_status = now + 5.0
+                    sys.stderr.flush()
+                if state["stop"]:
+                    break
+                if (args.frames is not None and n >= args.frames) or (
+                        args.seconds is not None and now - start >= args.seconds):
+                    break
+        except KeyboardInterrupt:
+            interrupted = True  # Ctrl-C is how a live recording ends
+        finally:
+            state["writing"] = True  # a Ctrl-C now must not cut the summary short
+            writer.close()
+            state["writing"] = False
+    finally:
+        if deadline is not None:
+            deadline.cancel()
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+        source.close()
+    if not quiet:
+        if live_line:
+            sys.stderr.write("\n")
+        summary = f"{n} frames ({n_heading} with heading) in {time.monotonic() - start:.1f} s to {args.out}"
+        if interrupted or state["stop"]:
+            summary += " (stopped by Ctrl-C; the log is complete)"
+        details = _source_summary(source.stats())
+        if details:
+            summary += f"; {details}"
+        print(f"record: {summary}", file=sys.stderr)
+    return 0
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()  # only the main thread may set handlers
+
+
+def _source_summary(stats: dict) -> str:
+    """The counters worth a user's attention: drops, read failures, frames without heading and why."""
+    parts = []
+    camera = stats.get("camera") or {}
+    for key in ("dropped", "frames_dropped_consumer", "read_failures", "reconnects", "device_lost"):
+        if camera.get(key):
+            parts.append(f"camera {key.replace('_', ' ')} {camera[key]}")
+    pairing = stats.get("pairing") or {}
+    for key in ("gap", "before", "after", "stale", "mixed", "overflow"):
+        if pairing.get(key):
+            parts.append(f"heading {key} {pairing[key]}")
+    vo = stats.get("visual_odometry") or {}
+    if vo.get("lost"):
+        parts.append(f"visual odometry lost {vo['lost']} of {vo['frames']} frames")
+    return ", ".join(parts)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -474,6 +591,31 @@ def cmd_sun(args: argparse.Namespace) -> int:
     return 0
 
 
+def _source_flags(p: argparse.ArgumentParser) -> None:
+    """--camera / --heading and the options of the sources (docs/drivers.md)."""
+    p.add_argument("--camera", metavar="SOURCE",
+                   help="oak[:ID], opencv:N, opencv:rtsp://..., opencv:VIDEO or file:LOG (a log through the live path)")
+    p.add_argument("--heading", metavar="SOURCE",
+                   help="oak-imu, nmea:PORT (GNSS compass / INS), visual (from the images, relative), none, "
+                        "or log (a file: camera's own)")
+    g = p.add_argument_group("source options")
+    g.add_argument("--calibration", metavar="FILE",
+                   help="OpenCV calibration (YAML/JSON/XML: camera_matrix, image_width, image_height)")
+    g.add_argument("--hfov-deg", type=float, metavar="DEG", help="or the camera's horizontal field of view")
+    g.add_argument("--width", type=int, help="requested frame width (opencv device, oak)")
+    g.add_argument("--height", type=int, help="requested frame height (opencv device, oak)")
+    g.add_argument("--fps", type=float, help="requested frame rate (opencv device, oak)")
+    g.add_argument("--source-baud", type=int, metavar="BAUD", help="baud rate of an nmea: port (default 115200)")
+    g.add_argument("--max-gap-s", type=float, metavar="S",
+                   help="nmea: no heading interpolated across a longer gap between samples (default 1.5)")
+    g.add_argument("--max-age-s", type=float, metavar="S",
+                   help="nmea: a frame waits at most this long for the heading after it (default 1.5)")
+    g.add_argument("--heading-latency-s", type=float, metavar="S",
+                   help="nmea: the heading device's output latency, subtracted from its times (default 0)")
+    g.add_argument("--declination-deg", type=float, metavar="DEG",
+                   help="oak-imu: magnetic declination, east positive (makes the heading true north)")
+
+
 def _output_flags(p: argparse.ArgumentParser, defaults: bool = True) -> None:
     p.add_argument("--serial", metavar="PORT", help="serial port or pyserial URL (socket://, loop://, spy://)")
     p.add_argument("--baud", type=int, default=115200 if defaults else None, help="baud rate (default 115200)")
@@ -507,8 +649,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("run", help="the live rig: camera and heading in, sun direction out")
-    p.add_argument("--camera", metavar="SOURCE", help="file:LOG (a log through the live path)")
-    p.add_argument("--heading", metavar="SOURCE", help="log (the camera source's own heading)")
+    _source_flags(p)
     p.add_argument("--config", metavar="FILE.toml", help="configuration file; flags override it")
     p.add_argument("--model", metavar="DIR")
     p.add_argument("--aggregator", choices=["transformer", "mean", "meanshift", "single"])
@@ -518,6 +659,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fast", action="store_true", help="do not pace a file: camera by its timestamps")
     p.add_argument("--quiet", action="store_true", help="no status lines on stderr")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("record", help="record live sources (frames, heading, GNSS, intrinsics) to a native log")
+    _source_flags(p)
+    p.add_argument("--out", required=True, metavar="OUT.mcap", help="the native log to write (replaced if it exists)")
+    p.add_argument("--seconds", type=float, metavar="N", help="stop after N seconds (default: Ctrl-C or the end)")
+    p.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("--jpeg-quality", type=int, default=90, metavar="Q", help="JPEG quality of the images (default 90)")
+    p.add_argument("--config", metavar="FILE.toml", help="configuration file ([source] camera, heading)")
+    p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
+    p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("demo", help="the bundled drive through the live rig, in real time")
     p.add_argument("--config", metavar="FILE.toml")

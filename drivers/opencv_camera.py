@@ -1,0 +1,550 @@
+"""Any camera OpenCV can open: a device index (V4L2, USB/UVC), a video file, or a network stream
+(RTSP/HTTP URL, or a GStreamer pipeline when OpenCV is built with GStreamer).
+
+The shell is :class:`OpenCvCamera`: one reader thread owns the ``cv2.VideoCapture``, the
+consumer iterates Frames. The pure parts are :func:`parse_target`, :func:`load_calibration` /
+:func:`calibration_from_mapping` and :func:`fit_intrinsics`.
+
+- **Intrinsics** come from a calibration file (OpenCV YAML/JSON/XML as ``cv2.FileStorage``
+  writes it, e.g. from ``calibrateCamera``: ``camera_matrix`` or ``K``, ``image_width`` /
+  ``image_height``, optional ``distortion_coefficients``) or from a horizontal field of view.
+  A calibration made at another resolution with the same aspect ratio is scaled to the stream. A
+  calibration with distortion is applied: frames are undistorted (same K), since every Frame is a
+  rectified pinhole image.
+- **Time**: a live frame is stamped with the monotonic clock when ``read()`` returns, which is
+  later than mid-exposure by half the exposure plus transfer and decoding (a few to tens of ms;
+  pass ``latency_s`` to move it back when it is known). A video file has no live clock: its
+  frames are stamped with ``CAP_PROP_POS_MSEC`` (the file's own timestamps, starting near 0), or
+  ``index / fps`` where the container does not say.
+- **Lost streams**: a live source whose ``read()`` fails (unplugged, network gone) is released,
+  counted, logged once per outage and reopened with a backoff that doubles up to
+  ``backoff_s[1]``; it never raises for that, unless ``max_outage_s`` is set and passes. A video
+  file ends at its end.
+- **Bounded waits**: the consumer waits at most ``poll_s`` at a time and sees :meth:`stop` /
+  :meth:`close` within that; a live frame the consumer has not taken is dropped when a newer one
+  arrives (counted), a file waits for the consumer instead (nothing is lost by replaying
+  slower). OpenCV's own open and read are bounded by ``CAP_PROP_OPEN_TIMEOUT_MSEC`` /
+  ``CAP_PROP_READ_TIMEOUT_MSEC`` on network streams; a read stuck below Python is abandoned
+  with its daemon thread after ``join_timeout_s``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from rig.errors import SunrigError
+from rig.types import Frame, Intrinsics
+
+log = logging.getLogger(__name__)
+
+_URL_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "http://", "https://", "udp://", "tcp://", "srt://")
+_OPEN_TIMEOUT_MS = 5000
+_READ_TIMEOUT_MS = 5000
+
+
+class CameraError(SunrigError):
+    """A camera cannot be opened or used: no such device, file or stream, no intrinsics, a bad option."""
+
+
+# --- pure parts ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CameraTarget:
+    """What ``--camera opencv:...`` names. ``kind``: device, file, url or gstreamer."""
+
+    kind: str
+    value: int | str
+
+    @property
+    def live(self) -> bool:
+        return self.kind != "file"
+
+    def __str__(self) -> str:
+        return f"camera {self.value}" if self.kind == "device" else str(self.value)
+
+
+def parse_target(text: str | int) -> CameraTarget:
+    """A device index (``0``), a stream URL (``rtsp://...``), a GStreamer pipeline (contains
+    ``!``) or a video file path."""
+    if isinstance(text, int):
+        return CameraTarget("device", text)
+    text = text.strip()
+    if not text:
+        raise CameraError("empty camera: pass a device index (opencv:0), a video file or an rtsp:// URL")
+    if text.isdigit():
+        return CameraTarget("device", int(text))
+    if text.lower().startswith(_URL_SCHEMES):
+        return CameraTarget("url", text)
+    if "!" in text:
+        return CameraTarget("gstreamer", text)
+    return CameraTarget("file", text)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A camera matrix for a given image size, with its distortion coefficients (may be empty)."""
+
+    k: np.ndarray  # 3x3
+    width: int
+    height: int
+    distortion: np.ndarray  # (n,), zeros or empty when none
+
+    @property
+    def distorted(self) -> bool:
+        return bool(np.any(self.distortion != 0.0))
+
+
+_K_KEYS = ("camera_matrix", "K", "cameraMatrix", "intrinsic_matrix", "M")
+_D_KEYS = ("distortion_coefficients", "dist_coeffs", "D", "distCoeffs", "distortion")
+_W_KEYS = ("image_width", "width", "imageWidth")
+_H_KEYS = ("image_height", "height", "imageHeight")
+
+
+def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration") -> Calibration:
+    """A :class:`Calibration` from named values (the common key names of OpenCV calibration files:
+    ``camera_matrix``/``K``, ``image_width``/``width``, ``image_height``/``height``,
+    ``distortion_coefficients``/``D``). A ``image_size`` pair may stand for width and height."""
+
+    def first(keys: tuple[str, ...]) -> Any:
+        return next((values[k] for k in keys if k in values and values[k] is not None), None)
+
+    k = first(_K_KEYS)
+    if k is None:
+        raise CameraError(f"{name}: no camera matrix (expected one of {', '.join(_K_KEYS)}); "
+                          "pass a cv2.FileStorage calibration file, or --hfov-deg instead")
+    k = np.asarray(k, dtype=np.float64)
+    if k.size != 9:
+        raise CameraError(f"{name}: camera matrix: expected 3x3 values, got shape {k.shape}")
+    k = k.reshape(3, 3)
+    width, height = first(_W_KEYS), first(_H_KEYS)
+    size = values.get("image_size")
+    if (width is None or height is None) and size is not None and np.size(size) == 2:
+        width, height = (int(v) for v in np.asarray(size).ravel())
+    if width is None or height is None:
+        raise CameraError(f"{name}: no image size (expected image_width and image_height); "
+                          "add them, since the camera matrix is only valid at its own resolution")
+    d = first(_D_KEYS)
+    d = np.zeros(0) if d is None else np.asarray(d, dtype=np.float64).ravel()
+    if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0 and np.all(np.isfinite(d))):
+        raise CameraError(f"{name}: expected a finite camera matrix with positive fx, fy, got {k.tolist()}")
+    return Calibration(k=k, width=int(width), height=int(height), distortion=d)
+
+
+def load_calibration(path: str | os.PathLike[str]) -> Calibration:
+    """Read an OpenCV calibration file (YAML, JSON or XML, as ``cv2.FileStorage`` writes it)."""
+    p = Path(path)
+    if not p.is_file():
+        raise CameraError(f"calibration file {p} does not exist; pass the file calibrateCamera's results "
+                          "were saved to, or --hfov-deg instead")
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # OpenCV 5 wraps its parse error in a SystemError
+        reason = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        raise CameraError(f"calibration file {p} is not an OpenCV FileStorage file (YAML/JSON/XML): "
+                          f"{reason}") from None
+    try:
+        if not fs.isOpened():
+            raise CameraError(f"calibration file {p} cannot be read by cv2.FileStorage; expected YAML, JSON or XML")
+        values: dict[str, Any] = {}
+        for key in (*_K_KEYS, *_D_KEYS, *_W_KEYS, *_H_KEYS, "image_size"):
+            node = fs.getNode(key)
+            if node.empty() or node.isNone():
+                continue
+            if node.isMap() or node.isSeq():
+                mat = node.mat()
+                if mat is None and node.isSeq():
+                    mat = np.array([node.at(i).real() for i in range(node.size())])
+                values[key] = mat
+            elif node.isInt() or node.isReal():
+                values[key] = node.real()
+        return calibration_from_mapping(values, f"calibration file {p}")
+    finally:
+        fs.release()
+
+
+def fit_intrinsics(width: int, height: int, *, calibration: Calibration | None = None,
+                   hfov_rad: float | None = None) -> Intrinsics:
+    """Intrinsics of a ``width`` x ``height`` stream: the calibration, scaled when the stream is
+    another size of the same aspect ratio; or square pixels with the given horizontal FOV."""
+    if calibration is not None:
+        c = calibration
+        sx, sy = width / c.width, height / c.height
+        if abs(sx - sy) > 0.01 * max(sx, sy):
+            raise CameraError(f"the calibration is for {c.width}x{c.height} but the stream is {width}x{height}, "
+                              "another aspect ratio (cropped?); calibrate at this resolution")
+        k = c.k
+        # Pixel centres: a continuous coordinate u scales as u * s (edges at 0 and W), as Intrinsics uses.
+        return Intrinsics(fx=k[0, 0] * sx, fy=k[1, 1] * sy, cx=k[0, 2] * sx, cy=k[1, 2] * sy, width=width,
+                          height=height)
+    if hfov_rad is None:
+        raise CameraError("the camera needs intrinsics: pass a calibration file (--calibration FILE) "
+                          "or its horizontal field of view (--hfov-deg DEG)")
+    if not (math.isfinite(hfov_rad) and 0.0 < hfov_rad < math.pi):
+        raise CameraError(f"horizontal field of view: expected between 0 and 180 deg, got {math.degrees(hfov_rad)}")
+    return Intrinsics.from_hfov(width, height, hfov_rad)
+
+
+def as_bgr(image: np.ndarray) -> np.ndarray:
+    """A capture's image as BGR uint8: grey and BGRA cameras exist."""
+    if image.dtype == np.uint16:
+        image = cv2.convertScaleAbs(image, alpha=255.0 / 65535.0)
+    elif image.dtype != np.uint8:
+        image = image.astype(np.uint8)
+    if image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    if image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    if image.shape[2] == 1:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    return image
+
+
+# --- the I/O shell -------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _opencv_quiet():
+    """OpenCV prints a WARN line for every failed open; we raise one clear error instead."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
+def open_capture(target: CameraTarget, width: int | None = None, height: int | None = None,
+                 fps: float | None = None) -> Any:
+    """A ``cv2.VideoCapture`` for ``target`` (maybe not opened: check ``isOpened()``)."""
+    with _opencv_quiet():
+        if target.kind == "url":
+            cap = cv2.VideoCapture(target.value, cv2.CAP_FFMPEG,
+                                   [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, _OPEN_TIMEOUT_MS,
+                                    cv2.CAP_PROP_READ_TIMEOUT_MSEC, _READ_TIMEOUT_MS])
+        elif target.kind == "gstreamer":
+            cap = cv2.VideoCapture(target.value, cv2.CAP_GSTREAMER)
+        else:
+            cap = cv2.VideoCapture(target.value)
+    if cap.isOpened() and target.kind == "device":
+        # Requests; a camera that cannot do them keeps its own mode (the frames say which).
+        if width:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        if height:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if fps:
+            cap.set(cv2.CAP_PROP_FPS, fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not one queued in the driver
+    return cap
+
+
+def _open_failure(target: CameraTarget) -> CameraError:
+    if target.kind == "device":
+        return CameraError(f"no camera at index {target.value}: check it is plugged in (ls /dev/video*), "
+                           "that the user is in the 'video' group, and the index")
+    if target.kind == "gstreamer" and "NO" in _build_line("GStreamer"):
+        return CameraError("this OpenCV has no GStreamer support; pass an rtsp:// URL or a device index instead")
+    if target.kind == "file":
+        return CameraError(f"OpenCV cannot read the video file {target.value}: not a video, or a codec this "
+                           "OpenCV build lacks; convert it (e.g. to MJPG .avi or H.264 .mp4)")
+    return CameraError(f"cannot open the stream {target.value}: check the URL, credentials and network "
+                       "(OpenCV waited up to 5 s)")
+
+
+def _build_line(name: str) -> str:
+    return next((line for line in cv2.getBuildInformation().splitlines() if line.strip().startswith(name + ":")), "")
+
+
+class OpenCvCamera:
+    """Frames from a device index, video file or stream URL through ``cv2.VideoCapture``.
+
+    ``source``: a device index, a path or URL, or a :class:`CameraTarget`. Intrinsics: exactly
+    one of ``intrinsics`` (used as is; must match the stream size), ``calibration`` (a file or a
+    :class:`Calibration`) or ``hfov_deg``. ``width``/``height``/``fps`` are requests to a device.
+    ``reconnect``: retry a failed read (default: yes for live sources, never for files).
+    ``capture_factory(target)`` opens a capture (tests pass a fake for the one thing no test
+    machine has: a device that disappears). Iterate it for Frames; a context manager.
+    """
+
+    def __init__(self, source: int | str | CameraTarget, *, intrinsics: Intrinsics | None = None,
+                 calibration: str | os.PathLike[str] | Calibration | None = None, hfov_deg: float | None = None,
+                 width: int | None = None, height: int | None = None, fps: float | None = None,
+                 reconnect: bool | None = None, backoff_s: tuple[float, float] = (0.2, 5.0),
+                 max_outage_s: float | None = None, latency_s: float = 0.0, poll_s: float = 0.1,
+                 join_timeout_s: float = 2.0, clock: Callable[[], float] = time.monotonic,
+                 capture_factory: Callable[[CameraTarget], Any] | None = None) -> None:
+        self.target = source if isinstance(source, CameraTarget) else parse_target(source)
+        given = sum(x is not None for x in (intrinsics, calibration, hfov_deg))
+        if given == 0:
+            fit_intrinsics(0, 0)  # raises the one error that says what to pass
+        if given > 1:
+            raise CameraError("pass one source of intrinsics: a calibration file (--calibration FILE), "
+                              "a horizontal field of view (--hfov-deg DEG) or Intrinsics, not both")
+        lo, hi = backoff_s
+        if not 0 < lo <= hi:
+            raise CameraError(f"backoff_s: expected 0 < min <= max seconds, got {backoff_s!r}")
+        if isinstance(calibration, str | os.PathLike):
+            calibration = load_calibration(calibration)
+        self._calibration = calibration
+        self._fixed = intrinsics
+        self._hfov = None if hfov_deg is None else math.radians(float(hfov_deg))
+        if self._hfov is not None:
+            fit_intrinsics(16, 9, hfov_rad=self._hfov)  # check the angle now, before opening anything
+        self.live = self.target.live
+        self._reconnect = self.live if reconnect is None else bool(reconnect)
+        self._backoff = (float(lo), float(hi))
+        self._max_outage_s = max_outage_s
+        self._latency_s = float(latency_s)
+        self._poll_s = float(poll_s)
+        self._join_timeout_s = float(join_timeout_s)
+        self._clock = clock
+        self._factory = capture_factory or (lambda t: open_capture(t, width, height, fps))
+
+        if self.target.kind == "file" and capture_factory is None and not Path(str(self.target.value)).is_file():
+            raise CameraError(f"video file {self.target.value} does not exist; pass an existing file, "
+                              "a device index (opencv:0) or an rtsp:// URL")
+        cap = self._factory(self.target)
+        if not cap.isOpened():
+            cap.release()
+            raise _open_failure(self.target)
+        self._cap: Any = cap
+        self._fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+
+        self._lock = threading.Condition()
+        self._queue: deque[Frame] = deque()
+        self._queue_max = 2 if self.live else 8
+        self._stats = dict.fromkeys(("frames", "dropped", "read_failures", "reconnects", "open_failures"), 0)
+        self._last_error: str | None = None
+        self._failure: BaseException | None = None
+        self._ended = False  # the reader will put nothing more (end of file, gave up, or a bug)
+        self._stop = threading.Event()
+        self._closed = False
+        self._thread: threading.Thread | None = None
+        self._seq = 0
+        self._last_file_t: float | None = None
+        self._intr: Intrinsics | None = None
+        self._undistort: tuple[np.ndarray, np.ndarray] | None = None
+        self._undistort_size: tuple[int, int] | None = None
+
+    # --- the consumer's side ---------------------------------------------------------------------
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
+
+    def frames(self) -> Iterator[Frame]:
+        """Frames until the file ends, :meth:`stop`/:meth:`close`, or (with ``max_outage_s``) a
+        live source stays lost too long (CameraError). Each wait is at most ``poll_s``."""
+        self._start()
+        while True:
+            with self._lock:
+                while not self._queue and not self._ended and not self._stop.is_set():
+                    self._lock.wait(self._poll_s)
+                if self._stop.is_set():
+                    return
+                if self._queue:
+                    frame = self._queue.popleft()
+                    self._lock.notify_all()  # a file's reader may be waiting for room
+                elif self._failure is not None:
+                    raise self._failure
+                else:
+                    return
+            yield frame
+
+    def stop(self) -> None:
+        """Ask the reader to stop; iteration ends within ``poll_s``."""
+        self._stop.set()
+        with self._lock:
+            self._lock.notify_all()
+
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            return {**self._stats, "last_error": self._last_error, "source": str(self.target),
+                    "intrinsics": self._intr}
+
+    @property
+    def intrinsics(self) -> Intrinsics | None:
+        """The intrinsics of the frames (known from the first frame on)."""
+        return self._intr
+
+    def close(self) -> None:
+        """Stop the reader and release the capture. Idempotent; returns within ``join_timeout_s``."""
+        if self._closed:
+            return
+        self._closed = True
+        self.stop()
+        thread = self._thread
+        if thread is not None:
+            thread.join(self._join_timeout_s)
+            if thread.is_alive():
+                log.warning("camera reader for %s did not stop within %.1f s; it releases the capture when its "
+                            "read returns", self.target, self._join_timeout_s)
+                return
+        self._release()
+
+    def __enter__(self) -> OpenCvCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- the reader thread: all capture I/O happens here -----------------------------------------
+
+    def _start(self) -> None:
+        with self._lock:
+            if self._thread is not None or self._closed:
+                return
+            self._thread = threading.Thread(target=self._run, name=f"sunrig-camera {self.target}", daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        backoff = self._backoff[0]
+        outage_since: float | None = None
+        try:
+            while not self._stop.is_set():
+                if self._cap is None:
+                    if not self._reopen():
+                        outage_since = self._check_outage(outage_since)
+                        self._stop.wait(backoff)
+                        backoff = min(2.0 * backoff, self._backoff[1])
+                        continue
+                try:
+                    ok, image = self._cap.read()
+                except cv2.error as exc:
+                    ok, image = False, None
+                    self._note_error(f"read raised: {str(exc).strip().splitlines()[-1]}")
+                now = self._clock()
+                if not ok or image is None:
+                    if not self._reconnect:
+                        break  # the end of a file (or of a source we were told not to retry)
+                    outage_since = self._read_failed(outage_since, now)
+                    self._stop.wait(backoff)
+                    backoff = min(2.0 * backoff, self._backoff[1])
+                    continue
+                if outage_since is not None:
+                    log.info("camera %s is back after %.1f s", self.target, now - outage_since)
+                outage_since = None
+                backoff = self._backoff[0]
+                self._put(self._make_frame(image, now))
+        except BaseException as exc:  # a bug, or max_outage_s passed: the consumer re-raises it
+            with self._lock:
+                self._failure = exc if isinstance(exc, SunrigError) else CameraError(
+                    f"the camera reader for {self.target} failed: {type(exc).__name__}: {exc}")
+            if not isinstance(exc, SunrigError):
+                log.exception("camera reader for %s failed", self.target)
+        finally:
+            self._release()
+            with self._lock:
+                self._ended = True
+                self._lock.notify_all()
+
+    def _make_frame(self, image: np.ndarray, now: float) -> Frame:
+        image = as_bgr(image)
+        h, w = image.shape[:2]
+        if self._intr is None or (self._intr.width, self._intr.height) != (w, h):
+            self._intr = self._intrinsics_for(w, h)
+        if self._undistort is not None:
+            image = cv2.remap(image, *self._undistort, interpolation=cv2.INTER_LINEAR)
+        if self.live:
+            t = now - self._latency_s
+        else:
+            t = self._file_time()
+        frame = Frame(t_mono_s=max(t, 0.0), seq=self._seq, image_bgr=image, intrinsics=self._intr)
+        self._seq += 1
+        return frame
+
+    def _file_time(self) -> float:
+        """The file's own timestamp of the frame just read, or index / fps where it has none."""
+        pos = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        fallback = self._seq / (self._fps if self._fps > 0 else 30.0)
+        last = self._last_file_t
+        t = pos if (math.isfinite(pos) and pos >= 0 and (last is None or pos > last)) else fallback
+        if last is not None and t <= last:
+            t = last + 1.0 / (self._fps if self._fps > 0 else 30.0)  # strictly increasing, whatever the file says
+        self._last_file_t = t
+        return t
+
+    def _intrinsics_for(self, w: int, h: int) -> Intrinsics:
+        if self._fixed is not None:
+            if (self._fixed.width, self._fixed.height) != (w, h):
+                raise CameraError(f"the intrinsics are for {self._fixed.width}x{self._fixed.height} but the camera "
+                                  f"gives {w}x{h}; pass intrinsics for this size")
+            return self._fixed
+        intr = fit_intrinsics(w, h, calibration=self._calibration, hfov_rad=self._hfov)
+        cal = self._calibration
+        if cal is not None and cal.distorted:
+            k = np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
+            # Undistort onto the same K: the frame keeps the calibrated geometry, minus the lens bending.
+            self._undistort = cv2.initUndistortRectifyMap(k, cal.distortion, None, k, (w, h), cv2.CV_16SC2)
+        return intr
+
+    def _put(self, frame: Frame) -> None:
+        with self._lock:
+            if self.live:
+                if len(self._queue) >= self._queue_max:
+                    self._queue.popleft()  # live: the newest frame matters, never block the camera
+                    self._stats["dropped"] += 1
+            else:
+                while len(self._queue) >= self._queue_max and not self._stop.is_set():
+                    self._lock.wait(self._poll_s)  # a file waits for the consumer: nothing is lost
+            self._queue.append(frame)
+            self._stats["frames"] += 1
+            self._lock.notify_all()
+
+    def _read_failed(self, outage_since: float | None, now: float) -> float:
+        with self._lock:
+            self._stats["read_failures"] += 1
+        if outage_since is None:  # once per outage, not once per retry
+            self._note_error("read failed (stream lost?)")
+            log.warning("camera %s: read failed; reconnecting with backoff", self.target)
+            outage_since = now
+        self._release()
+        return self._check_outage(outage_since)
+
+    def _check_outage(self, outage_since: float | None) -> float:
+        now = self._clock()
+        since = now if outage_since is None else outage_since
+        if self._max_outage_s is not None and now - since > self._max_outage_s:
+            raise CameraError(f"camera {self.target} lost for more than {self._max_outage_s:g} s "
+                              f"({self._last_error}); check the cable or network")
+        return since
+
+    def _reopen(self) -> bool:
+        try:
+            cap = self._factory(self.target)
+        except (cv2.error, OSError) as exc:
+            self._note_error(f"reopen failed: {exc}")
+            cap = None
+        if cap is None or not cap.isOpened():
+            if cap is not None:
+                cap.release()
+            with self._lock:
+                self._stats["open_failures"] += 1
+            return False
+        self._cap = cap
+        with self._lock:
+            self._stats["reconnects"] += 1
+        log.info("camera %s reopened", self.target)
+        return True
+
+    def _note_error(self, message: str) -> None:
+        with self._lock:
+            self._last_error = message
+
+    def _release(self) -> None:
+        cap, self._cap = self._cap, None
+        if cap is not None:
+            with contextlib.suppress(cv2.error):
+                cap.release()

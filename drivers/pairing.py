@@ -1,0 +1,215 @@
+"""Pair a camera with a heading from another device: interpolate the heading to each frame's time.
+
+A camera and a GNSS compass (or any heading source) run on their own clocks' schedules; both
+are stamped on the host's monotonic clock when their data arrive. A frame at ``t`` gets the
+heading interpolated between the two heading samples around ``t`` (the yaw along the shorter
+arc, so 359 deg and 1 deg meet at 0, not at 180). Nothing is extrapolated and nothing stale is
+used: a frame gets no attitude (``None``, counted) when
+
+- ``gap``: the two samples around it are more than ``max_gap_s`` apart (a dropout: a turn
+  during it would be invisible);
+- ``before``: it is older than the oldest sample kept;
+- ``stale``: no sample after it arrived within ``max_age_s`` of it (a live source stalled), or
+  ``after``: the heading source has ended before it;
+- ``mixed``: the samples around it have different references (true vs magnetic).
+
+Live, the sample after a frame arrives after the frame, so the stream wrapper holds each frame
+until its heading is known (at most ``max_age_s``, in a bounded buffer): this delays frames by
+up to one heading interval. ``latency_s`` moves the samples earlier by the heading device's
+known output latency (a sample is stamped when its sentence ends, after the measurement).
+
+:class:`HeadingInterpolator` is pure (samples and times in, an Attitude out); :func:`with_heading`
+is the stream wrapper, and the only place that reads the clock.
+"""
+
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import math
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from drivers.nmea import HeadingSample
+from rig.errors import ValidationError
+from rig.geometry import wrap_pi
+from rig.types import Attitude, Frame
+
+# The default gap covers a 1 Hz GNSS compass that misses one sentence now and then; the default
+# age lets a frame wait for the next of those sentences (plus its transmit time and jitter).
+DEFAULT_MAX_GAP_S = 1.5
+DEFAULT_MAX_AGE_S = 1.5
+
+FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed")
+
+
+@dataclass(frozen=True)
+class Lookup:
+    """The heading of one frame time: ``attitude`` (None unless ``status`` is interpolated or
+    exact) and ``status``, one of :data:`FINAL` or ``pending`` (the sample after it may still come)."""
+
+    attitude: Attitude | None
+    status: str
+
+
+class HeadingInterpolator:
+    """Headings at frame times from a sequence of :class:`HeadingSample` (oldest first).
+
+    ``max_gap_s``: the two samples around a frame may be at most this far apart.
+    ``max_age_s``: how long after a frame the sample following it may arrive; older frames
+    without one are stale. ``latency_s``: subtracted from every sample time.
+    ``counts``: how many lookups ended in each status of :data:`FINAL` (``count=False`` lookups
+    and pending ones are not counted).
+    """
+
+    def __init__(self, max_gap_s: float = DEFAULT_MAX_GAP_S, max_age_s: float = DEFAULT_MAX_AGE_S,
+                 latency_s: float = 0.0) -> None:
+        for name, value in (("max_gap_s", max_gap_s), ("max_age_s", max_age_s)):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValidationError(f"HeadingInterpolator.{name}: expected a finite number of seconds > 0, "
+                                      f"got {value!r}")
+        if not (isinstance(latency_s, int | float) and math.isfinite(latency_s) and latency_s >= 0):
+            raise ValidationError(f"HeadingInterpolator.latency_s: expected seconds >= 0, got {latency_s!r}")
+        self.max_gap_s = float(max_gap_s)
+        self.max_age_s = float(max_age_s)
+        self.latency_s = float(latency_s)
+        self.counts = dict.fromkeys(FINAL, 0)
+
+    def lookup(self, samples: Sequence[HeadingSample], t_mono_s: float, now_s: float | None = None, *,
+               count: bool = True) -> Lookup:
+        """The heading at ``t_mono_s``. ``now_s``: the current monotonic time while more samples
+        may come (a frame after the newest sample is then ``pending`` until ``max_age_s``);
+        None when no more will come (the source has ended, or a recorded sequence)."""
+        result = self._lookup(samples, t_mono_s, now_s)
+        if count and result.status != "pending":
+            self.counts[result.status] += 1
+        return result
+
+    def at(self, samples: Sequence[HeadingSample], t_mono_s: float) -> Attitude | None:
+        """The interpolated attitude at ``t_mono_s`` from a finished sequence of samples, or None."""
+        return self.lookup(samples, t_mono_s).attitude
+
+    def _lookup(self, samples: Sequence[HeadingSample], t: float, now_s: float | None) -> Lookup:
+        times = [s.t_mono_s - self.latency_s for s in samples]
+        if not times or t < times[0]:
+            return Lookup(None, "before")
+        i = bisect.bisect_left(times, t)
+        if i < len(times) and times[i] == t:
+            return Lookup(samples[i].attitude(), "exact")
+        if i == len(times):
+            # After the newest sample: wait for the next one while it can still arrive in time.
+            if now_s is None:
+                return Lookup(None, "after")
+            if now_s - t > self.max_age_s:
+                return Lookup(None, "stale")
+            if (now_s - self.latency_s) - times[-1] > self.max_gap_s:
+                return Lookup(None, "gap")  # whatever comes next is too far from the newest
+            return Lookup(None, "pending")
+        s0, s1 = samples[i - 1], samples[i]
+        t0, t1 = times[i - 1], times[i]
+        if t1 - t0 > self.max_gap_s:
+            return Lookup(None, "gap")
+        if s0.reference != s1.reference:
+            return Lookup(None, "mixed")
+        return Lookup(interpolate(s0, s1, (t - t0) / (t1 - t0)), "interpolated")
+
+
+def interpolate(s0: HeadingSample, s1: HeadingSample, w: float) -> Attitude:
+    """The attitude a fraction ``w`` of the way from ``s0`` to ``s1``: the yaw along the shorter
+    arc; pitch and roll linearly, when both samples have them (else None)."""
+    heading = s0.heading_rad + w * float(wrap_pi(s1.heading_rad - s0.heading_rad))
+
+    def lerp(a: float | None, b: float | None) -> float | None:
+        return None if a is None or b is None else a + w * (b - a)
+
+    return Attitude(heading, s0.reference, pitch_rad=lerp(s0.pitch_rad, s1.pitch_rad),
+                    roll_rad=lerp(s0.roll_rad, s1.roll_rad))
+
+
+def _samples_of(source: Any) -> Callable[[], Sequence[HeadingSample]]:
+    """How to read a heading source: its ``heading_history()`` (GnssReader), or a fixed sequence."""
+    history = getattr(source, "heading_history", None)
+    if callable(history):
+        return history
+    if isinstance(source, Sequence):
+        fixed = list(source)
+        return lambda: fixed
+    raise ValidationError(f"heading source: expected an object with heading_history() or a sequence of "
+                          f"HeadingSample, got {type(source).__name__}")
+
+
+def _gnss_extras(source: Any, t_frame: float, now_s: float) -> dict[str, Any]:
+    """UTC and position for a frame from a source that has them (GnssReader), else nothing.
+
+    UTC is carried from now back to the frame by the monotonic clock; a fix is the newest one
+    (positions change slowly next to what the sun needs: a kilometre moves it by 0.01 deg).
+    """
+    out: dict[str, Any] = {}
+    utc_at = getattr(source, "utc_at", None)
+    if callable(utc_at):
+        utc = utc_at(now_s)
+        if utc is not None:
+            out["utc_ns"] = utc - round((now_s - t_frame) * 1e9)
+    latest_fix = getattr(source, "latest_fix", None)
+    if callable(latest_fix):
+        fix = latest_fix(now_s)
+        if fix is not None:
+            out["gnss"] = fix
+    return out
+
+
+class PairingStats:
+    """What :func:`with_heading` did: the interpolator's counts plus frames forced out of a full buffer."""
+
+    def __init__(self, interpolator: HeadingInterpolator) -> None:
+        self.interpolator = interpolator
+        self.overflow = 0
+        self.frames = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {"frames": self.frames, **self.interpolator.counts, "overflow": self.overflow}
+
+
+def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: HeadingInterpolator | None = None,
+                 *, clock: Callable[[], float] = time.monotonic, max_pending: int = 256,
+                 stats: PairingStats | None = None, live: bool = True) -> Iterator[Frame]:
+    """The frames, in order, each with the heading interpolated to its time (or None, counted).
+
+    ``heading_source``: an object with ``heading_history()`` (a :class:`drivers.gnss.GnssReader`),
+    or a sequence of samples. When it also has ``utc_at``/``latest_fix`` (a GNSS receiver), the
+    frames get UTC and the position too. A heading the frames carried is replaced.
+
+    ``live``: samples are still arriving, so a frame newer than the newest sample waits (checked
+    again as each next frame arrives) until its heading comes, or ``max_age_s`` passes, or
+    ``max_pending`` frames wait (then the oldest is let go without heading, counted ``overflow``).
+    At the end of the frames, what still waits is resolved with the samples there are.
+    """
+    interp = interpolator or HeadingInterpolator()
+    stats = stats if stats is not None else PairingStats(interp)
+    read = _samples_of(heading_source)
+    pending: deque[Frame] = deque()
+
+    def release(final: bool) -> Iterator[Frame]:
+        # A source that has ended (a capture file read to its end) will send nothing more: no waiting.
+        ended = final or not live or getattr(heading_source, "finished", False) is True
+        samples = read()
+        now = clock()
+        while pending:
+            frame = pending[0]
+            result = interp.lookup(samples, frame.t_mono_s, None if ended else now)
+            if result.status == "pending":
+                if len(pending) <= max_pending:
+                    return
+                stats.overflow += 1  # the buffer is full: let the oldest go without heading
+            pending.popleft()
+            extras = _gnss_extras(heading_source, frame.t_mono_s, now) if live else {}
+            yield dataclasses.replace(frame, attitude=result.attitude, **extras)
+
+    for frame in frames:
+        stats.frames += 1
+        pending.append(frame)
+        yield from release(final=False)
+    yield from release(final=True)

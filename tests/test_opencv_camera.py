@@ -1,0 +1,352 @@
+"""The OpenCV camera (drivers/opencv_camera.py) through the real OpenCV: a video written with
+cv2.VideoWriter and read back, calibration files written with cv2.FileStorage, devices and
+streams that do not exist. Only a device that disappears mid-run is played by a fake capture
+(``DisappearingCapture``, clearly a fake): no test machine has a camera to unplug."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.opencv_camera import (
+    CameraError,
+    CameraTarget,
+    OpenCvCamera,
+    as_bgr,
+    calibration_from_mapping,
+    fit_intrinsics,
+    load_calibration,
+    parse_target,
+)
+from rig.types import Intrinsics
+from tests.tolerances import EXACT_F64
+
+HANG_GUARD_S = 5.0  # every wait here ends by this, so a bug fails instead of hanging
+MJPG_MEAN_ABS = 8.0  # mean abs pixel difference after an MJPG round trip of the smooth test images
+W, H, FPS, N = 64, 48, 10.0, 12
+
+
+def clip_image(k: int) -> np.ndarray:
+    """Frame k: a smooth gradient with a bright square that moves 3 px per frame."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    img = np.stack([xx * 3, yy * 4, np.full_like(xx, 40 + 10 * k)], axis=-1).astype(np.uint8)
+    img[10:22, 3 * k:3 * k + 12] = 250
+    return img
+
+
+@pytest.fixture
+def video(tmp_path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+    assert writer.isOpened()
+    for k in range(N):
+        writer.write(clip_image(k))
+    writer.release()
+    return path
+
+
+def collect(camera: OpenCvCamera, limit: int = 1000) -> list:
+    """Frames until the source ends or ``limit``; the camera is stopped after HANG_GUARD_S."""
+    out = []
+    guard = threading.Timer(HANG_GUARD_S, camera.stop)
+    guard.start()
+    try:
+        for frame in camera:
+            out.append(frame)
+            if len(out) >= limit:
+                break
+    finally:
+        guard.cancel()
+    return out
+
+
+# --- pure parts ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("text", "kind", "value"), [
+    ("0", "device", 0), ("12", "device", 12), (3, "device", 3),
+    ("rtsp://cam.local:554/stream1", "url", "rtsp://cam.local:554/stream1"),
+    ("HTTP://host/mjpg", "url", "HTTP://host/mjpg"),
+    ("videotestsrc ! videoconvert ! appsink", "gstreamer", "videotestsrc ! videoconvert ! appsink"),
+    ("/data/drive.mp4", "file", "/data/drive.mp4"),
+])
+def test_parse_target(text, kind, value):
+    assert parse_target(text) == CameraTarget(kind, value)
+
+
+def test_parse_target_refuses_nothing():
+    with pytest.raises(CameraError, match="device index"):
+        parse_target("  ")
+
+
+def test_intrinsics_from_hfov():
+    intr = fit_intrinsics(640, 480, hfov_rad=math.radians(90.0))
+    assert intr == Intrinsics.from_hfov(640, 480, math.radians(90.0))
+    assert intr.fx == pytest.approx(320.0)
+
+
+def test_a_calibration_is_scaled_to_the_stream():
+    cal = calibration_from_mapping({"K": [[800.0, 0, 640.0], [0, 810.0, 360.0], [0, 0, 1]], "width": 1280,
+                                    "height": 720})
+    intr = fit_intrinsics(640, 360, calibration=cal)
+    assert (intr.fx, intr.fy, intr.cx, intr.cy) == pytest.approx((400.0, 405.0, 320.0, 180.0), abs=EXACT_F64)
+    assert fit_intrinsics(1280, 720, calibration=cal).fx == 800.0
+    with pytest.raises(CameraError, match="aspect ratio"):
+        fit_intrinsics(640, 480, calibration=cal)
+
+
+@pytest.mark.parametrize(("values", "match"), [
+    ({"width": 10, "height": 10}, "no camera matrix"),
+    ({"camera_matrix": np.eye(3) * 100}, "no image size"),
+    ({"camera_matrix": [1, 2, 3], "image_width": 4, "image_height": 4}, "3x3"),
+    ({"camera_matrix": -np.eye(3), "image_width": 4, "image_height": 4}, "positive"),
+])
+def test_bad_calibrations_say_what_is_missing(values, match):
+    with pytest.raises(CameraError, match=match):
+        calibration_from_mapping(values)
+
+
+def test_no_intrinsics_is_one_clear_error(video):
+    with pytest.raises(CameraError, match="--calibration FILE.*--hfov-deg"):
+        fit_intrinsics(64, 48)
+    with pytest.raises(CameraError, match="--hfov-deg"):
+        OpenCvCamera(str(video))
+    with pytest.raises(CameraError, match="not both"):
+        OpenCvCamera(str(video), hfov_deg=60.0, calibration=calibration_from_mapping(
+            {"K": np.eye(3), "width": 64, "height": 48}))
+
+
+def test_as_bgr():
+    assert as_bgr(np.zeros((4, 5), np.uint8)).shape == (4, 5, 3)
+    assert as_bgr(np.zeros((4, 5, 4), np.uint8)).shape == (4, 5, 3)
+    assert as_bgr(np.full((4, 5), 65535, np.uint16)).max() == 255
+
+
+# --- calibration files written by cv2.FileStorage ------------------------------------------------
+
+
+def write_calibration(path, k, width, height, dist=None, keys=("camera_matrix", "image_width", "image_height")):
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write(keys[0], np.asarray(k, dtype=np.float64))
+    fs.write(keys[1], width)
+    fs.write(keys[2], height)
+    if dist is not None:
+        fs.write("distortion_coefficients", np.asarray(dist, dtype=np.float64).reshape(1, -1))
+    fs.release()
+
+
+@pytest.mark.parametrize(("name", "keys"), [
+    ("calib.yaml", ("camera_matrix", "image_width", "image_height")),
+    ("calib.json", ("K", "width", "height")),
+    ("calib.xml", ("cameraMatrix", "image_width", "image_height")),
+])
+def test_load_calibration_file(tmp_path, name, keys):
+    k = [[500.0, 0, 320.5], [0, 502.0, 240.25], [0, 0, 1]]
+    write_calibration(tmp_path / name, k, 640, 480, keys=keys)
+    cal = load_calibration(tmp_path / name)
+    assert cal.width == 640 and cal.height == 480 and not cal.distorted
+    assert np.allclose(cal.k, k)
+
+
+def test_calibration_file_errors(tmp_path):
+    with pytest.raises(CameraError, match="does not exist"):
+        load_calibration(tmp_path / "none.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("this is not: [a calibration\n")
+    with pytest.raises(CameraError):
+        load_calibration(bad)
+    partial = tmp_path / "partial.yaml"
+    fs = cv2.FileStorage(str(partial), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.eye(3) * 300)
+    fs.release()
+    with pytest.raises(CameraError, match="image_width"):
+        load_calibration(partial)
+
+
+# --- a real video file through cv2.VideoCapture --------------------------------------------------
+
+
+def test_video_file_round_trip(video):
+    with OpenCvCamera(str(video), hfov_deg=60.0) as cam:
+        frames = collect(cam)
+        stats = cam.stats()
+    assert len(frames) == N and [f.seq for f in frames] == list(range(N))
+    assert all(f.attitude is None for f in frames)  # a camera has no heading of its own
+    assert frames[0].intrinsics == Intrinsics.from_hfov(W, H, math.radians(60.0))
+    for k, f in enumerate(frames):
+        assert f.image_bgr.dtype == np.uint8 and f.image_bgr.shape == (H, W, 3)
+        assert np.abs(f.image_bgr.astype(int) - clip_image(k)).mean() < MJPG_MEAN_ABS
+    # File time: the container's timestamps, k / fps from 0.
+    assert [f.t_mono_s for f in frames] == pytest.approx([k / FPS for k in range(N)], abs=1e-3)
+    assert stats["frames"] == N and stats["dropped"] == 0 and stats["read_failures"] == 0
+
+
+def test_video_file_with_a_calibration_at_twice_the_size(video, tmp_path):
+    path = tmp_path / "cam.yaml"
+    write_calibration(path, [[100.0, 0, 64.0], [0, 100.0, 48.0], [0, 0, 1]], 2 * W, 2 * H)
+    with OpenCvCamera(str(video), calibration=path) as cam:
+        frames = collect(cam, limit=2)
+    assert frames[0].intrinsics == Intrinsics(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=W, height=H)
+
+
+def test_a_distorted_calibration_undistorts_the_frames(video, tmp_path):
+    path = tmp_path / "cam.yaml"
+    write_calibration(path, [[60.0, 0, 32.0], [0, 60.0, 24.0], [0, 0, 1]], W, H, dist=[-0.3, 0.1, 0, 0, 0])
+    with OpenCvCamera(str(video), calibration=path) as cam:
+        undistorted = collect(cam, limit=1)[0]
+    with OpenCvCamera(str(video), hfov_deg=60.0) as cam:
+        raw = collect(cam, limit=1)[0]
+    assert undistorted.intrinsics.fx == 60.0
+    assert np.abs(undistorted.image_bgr.astype(int) - raw.image_bgr).mean() > 1.0  # the lens bending is removed
+
+
+def test_stop_and_close_end_a_file_read_early_and_close_is_idempotent(video):
+    cam = OpenCvCamera(str(video), hfov_deg=60.0)
+    it = iter(cam)
+    next(it)
+    cam.stop()
+    assert list(it) == []
+    cam.close()
+    cam.close()
+    assert cam.stats()["read_failures"] == 0
+
+
+# --- what does not exist -------------------------------------------------------------------------
+
+
+def test_a_missing_file_is_one_clear_error(tmp_path):
+    with pytest.raises(CameraError, match="does not exist") as info:
+        OpenCvCamera(str(tmp_path / "nope.avi"), hfov_deg=60.0)
+    assert "\n" not in str(info.value)
+
+
+def test_a_file_that_is_not_a_video(tmp_path):
+    junk = tmp_path / "junk.avi"
+    junk.write_bytes(b"not a video" * 100)
+    with pytest.raises(CameraError, match="cannot read the video file"):
+        OpenCvCamera(str(junk), hfov_deg=60.0)
+
+
+def test_a_missing_device_index_is_one_clear_error():
+    with pytest.raises(CameraError, match="no camera at index 63") as info:
+        OpenCvCamera(63, hfov_deg=60.0)
+    assert "\n" not in str(info.value)
+
+
+def test_a_bad_url_is_one_clear_error():
+    t0 = time.monotonic()
+    with pytest.raises(CameraError, match="cannot open the stream rtsp://127.0.0.1:1/none"):
+        OpenCvCamera("rtsp://127.0.0.1:1/none", hfov_deg=60.0)
+    assert time.monotonic() - t0 < HANG_GUARD_S + 1
+
+
+# --- a device that disappears: a FAKE capture (no real device can be unplugged here) -------------
+
+
+class DisappearingCapture:
+    """FAKE cv2.VideoCapture: gives ``frames`` frames, then every read fails, as an unplugged USB
+    camera's does. ``opens`` says which later opens fail (False) or succeed (True)."""
+
+    FRAME_PERIOD_S = 0.002  # a real read blocks until the next frame; the consumer keeps up with this
+
+    def __init__(self, frames: int, opened: bool = True):
+        self.left = frames
+        self.opened = opened
+        self.released = False
+
+    def isOpened(self):  # noqa: N802 - the cv2.VideoCapture interface
+        return self.opened and not self.released
+
+    def read(self):
+        if self.left <= 0 or self.released:
+            return False, None
+        self.left -= 1
+        time.sleep(self.FRAME_PERIOD_S)
+        return True, np.full((H, W, 3), 100, np.uint8)
+
+    def get(self, prop):
+        return 0.0
+
+    def release(self):
+        self.released = True
+
+
+class FakeFactory:
+    """Opens DisappearingCaptures: the first gives 3 frames, then one open fails, then 4 frames."""
+
+    def __init__(self, plan):
+        self.plan = list(plan)
+        self.opens = 0
+        self.lock = threading.Lock()
+
+    def __call__(self, target):
+        with self.lock:
+            self.opens += 1
+            frames = self.plan.pop(0) if self.plan else None
+        return DisappearingCapture(0, opened=False) if frames is None else DisappearingCapture(frames)
+
+
+def test_a_lost_device_is_reported_and_reopened():
+    factory = FakeFactory([3, None, 4])
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=factory, backoff_s=(0.01, 0.02), poll_s=0.01)
+    got = collect(cam, limit=7)
+    stats = cam.stats()
+    cam.close()
+    # 3 frames, the device is lost, one reopen fails, 4 frames from the reopened device. (A slow
+    # machine may drop one: the live queue keeps the newest.)
+    assert len(got) + stats["dropped"] == 7 and [f.seq for f in got] == sorted({f.seq for f in got})
+    assert stats["read_failures"] >= 1 and stats["reconnects"] == 1 and stats["open_failures"] >= 1
+    assert "read failed" in stats["last_error"]
+
+
+def test_a_device_that_never_comes_back_does_not_hang():
+    factory = FakeFactory([2])
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=factory, backoff_s=(0.01, 0.02), poll_s=0.01)
+    it = iter(cam)
+    assert next(it).seq == 0 and next(it).seq == 1
+    stopper = threading.Timer(0.3, cam.stop)  # the rig's stop event, from another thread
+    stopper.start()
+    t0 = time.monotonic()
+    assert list(it) == []
+    assert time.monotonic() - t0 < HANG_GUARD_S
+    cam.close()
+    assert cam.stats()["open_failures"] >= 2  # it kept trying until stopped
+
+
+def test_max_outage_turns_a_lost_device_into_an_error():
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=FakeFactory([1]), backoff_s=(0.01, 0.02),
+                       poll_s=0.01, max_outage_s=0.1)
+    t0 = time.monotonic()
+    with pytest.raises(CameraError, match="lost for more than 0.1 s"):
+        collect(cam)
+    assert time.monotonic() - t0 < HANG_GUARD_S
+    cam.close()
+
+
+def test_a_live_camera_drops_frames_the_consumer_does_not_take():
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=FakeFactory([50]), poll_s=0.01, reconnect=False)
+    it = iter(cam)
+    first = next(it)
+    deadline = time.monotonic() + HANG_GUARD_S
+    while cam.stats()["frames"] < 50 and time.monotonic() < deadline:
+        time.sleep(0.01)  # let the reader run ahead of a slow consumer
+    rest = list(it)
+    cam.close()
+    stats = cam.stats()
+    assert len(rest) <= 2 and stats["dropped"] >= 45 and stats["dropped"] + 1 + len(rest) == 50
+    assert rest[-1].seq == 49 and first.seq < rest[0].seq  # the newest is kept, the order too
+
+
+@pytest.mark.hardware
+def test_a_real_camera_at_index_0():
+    """`pytest --hardware` with a USB camera plugged in: a few frames, live times, no drops needed."""
+    with OpenCvCamera(0, hfov_deg=70.0) as cam:
+        frames = collect(cam, limit=5)
+    assert len(frames) == 5 and [f.seq for f in frames] == list(range(5))
+    assert all(b.t_mono_s > a.t_mono_s for a, b in zip(frames, frames[1:], strict=False))
+    assert abs(frames[-1].t_mono_s - time.monotonic()) < HANG_GUARD_S  # stamped on the monotonic clock

@@ -1,0 +1,223 @@
+"""Pairing a camera with a heading source (drivers/pairing.py): golden interpolation (across north
+too), every reason a frame gets no heading, the counters, and the stream wrapper with a heading
+source that is still arriving (an injected clock: no sleeps)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from drivers.nmea import HeadingSample
+from drivers.pairing import FINAL, HeadingInterpolator, PairingStats, interpolate, with_heading
+from rig.errors import ValidationError
+from rig.types import Frame, GnssFix, HeadingRef, Intrinsics
+from tests.tolerances import ANGLE_RAD_F64
+
+INTR = Intrinsics.from_hfov(8, 6, math.radians(60.0))
+
+
+def sample(t: float, heading_deg: float, ref=HeadingRef.TRUE, pitch_deg=None, roll_deg=None) -> HeadingSample:
+    rad = None if pitch_deg is None else math.radians(pitch_deg)
+    roll = None if roll_deg is None else math.radians(roll_deg)
+    return HeadingSample(t, math.radians(heading_deg), ref, rad, roll, "HDT", None)
+
+
+def frame(t: float, seq: int) -> Frame:
+    return Frame(t, seq, np.zeros((6, 8, 3), np.uint8), INTR)
+
+
+def deg(attitude) -> float:
+    return math.degrees(attitude.heading_rad)
+
+
+# --- the pure interpolator -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("h0", "h1", "w", "expected"), [
+    (359.0, 1.0, 0.5, 0.0),  # across north the short way, not through 180
+    (359.0, 1.0, 0.25, 359.5),
+    (1.0, 359.0, 0.75, 359.5),
+    (10.0, 20.0, 0.3, 13.0),
+    (170.0, 190.0, 0.5, 180.0),
+    (90.0, 270.0 - 1e-9, 0.5, 180.0),  # just under half a turn: the clockwise arc
+])
+def test_golden_interpolation(h0, h1, w, expected):
+    att = interpolate(sample(0.0, h0), sample(1.0, h1), w)
+    assert math.radians(deg(att)) == pytest.approx(math.radians(expected % 360.0), abs=1e-6)
+
+
+def test_interpolates_between_the_samples_around_the_frame():
+    interp = HeadingInterpolator(max_gap_s=1.5, max_age_s=1.0)
+    samples = [sample(10.0, 358.0), sample(11.0, 2.0), sample(12.0, 6.0)]
+    assert deg(interp.at(samples, 10.5)) == pytest.approx(0.0, abs=1e-9)
+    assert deg(interp.at(samples, 11.75)) == pytest.approx(5.0, abs=1e-9)
+    assert interp.at(samples, 11.0).heading_rad == pytest.approx(math.radians(2.0), abs=ANGLE_RAD_F64)
+    assert interp.counts["interpolated"] == 2 and interp.counts["exact"] == 1
+
+
+def test_pitch_and_roll_are_interpolated_only_when_both_samples_have_them():
+    att = interpolate(sample(0, 0, pitch_deg=2.0, roll_deg=-4.0), sample(1, 0, pitch_deg=4.0, roll_deg=0.0), 0.5)
+    assert math.degrees(att.pitch_rad) == pytest.approx(3.0) and math.degrees(att.roll_rad) == pytest.approx(-2.0)
+    att = interpolate(sample(0, 0, pitch_deg=2.0), sample(1, 0), 0.5)
+    assert att.pitch_rad is None and att.roll_rad is None
+
+
+def test_out_of_range_frames_get_no_heading():
+    interp = HeadingInterpolator()
+    samples = [sample(10.0, 5.0), sample(11.0, 6.0)]
+    assert interp.lookup(samples, 9.99).status == "before"
+    assert interp.lookup(samples, 11.01).status == "after"  # no extrapolation past the newest
+    assert interp.lookup([], 10.0).status == "before"
+    assert interp.at(samples, 12.0) is None
+
+
+def test_a_gap_is_not_interpolated_across():
+    interp = HeadingInterpolator(max_gap_s=1.5)
+    samples = [sample(10.0, 0.0), sample(12.0, 90.0)]
+    result = interp.lookup(samples, 11.0)
+    assert result.attitude is None and result.status == "gap"
+
+
+def test_stale_while_live():
+    interp = HeadingInterpolator(max_gap_s=1.5, max_age_s=0.5)
+    samples = [sample(10.0, 0.0), sample(11.0, 10.0)]
+    assert interp.lookup(samples, 11.2, now_s=11.4).status == "pending"  # the next sample may come
+    assert interp.lookup(samples, 11.2, now_s=11.8).status == "stale"  # waited longer than max_age_s
+    # The newest sample is so old that whatever comes next is more than max_gap_s after it.
+    assert HeadingInterpolator(max_gap_s=1.0, max_age_s=5.0).lookup(samples, 11.2, now_s=12.1).status == "gap"
+
+
+def test_mixed_references_are_not_interpolated():
+    interp = HeadingInterpolator()
+    samples = [sample(0.0, 10.0, HeadingRef.TRUE), sample(1.0, 12.0, HeadingRef.MAGNETIC)]
+    assert interp.lookup(samples, 0.5).status == "mixed"
+    assert interp.at(samples, 1.0).reference is HeadingRef.MAGNETIC
+
+
+def test_latency_moves_the_samples_earlier():
+    interp = HeadingInterpolator(latency_s=0.2)
+    samples = [sample(10.2, 0.0), sample(11.2, 10.0)]
+    assert deg(interp.at(samples, 10.5)) == pytest.approx(5.0)
+
+
+def test_counters_count_final_results_only():
+    interp = HeadingInterpolator(max_gap_s=1.5, max_age_s=0.5)
+    samples = [sample(10.0, 0.0), sample(11.0, 10.0), sample(14.0, 10.0)]
+    for t in (9.0, 10.0, 10.5, 12.0):
+        interp.lookup(samples, t)
+    interp.lookup(samples, 14.1, now_s=14.2)  # pending: not counted
+    interp.lookup(samples, 10.5, count=False)
+    assert interp.counts == dict.fromkeys(FINAL, 0) | {"before": 1, "exact": 1, "interpolated": 1, "gap": 1}
+
+
+@pytest.mark.parametrize("kwargs", [{"max_gap_s": 0}, {"max_age_s": -1}, {"max_gap_s": math.inf},
+                                    {"latency_s": -0.1}, {"max_age_s": None}])
+def test_bad_limits_are_refused(kwargs):
+    with pytest.raises(ValidationError):
+        HeadingInterpolator(**kwargs)
+
+
+# --- the stream wrapper --------------------------------------------------------------------------
+
+
+class ArrivingHeadings:
+    """A heading source whose samples arrive as the (injected) clock passes their time, like a
+    GnssReader's history; ``utc_at``/``latest_fix`` as the reader answers them."""
+
+    def __init__(self, samples, clock, utc0_ns=None, fix=None):
+        self.samples, self.clock, self.utc0_ns, self.fix = samples, clock, utc0_ns, fix
+
+    def heading_history(self):
+        now = self.clock()
+        return [s for s in self.samples if s.t_mono_s <= now]
+
+    def utc_at(self, now_s, max_age_s=10.0):
+        return None if self.utc0_ns is None else self.utc0_ns + round(now_s * 1e9)
+
+    def latest_fix(self, now_s, max_age_s=1.5):
+        return self.fix
+
+
+class Clock:
+    def __init__(self, t=0.0):
+        self.t = t
+
+    def __call__(self):
+        return self.t
+
+
+def camera(clock: Clock, times):
+    """Frames that arrive at their own time (the clock follows them), as from a live camera."""
+    for seq, t in enumerate(times):
+        clock.t = t
+        yield frame(t, seq)
+
+
+def test_live_frames_wait_for_the_heading_after_them():
+    clock = Clock()
+    samples = [sample(t, 10.0 * t) for t in (0.0, 1.0, 2.0, 3.0)]
+    source = ArrivingHeadings(samples, clock)
+    times = [0.25 * k for k in range(1, 14)]  # 0.25 .. 3.25 s
+    out = list(with_heading(camera(clock, times), source, HeadingInterpolator(max_gap_s=1.5, max_age_s=1.5),
+                            clock=clock))
+    assert [f.seq for f in out] == list(range(len(times)))  # every frame, in order
+    assert [deg(f.attitude) for f in out[:-1]] == pytest.approx([10.0 * t for t in times[:-1]])
+    assert out[-1].attitude is None  # after the last sample, when the camera stopped: never extrapolated
+
+
+def test_a_stalled_heading_source_leaves_frames_without_heading():
+    clock = Clock()
+    samples = [sample(0.0, 0.0), sample(1.0, 10.0)]  # then the compass goes quiet
+    stats = PairingStats(HeadingInterpolator(max_gap_s=1.5, max_age_s=0.5))
+    times = [0.5, 1.2, 1.4, 1.6, 2.0, 2.5, 3.0]
+    out = list(with_heading(camera(clock, times), ArrivingHeadings(samples, clock), stats.interpolator,
+                            clock=clock, stats=stats))
+    assert [f.attitude is not None for f in out] == [True] + [False] * 6
+    counts = stats.as_dict()
+    assert counts["frames"] == 7 and counts["interpolated"] == 1
+    assert counts["stale"] + counts["gap"] + counts["after"] == 6
+
+
+def test_the_wait_buffer_is_bounded():
+    clock = Clock()
+    stats = PairingStats(HeadingInterpolator(max_gap_s=100.0, max_age_s=100.0))
+    source = ArrivingHeadings([sample(0.0, 0.0)], clock)
+    out = list(with_heading(camera(clock, [0.1 * k for k in range(1, 11)]), source, stats.interpolator,
+                            clock=clock, stats=stats, max_pending=3))
+    assert len(out) == 10 and all(f.attitude is None for f in out)
+    assert stats.overflow == 10 - 3  # all but the last max_pending were let go early
+
+
+def test_gnss_utc_and_fix_are_attached():
+    clock = Clock()
+    fix = GnssFix(utc_ns=1_700_000_000 * 10**9, lat_deg=48.1, lon_deg=11.5)
+    source = ArrivingHeadings([sample(0.0, 0.0), sample(1.0, 10.0), sample(2.0, 20.0)], clock,
+                              utc0_ns=1_700_000_000 * 10**9, fix=fix)
+    out = list(with_heading(camera(clock, [0.5, 1.5]), source, clock=clock))
+    assert [f.utc_ns for f in out] == [1_700_000_000 * 10**9 + 500_000_000, 1_700_000_000 * 10**9 + 1_500_000_000]
+    assert all(f.gnss == fix for f in out)
+
+
+def test_a_recorded_sequence_of_samples():
+    samples = [sample(0.0, 350.0), sample(1.0, 10.0)]
+    out = list(with_heading([frame(0.5, 0), frame(1.5, 1)], samples, live=False))
+    assert deg(out[0].attitude) == pytest.approx(0.0, abs=1e-9) and out[1].attitude is None
+
+
+def test_an_unusable_heading_source_is_refused():
+    with pytest.raises(ValidationError, match="heading_history"):
+        list(with_heading([frame(0.0, 0)], object()))
+
+
+def test_frames_after_an_ended_source_do_not_wait():
+    clock = Clock()
+    source = ArrivingHeadings([sample(0.0, 0.0), sample(1.0, 10.0)], Clock(10.0))  # all read already
+    source.finished = True  # a capture file read to its end
+    stats = PairingStats(HeadingInterpolator())
+    out = []
+    for f in with_heading(camera(clock, [0.5, 1.2, 1.3]), source, stats.interpolator, clock=clock, stats=stats):
+        out.append((f.seq, clock.t))
+    assert out == [(0, 0.5), (1, 1.2), (2, 1.3)]  # each released as it came, not held back
+    assert stats.interpolator.counts["after"] == 2

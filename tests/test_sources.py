@@ -1,0 +1,299 @@
+"""Source selection (drivers/sources.py): the --camera / --heading specs, the combinations that
+cannot work, and real sources opened through it: the bundled log, a video file written here,
+missing devices and ports."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.sources import (
+    CameraSpec,
+    HeadingSpec,
+    SourceError,
+    SourceOptions,
+    check_pair,
+    open_source,
+    parse_camera,
+    parse_heading,
+)
+from replay.sources import DEMO_LOG
+from rig.errors import SunrigError
+from rig.types import HeadingRef
+
+# --- the specs -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("spec", "expected"), [
+    ("oak", CameraSpec("oak")),
+    ("oak:14442C10D13EABCE00", CameraSpec("oak", "14442C10D13EABCE00")),
+    ("opencv:0", CameraSpec("opencv", "0")),
+    ("opencv:rtsp://10.0.0.5:554/h264", CameraSpec("opencv", "rtsp://10.0.0.5:554/h264")),
+    ("opencv:/data/clip.mp4", CameraSpec("opencv", "/data/clip.mp4")),
+    ("file:drive.mcap", CameraSpec("file", "drive.mcap")),
+    ("file:C:/logs/drive.mcap", CameraSpec("file", "C:/logs/drive.mcap")),
+])
+def test_parse_camera(spec, expected):
+    assert parse_camera(spec) == expected
+
+
+@pytest.mark.parametrize(("spec", "expected"), [
+    ("oak-imu", HeadingSpec("oak-imu")),
+    ("nmea:/dev/ttyUSB0", HeadingSpec("nmea", "/dev/ttyUSB0")),
+    ("nmea:socket://192.168.1.20:5017", HeadingSpec("nmea", "socket://192.168.1.20:5017")),
+    ("visual", HeadingSpec("visual")),
+    ("none", HeadingSpec("none")),
+    ("log", HeadingSpec("log")),
+])
+def test_parse_heading(spec, expected):
+    assert parse_heading(spec) == expected
+
+
+@pytest.mark.parametrize(("spec", "match"), [
+    ("", "no camera given"), ("usb:0", "unknown camera 'usb'"), ("opencv:", "after 'opencv:'"),
+    ("file:", "file:drive.mcap"), ("webcam", "unknown camera"),
+])
+def test_bad_camera_specs_say_what_to_pass(spec, match):
+    with pytest.raises(SourceError, match=match) as info:
+        parse_camera(spec)
+    assert "opencv:0" in str(info.value) or "file:" in str(info.value)
+
+
+@pytest.mark.parametrize(("spec", "match"), [
+    ("", "no heading given"), ("gps", "unknown heading"), ("nmea", "name the port"), ("visual:x", "unknown"),
+    ("imu", "unknown heading"),
+])
+def test_bad_heading_specs_say_what_to_pass(spec, match):
+    with pytest.raises(SourceError, match=match):
+        parse_heading(spec)
+
+
+@pytest.mark.parametrize(("camera", "heading", "match"), [
+    ("opencv:0", "oak-imu", "use it with --camera oak"),
+    ("file:x.mcap", "oak-imu", "use it with --camera oak"),
+    ("opencv:0", "log", "has none"),
+    ("oak", "log", "--heading oak-imu"),
+    ("file:x.mcap", "nmea:/dev/ttyUSB0", "cannot be matched"),
+    ("opencv:clip.avi", "nmea:/dev/ttyUSB0", "cannot be matched"),
+])
+def test_combinations_that_cannot_work(camera, heading, match):
+    with pytest.raises(SourceError, match=match):
+        check_pair(parse_camera(camera), parse_heading(heading))
+
+
+@pytest.mark.parametrize(("camera", "heading"), [
+    ("oak", "oak-imu"), ("oak", "nmea:/dev/ttyUSB0"), ("oak", "visual"), ("opencv:0", "nmea:COM3"),
+    ("opencv:rtsp://h/p", "visual"), ("opencv:clip.avi", "visual"), ("file:x.mcap", "log"),
+    ("file:x.mcap", "visual"), ("file:x.mcap", "none"),
+])
+def test_combinations_that_work(camera, heading):
+    check_pair(parse_camera(camera), parse_heading(heading))
+
+
+# --- opening real sources ------------------------------------------------------------------------
+
+
+def test_file_log_with_its_own_heading():
+    with open_source(f"file:{DEMO_LOG}", "log") as src:
+        frames = list(src)
+    assert len(frames) == 40 and all(f.attitude.reference is HeadingRef.TRUE for f in frames)
+    assert src.stats()["log"] is not None
+
+
+def test_file_log_with_visual_heading_replaces_the_recorded_one():
+    with open_source(f"file:{DEMO_LOG}", "visual") as src:
+        frames = list(src)
+        stats = src.stats()["visual_odometry"]
+    assert len(frames) == 40 and stats["frames"] == 40
+    with_heading = [f for f in frames if f.attitude is not None]
+    assert len(with_heading) >= 35 and all(f.attitude.reference is HeadingRef.RELATIVE for f in with_heading)
+    assert frames[0].attitude.heading_rad == 0.0
+
+
+def test_file_log_without_heading():
+    with open_source(f"file:{DEMO_LOG}", "none") as src:
+        assert all(f.attitude is None for f in src)
+
+
+def test_a_missing_log_is_one_line(tmp_path):
+    with pytest.raises(SunrigError) as info:
+        open_source(f"file:{tmp_path / 'nope.mcap'}", "log")
+    assert "\n" not in str(info.value)
+
+
+@pytest.fixture
+def video(tmp_path):
+    """A small pan to the right over a textured strip: an MJPG video written with cv2.VideoWriter."""
+    rng = np.random.default_rng(0)
+    strip = cv2.resize(rng.integers(0, 256, (30, 200), dtype=np.uint8), (800, 120), interpolation=cv2.INTER_NEAREST)
+    strip = cv2.cvtColor(cv2.GaussianBlur(strip, (3, 3), 0), cv2.COLOR_GRAY2BGR)
+    path = tmp_path / "pan.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (160, 120))
+    for k in range(8):
+        writer.write(np.ascontiguousarray(strip[:, 4 * k:4 * k + 160]))
+    writer.release()
+    return path
+
+
+def test_opencv_video_with_visual_heading(video):
+    with open_source(f"opencv:{video}", "visual", options=SourceOptions(hfov_deg=60.0)) as src:
+        frames = list(src)
+    assert len(frames) == 8 and [f.seq for f in frames] == list(range(8))
+    assert all(f.attitude is not None and f.attitude.reference is HeadingRef.RELATIVE for f in frames)
+    # The view slides left across the strip: the camera turned right, so the heading grows.
+    turn = math.remainder(frames[-1].attitude.heading_rad, 2 * math.pi)
+    assert turn > 0
+
+
+def test_opencv_needs_intrinsics(video):
+    with pytest.raises(SourceError, match="--calibration FILE.*--hfov-deg"):
+        open_source(f"opencv:{video}", "visual")
+    with pytest.raises(SourceError, match="not both"):
+        open_source(f"opencv:{video}", "visual", options=SourceOptions(hfov_deg=60.0, calibration="x.yaml"))
+
+
+def test_missing_devices_are_one_line_errors(tmp_path):
+    for camera, heading in (("opencv:63", "none"), (f"opencv:{tmp_path / 'none.avi'}", "visual"),
+                            ("opencv:0", f"nmea:{tmp_path / 'no-port'}")):
+        with pytest.raises(SunrigError) as info:
+            open_source(camera, heading, options=SourceOptions(hfov_deg=60.0))
+        assert "\n" not in str(info.value), camera
+
+
+def test_the_heading_port_is_opened_before_the_camera(tmp_path):
+    # The GNSS port fails first, so its error is the one reported even with a camera that is missing too.
+    with pytest.raises(SunrigError, match="GNSS source"):
+        open_source("opencv:63", f"nmea:{tmp_path / 'no-port'}", options=SourceOptions(hfov_deg=60.0))
+
+
+def test_oak_without_its_driver_is_one_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "drivers.oak", None)  # as if the module or DepthAI were not installed
+    with pytest.raises(SourceError, match="OAK driver cannot be loaded.*opencv:N"):
+        open_source("oak", "oak-imu")
+
+
+def test_oak_without_a_device_is_one_clear_error():
+    pytest.importorskip("depthai")
+    with pytest.raises(SunrigError) as info:
+        open_source("oak", "visual")
+    assert "\n" not in str(info.value) and "OAK" in str(info.value)
+
+
+# --- sunrig record -------------------------------------------------------------------------------
+
+
+def record(*args: str) -> int:
+    from rig.cli import main
+
+    return main(["record", *args])
+
+
+def test_record_a_video_with_visual_heading_and_replay_it(video, tmp_path, capsys):
+    from replay.native import read_frames
+
+    out = tmp_path / "rec.mcap"
+    assert record("--camera", f"opencv:{video}", "--heading", "visual", "--hfov-deg", "60", "--out", str(out)) == 0
+    assert "record: 8 frames (8 with heading)" in capsys.readouterr().err
+    frames = list(read_frames(out))
+    assert [f.seq for f in frames] == list(range(8))
+    assert frames[0].intrinsics.width == 160 and math.degrees(frames[0].intrinsics.hfov_rad) == pytest.approx(60.0)
+    assert all(f.attitude.reference is HeadingRef.RELATIVE for f in frames)
+    assert [f.t_mono_s for f in frames] == pytest.approx([k / 10.0 for k in range(8)], abs=1e-3)
+
+
+def test_record_a_log_with_its_heading_and_a_frame_limit(tmp_path):
+    from replay.native import read_frames
+
+    out = tmp_path / "rec.mcap"
+    assert record("--camera", f"file:{DEMO_LOG}", "--heading", "log", "--frames", "10", "--out", str(out),
+                  "--quiet") == 0
+    got = list(read_frames(out))
+    original = list(read_frames(DEMO_LOG))[:10]
+    assert len(got) == 10
+    for a, b in zip(got, original, strict=True):
+        assert a.seq == b.seq and a.t_mono_s == b.t_mono_s and a.utc_ns == b.utc_ns
+        assert a.attitude.heading_rad == pytest.approx(b.attitude.heading_rad, abs=1e-9)
+        assert np.allclose(a.sun_enu_truth, b.sun_enu_truth)
+
+
+def test_record_a_bad_source_creates_no_file(tmp_path, capsys):
+    out = tmp_path / "rec.mcap"
+    assert record("--camera", "opencv:63", "--heading", "none", "--hfov-deg", "60", "--out", str(out)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no camera at index 63" in err[0]
+    assert not out.exists()
+
+
+class InterruptedSource:
+    """The demo log's frames, with a real SIGINT (Ctrl-C) raised after ``after`` frames."""
+
+    def __init__(self, after: int):
+        self.after = after
+        self.closed = False
+
+    def __iter__(self):
+        import signal
+
+        from replay.native import read_frames
+
+        for k, frame in enumerate(read_frames(DEMO_LOG)):
+            if k == self.after:
+                signal.raise_signal(signal.SIGINT)
+            yield frame
+
+    def stats(self):
+        return {}
+
+    def stop(self):
+        pass
+
+    def close(self):
+        self.closed = True
+
+
+def test_ctrl_c_while_waiting_for_a_frame_finishes_the_log(tmp_path, monkeypatch, capsys):
+    import drivers.sources
+    from replay.native import open_log
+
+    source = InterruptedSource(after=5)
+    monkeypatch.setattr(drivers.sources, "open_source", lambda *a, **k: source)
+    out = tmp_path / "rec.mcap"
+    assert record("--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out)) == 0
+    assert "stopped by Ctrl-C; the log is complete" in capsys.readouterr().err
+    log = open_log(out)
+    assert len(list(log)) == 5 and not log.truncated and source.closed
+
+
+def test_ctrl_c_while_writing_a_frame_lets_it_finish(tmp_path, monkeypatch):
+    import signal
+
+    from replay.native import LogWriter, read_frames
+
+    real_write = LogWriter.write_frame
+
+    def write_then_interrupt(self, frame, **kw):
+        if frame.seq == 2:
+            signal.raise_signal(signal.SIGINT)  # arrives mid-write: must not cut the frame in half
+        real_write(self, frame, **kw)
+
+    monkeypatch.setattr(LogWriter, "write_frame", write_then_interrupt)
+    out = tmp_path / "rec.mcap"
+    assert record("--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out), "--quiet") == 0
+    assert [f.seq for f in read_frames(out)] == [0, 1, 2]
+
+
+@pytest.mark.torch
+def test_run_a_video_with_visual_heading(video, tmp_path, tiny_model_dir):
+    import json
+
+    from rig.cli import main
+
+    out = tmp_path / "est.jsonl"
+    assert main(["run", "--camera", f"opencv:{video}", "--heading", "visual", "--hfov-deg", "60", "--model",
+                 str(tiny_model_dir), "--jsonl", str(out), "--fast", "--quiet"]) == 0
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert rows and all(r["heading_ref"] == "relative" for r in rows)

@@ -1,0 +1,228 @@
+"""Visual odometry (drivers/visual_odometry.py): the yaw sign convention, the pure geometry, pure
+rotations made by warping a textured image, and turns on synthetic street drives against their
+true heading.
+
+Tolerances are measured, not guessed (on this code, kitti_intrinsics(0.5), the frames named):
+- warped pure rotations, 5 x 3 deg: error < 0.05 deg; allowed 0.3 deg.
+- synthetic drive 3 frames 6-23 (a right turn of +90 deg): max error 1.7 deg, final -1.7 deg;
+  drive 5 frames 17-34 (a left turn of -90 deg): max error 3.1 deg, final -1.1 deg; no frame
+  without heading. Allowed: DRIVE_TOL_DEG = 6 deg at every frame with a heading, and at most 2
+  frames without one.
+``benchmarks/bench_vo.py`` measures the drift over many drives.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.visual_odometry import (
+    VisualOdometry,
+    VoConfig,
+    fit_rotation,
+    in_front,
+    refine_pose,
+    rotation_from_yaw,
+    sampson_px,
+    with_visual_heading,
+    yaw_from_rotation,
+)
+from rig.errors import ValidationError
+from rig.types import Frame, HeadingRef, Intrinsics
+from tests.tolerances import DEG, EXACT_F64
+
+WARP_TOL_DEG = 0.3
+DRIVE_TOL_DEG = 6.0
+INTR = Intrinsics.from_hfov(320, 240, math.radians(70.0))
+
+
+def k_matrix(intr: Intrinsics) -> np.ndarray:
+    return np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
+
+
+def textured(seed: int = 0, size=(240, 320)) -> np.ndarray:
+    """A BGR image full of corners: blurred random blocks at two scales."""
+    rng = np.random.default_rng(seed)
+    coarse = cv2.resize(rng.integers(0, 256, (size[0] // 8, size[1] // 8), dtype=np.uint8), size[::-1],
+                        interpolation=cv2.INTER_NEAREST)
+    fine = cv2.resize(rng.integers(0, 256, (size[0] // 3, size[1] // 3), dtype=np.uint8), size[::-1],
+                      interpolation=cv2.INTER_NEAREST)
+    gray = cv2.GaussianBlur(cv2.addWeighted(coarse, 0.6, fine, 0.4, 0), (3, 3), 0)
+    return cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+
+
+def rotated_view(image: np.ndarray, intr: Intrinsics, yaw_rad: float) -> np.ndarray:
+    """What a camera sees after turning right by ``yaw_rad`` on the spot (a homography K R K^-1)."""
+    k = k_matrix(intr)
+    h = k @ rotation_from_yaw(yaw_rad) @ np.linalg.inv(k)
+    return cv2.warpPerspective(image, h, (intr.width, intr.height), borderMode=cv2.BORDER_REFLECT)
+
+
+# --- the sign convention -------------------------------------------------------------------------
+
+
+def test_a_right_turn_moves_the_point_ahead_to_the_left():
+    # Turning right (clockwise from above, heading up) the old optical axis ends up left of the new one.
+    r = rotation_from_yaw(math.radians(10.0))
+    ahead_before = r @ np.array([0.0, 0.0, 1.0])
+    assert ahead_before[0] < 0 and ahead_before[2] > 0
+    assert yaw_from_rotation(r) == pytest.approx(math.radians(10.0), abs=EXACT_F64)
+
+
+@pytest.mark.parametrize("yaw_deg", [-170.0, -45.0, -1.0, 0.0, 0.5, 30.0, 120.0])
+def test_yaw_round_trip(yaw_deg):
+    assert yaw_from_rotation(rotation_from_yaw(math.radians(yaw_deg))) == pytest.approx(math.radians(yaw_deg),
+                                                                                        abs=EXACT_F64)
+
+
+def test_yaw_ignores_a_small_pitch():
+    # Second order: 2 deg of pitch moves a 20 deg turn by 0.011 deg.
+    pitch = cv2.Rodrigues(np.array([[math.radians(2.0)], [0.0], [0.0]]))[0]
+    r = rotation_from_yaw(math.radians(20.0)) @ pitch
+    assert yaw_from_rotation(r) == pytest.approx(math.radians(20.0), abs=0.02 * DEG)
+
+
+# --- the pure geometry ---------------------------------------------------------------------------
+
+
+def two_views(seed: int = 1, n: int = 80):
+    """Points in front of a camera that turns right by 4 deg and moves forward and a little right."""
+    rng = np.random.default_rng(seed)
+    pts = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-3, 2, n), rng.uniform(5, 60, n)])
+    r = rotation_from_yaw(math.radians(4.0))
+    t = np.array([-0.1, 0.0, -1.0])  # x2 = R x1 + t: moving forward is t_z < 0
+    x1 = pts / pts[:, 2:3]
+    p2 = pts @ r.T + t
+    x2 = p2 / p2[:, 2:3]
+    return x1, x2, r, t / np.linalg.norm(t)
+
+
+def test_sampson_is_zero_for_the_true_pose_and_not_for_another():
+    x1, x2, r, t = two_views()
+    assert np.max(np.abs(sampson_px(r, t, x1, x2, 300.0))) < 1e-9
+    assert np.median(np.abs(sampson_px(rotation_from_yaw(math.radians(6.0)), t, x1, x2, 300.0))) > 0.5
+
+
+def test_refine_pose_returns_to_the_truth_from_a_nearby_start():
+    x1, x2, r, t = two_views()
+    r0 = rotation_from_yaw(math.radians(2.5))
+    t0 = np.array([0.1, 0.05, -1.0])
+    r_fit, t_fit, cost = refine_pose(x1, x2, r0, t0, 300.0)
+    assert yaw_from_rotation(r_fit) == pytest.approx(math.radians(4.0), abs=1e-4 * DEG)
+    assert np.allclose(t_fit, t, atol=1e-5)
+    assert cost < 1e-10
+
+
+def test_cheirality():
+    x1, x2, r, t = two_views()
+    assert in_front(r, t, x1, x2).all()
+    assert not in_front(r, -t, x1, x2).any()
+
+
+def test_fit_rotation_is_exact_for_a_pure_rotation():
+    x1, _, _, _ = two_views()
+    r = rotation_from_yaw(math.radians(-7.0))
+    x2 = x1 @ r.T
+    x2 = x2 / x2[:, 2:3]
+    k = k_matrix(INTR)
+    to_px = lambda x: x[:, :2] * INTR.fx + [INTR.cx, INTR.cy]  # noqa: E731
+    r_fit, resid = fit_rotation(to_px(x1), to_px(x2), k)
+    assert yaw_from_rotation(r_fit) == pytest.approx(math.radians(-7.0), abs=1e-9)
+    assert resid.max() < 1e-6
+
+
+# --- pure rotations: warped images ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("step_deg", [3.0, -3.0])
+def test_turning_on_the_spot_gives_the_turn_with_its_sign(step_deg):
+    base = textured()
+    vo = VisualOdometry()
+    headings = []
+    for k in range(6):
+        sample = vo.update(k * 0.1, rotated_view(base, INTR, math.radians(step_deg * k)), INTR)
+        assert sample is not None and sample.reference is HeadingRef.RELATIVE
+        headings.append(math.degrees(math.remainder(sample.heading_rad, 2 * math.pi)))
+    assert headings[0] == 0.0
+    assert headings == pytest.approx([step_deg * k for k in range(6)], abs=WARP_TOL_DEG)
+    assert vo.stats["rotation_only"] >= 4  # no translation: the essential matrix is not used
+
+
+def test_a_still_camera_keeps_its_heading():
+    vo = VisualOdometry()
+    image = textured(3)
+    out = [vo.update(k * 0.1, image, INTR) for k in range(4)]
+    assert all(s is not None and s.heading_rad == 0.0 for s in out)
+    assert vo.stats["still"] == 3
+
+
+def test_a_featureless_image_gives_no_heading_and_no_crash():
+    vo = VisualOdometry()
+    grey = np.full((240, 320, 3), 128, np.uint8)
+    first = vo.update(0.0, grey, INTR)
+    assert first is not None and first.heading_rad == 0.0  # the start is the reference by definition
+    assert vo.update(0.1, grey, INTR) is None
+    assert vo.stats["lost"] == 1
+
+
+def test_new_intrinsics_restart_without_a_heading():
+    vo = VisualOdometry()
+    image = textured(4)
+    assert vo.update(0.0, image, INTR) is not None
+    other = Intrinsics.from_hfov(320, 240, math.radians(60.0))
+    assert vo.update(0.1, image, other) is None
+    assert vo.stats["restarts"] == 1
+    assert vo.update(0.2, image, other) is not None
+
+
+def test_config_is_checked():
+    with pytest.raises(ValidationError, match="refresh_fraction"):
+        VoConfig(refresh_fraction=1.5)
+    with pytest.raises(ValidationError, match="magsac"):
+        VoConfig(ransac="guess")
+
+
+# --- synthetic drives: a right and a left turn against the truth ---------------------------------
+
+
+def drive_frames(seed: int, first: int, last: int) -> list[Frame]:
+    """Frames first..last of the 40-frame synthetic drive ``seed`` at half KITTI size."""
+    from replay.synthetic import Drive, kitti_intrinsics
+    from replay.synthetic.camera import Camera
+
+    intr = kitti_intrinsics(0.5)
+    drive = Drive(seed, 40, intrinsics=intr)
+    camera = Camera(drive.params.effects, intr.width, intr.height, seed=seed)
+    frames = []
+    for k in range(first, last + 1):
+        pose = drive.poses[k]
+        from rig.types import Attitude
+
+        frames.append(Frame(k / drive.fps, k, drive.render_frame(k, camera), intr,
+                            attitude=Attitude(pose.heading_rad, HeadingRef.TRUE)))
+    return frames
+
+
+@pytest.mark.parametrize(("seed", "first", "last", "turn_deg"), [(3, 6, 23, 90.0), (5, 17, 34, -90.0)],
+                         ids=["right", "left"])
+def test_relative_yaw_tracks_a_synthetic_turn(seed, first, last, turn_deg):
+    frames = drive_frames(seed, first, last)
+    truth = np.unwrap([f.heading_rad for f in frames])
+    truth = np.degrees(truth - truth[0])
+    assert truth[-1] == pytest.approx(turn_deg, abs=2.0)  # the drive turns as the test says
+
+    vo = VisualOdometry()
+    out = list(with_visual_heading(frames, vo))
+    assert [f.seq for f in out] == [f.seq for f in frames]
+    with_heading = [(k, f) for k, f in enumerate(out) if f.attitude is not None]
+    assert len(out) - len(with_heading) <= 2, vo.stats
+    assert all(f.attitude.reference is HeadingRef.RELATIVE for _, f in with_heading)
+    assert out[0].attitude.heading_rad == 0.0
+    errors = [math.degrees(math.remainder(f.attitude.heading_rad - math.radians(truth[k]), 2 * math.pi))
+              for k, f in with_heading]
+    assert max(abs(e) for e in errors) < DRIVE_TOL_DEG, (errors, vo.stats)
+    final = math.degrees(math.remainder(out[-1].attitude.heading_rad, 2 * math.pi))
+    assert math.copysign(1.0, final) == math.copysign(1.0, turn_deg)
