@@ -160,19 +160,30 @@ def _effective_config(args: argparse.Namespace) -> dict:
         "output.record": getattr(args, "record", None),
         "output.record_frames": True if getattr(args, "record_frames", False) else None,
         "rig.realtime": False if getattr(args, "fast", False) else None,
+        **{f"source.{name}": getattr(args, name, None)
+           for name in ("calibration", "hfov_deg", "width", "height", "fps", "max_gap_s", "max_age_s",
+                        "heading_latency_s", "declination_deg")},
+        "source.baud": getattr(args, "source_baud", None),
     }
     return override(cfg, flags)
 
 
-def _source_options(args: argparse.Namespace):
-    """The source flags of ``run`` and ``record`` (drivers.sources.SourceOptions)."""
+def _source_options(cfg: dict):
+    """The [source] options of the effective configuration as drivers.sources.SourceOptions;
+    zero, empty and nan mean "not set" (TOML has no null)."""
+    import math
+
     from drivers.sources import SourceOptions
 
-    fields = {name: getattr(args, name, None) for name in ("calibration", "hfov_deg", "width", "height", "fps",
-                                                           "max_gap_s", "max_age_s", "heading_latency_s",
-                                                           "declination_deg")}
-    fields["baud"] = getattr(args, "source_baud", None)
-    return SourceOptions(**{k: v for k, v in fields.items() if v is not None})
+    src = cfg["source"]
+    fields = {name: src[name] for name in ("calibration", "hfov_deg", "width", "height", "fps", "baud",
+                                            "max_gap_s", "max_age_s", "heading_latency_s", "declination_deg")}
+    unset = [k for k, v in fields.items()
+             if k in ("calibration", "hfov_deg", "width", "height", "fps", "declination_deg")
+             and (v in ("", 0, 0.0) or (isinstance(v, float) and math.isnan(v)))]
+    for k in unset:
+        del fields[k]
+    return SourceOptions(**fields)
 
 
 def _open_camera(spec: str, heading: str, options=None):
@@ -232,7 +243,7 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
-    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(args))
+    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     try:
         return _live(cfg, source, nmea_stdout=False, quiet=args.quiet)
     finally:
@@ -256,7 +267,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         raise SunrigError(f"--frames: expected at least 1, got {args.frames}")
     cfg = _effective_config(args)
     # The sources first: a wrong camera or port fails before the output file is created.
-    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(args))
+    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     state = {"writing": False, "stop": False}
 
     def on_sigint(signum, frame):  # noqa: ARG001 - the signal handler's signature

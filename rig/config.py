@@ -23,8 +23,18 @@ class ConfigError(SunrigError):
 # section -> option -> default. The type of each default is the option's type.
 DEFAULTS: dict[str, dict[str, Any]] = {
     "source": {
-        "camera": "",  # file:LOG (a log through the live path); oak, opencv:N come with the drivers
-        "heading": "log",  # where heading comes from; a log carries its own
+        "camera": "",  # oak | opencv:N | opencv:URL | opencv:FILE | file:LOG (docs/drivers.md)
+        "heading": "log",  # oak-imu | nmea:PORT | visual | none | log (a file: camera's own)
+        "calibration": "",  # OpenCV calibration file; empty: the device's own or hfov_deg
+        "hfov_deg": 0.0,  # horizontal field of view when there is no calibration; 0: unset
+        "width": 0,  # requested frame size and rate; 0: the device's default
+        "height": 0,
+        "fps": 0.0,
+        "baud": 115200,  # nmea: heading port
+        "max_gap_s": 1.5,  # pairing (drivers/pairing.py)
+        "max_age_s": 1.5,
+        "heading_latency_s": 0.0,
+        "declination_deg": float("nan"),  # oak-imu, east positive; nan: unset (heading stays magnetic)
     },
     "estimator": {
         "model": "",  # model folder; empty: the shipped default
@@ -63,6 +73,8 @@ def _check(section: str, key: str, value: Any) -> Any:
     expected = type(default)
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
+    if expected is float and value is None:
+        value = float("nan")
     if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
         raise ConfigError(f"[{section}] {key}: expected {expected.__name__}, got {value!r}")
     choices = CHOICES.get((section, key))
