@@ -16,9 +16,6 @@ torch = pytest.importorskip("torch", reason="the torch model needs the train ext
 
 from estimator.nets import CyclicPositionalEncoding, default_depth_per_angle  # noqa: E402
 
-# float32 sin() of arguments up to alpha (32) carries ~32 x 6e-8 rad of rounding; the golden
-# values are float64.
-
 ALPHA, BASE = 32.0, 10000.0
 # Depth 8 x 3 angles = 24 values padded to 30, so the padding is exercised too.
 SMALL = {"alpha": ALPHA, "base": BASE, "depth_per_angle": 8, "width": 30}
