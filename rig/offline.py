@@ -8,13 +8,13 @@ backbone call over several frames costs less than several calls.
 from __future__ import annotations
 
 import logging
-from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
-from rig.types import Frame, FrameFeatures, SunEstimate
+from rig.ring import FrameRing
+from rig.types import Frame, SunEstimate
 from rig.window import SpreadWindowPolicy
 
 log = logging.getLogger(__name__)
@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 class OfflineStats:
     frames: int = 0
     frames_without_heading: int = 0
+    frames_out_of_order: int = 0
     windows: int = 0
     windows_failed: int = 0
     failures: list[str] = field(default_factory=list)
@@ -40,16 +41,17 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
     """
     aggregators = list(aggregators or [estimator.aggregator])
     stats = stats if stats is not None else OfflineStats()
-    # Frames older than the policy's span can never be chosen again.
-    recent: deque[FrameFeatures] = deque()
+    # The live rig's ring, bounded by the policy's span (older frames can never be chosen again)
+    # rather than by count: offline, nothing may be dropped for lack of room.
+    ring = FrameRing(capacity=1_000_000, max_age_s=policy.span_s)
     pending: list[Frame] = []
 
     def flush() -> Iterator[dict[str, SunEstimate]]:
         for feats in estimator.encode_batch(pending):
-            recent.append(feats)
-            while recent and recent[0].frame.t_mono_s < feats.frame.t_mono_s - policy.span_s:
-                recent.popleft()
-            window = policy.select(recent)
+            if not ring.push(feats):
+                stats.frames_out_of_order += 1  # as live: windows assume time order
+                continue
+            window = policy.select(ring.snapshot())
             stats.windows += 1
             try:
                 yield estimator.estimate_many(window, aggregators)
