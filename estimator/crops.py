@@ -41,6 +41,26 @@ def sample_crop_boxes(intrinsics: Intrinsics, n: int, side_px: int, rng: np.rand
     return np.stack([x0, y0, side, side], axis=1).astype(np.int64)
 
 
+def spread_crop_boxes(intrinsics: Intrinsics, n: int, side_px: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` square boxes spread across the image: the valid range of left edges is cut into ``n``
+    equal strata and each box's left edge is uniform within its own (jittered stratified
+    sampling); top edges are uniform as in :func:`sample_crop_boxes`.
+
+    At run time a frame's few crops are all the network sees of it. Independent uniform draws
+    often land two of four crops on nearly the same patch and leave most of the frame unseen;
+    spreading them keeps every crop a different observation, as the paper intends, while each
+    crop's position stays random. On held-out synthetic drives this lowered the shipped model's
+    worst window error from 69 to 50 deg with the same weights (docs/model.md).
+    Training keeps independent uniform crops: there they are augmentation, not observations.
+    """
+    boxes = sample_crop_boxes(intrinsics, n, side_px, rng)  # validates; y0 and side as usual
+    span = intrinsics.width - side_px + 1  # number of valid left edges
+    edges = np.linspace(0.0, span, n + 1)
+    x0 = np.floor(edges[:-1] + rng.random(n) * np.diff(edges)).astype(np.int64)
+    boxes[:, 0] = np.minimum(rng.permutation(x0), span - 1)
+    return boxes
+
+
 def crop_angles_rad(boxes_px: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     """(horizontal, vertical) view angles of each box's centre, shape (n, 2), radians."""
     boxes = np.asarray(boxes_px, dtype=np.float64)

@@ -24,13 +24,16 @@ from typing import Protocol
 import numpy as np
 
 from estimator.calibration import EstimationError, mean_direction, spread_rad, world_from_tokens
-from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes
+from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes, spread_crop_boxes
 from estimator.meanshift import meanshift_aggregate
 from rig.errors import ValidationError
 from rig.geometry import wrap_pi
 from rig.types import Frame, FrameFeatures, HeadingRef, SunEstimate
 
 AGGREGATORS = ("transformer", "mean", "meanshift", "single")
+# How a frame's crops are placed: "spread" (default) one per horizontal stratum, "uniform" the
+# paper's independent draws (estimator/crops.py says why spread is the default).
+CROP_LAYOUTS = {"spread": spread_crop_boxes, "uniform": sample_crop_boxes}
 
 
 class SunModel(Protocol):
@@ -111,9 +114,12 @@ class SunEstimator:
     """Crops + backbone per frame (:meth:`encode`), aggregator per window (:meth:`estimate`)."""
 
     def __init__(self, model: SunModel, *, aggregator: str = "transformer", seed: int = 0,
-                 crops_per_frame: int | None = None) -> None:
+                 crops_per_frame: int | None = None, crop_layout: str = "spread") -> None:
         if aggregator not in AGGREGATORS:
             raise ValidationError(f"aggregator: expected one of {', '.join(AGGREGATORS)}, got {aggregator!r}")
+        if crop_layout not in CROP_LAYOUTS:
+            raise ValidationError(f"crop layout: expected one of {', '.join(CROP_LAYOUTS)}, got {crop_layout!r}")
+        self.sample_boxes = CROP_LAYOUTS[crop_layout]
         self.model = model
         self.aggregator = aggregator
         self.seed = int(seed)
@@ -126,7 +132,7 @@ class SunEstimator:
     # -- per frame ---------------------------------------------------------------------------
     def _crops(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         side = crop_side_px(frame.intrinsics, self.crop_fov_rad)
-        boxes = sample_crop_boxes(frame.intrinsics, self.crops_per_frame, side, frame_rng(self.seed, frame.seq))
+        boxes = self.sample_boxes(frame.intrinsics, self.crops_per_frame, side, frame_rng(self.seed, frame.seq))
         return boxes, crop_angles_rad(boxes, frame.intrinsics), cut_crops(frame.image_bgr, boxes, self.crop_size_px)
 
     def encode(self, frame: Frame) -> FrameFeatures:

@@ -16,6 +16,13 @@ calibrated by each frame's yaw, and L = cosine + norm + hemisphere. What differs
   so this only guards the calibration path; it costs nothing.
 - The backbone starts from scratch (no ImageNet weights can be downloaded here) with a higher
   learning rate than the paper's fine-tuning rate of 2e-5.
+- Hard drives are drawn more often: each drive keeps a running error of its full windows, and a
+  share of windows (``hard_share``) picks drives in proportion to it. The held-out errors that
+  matter most are the worst ones (low sun, dimmed sun, few shadows), and uniform sampling spends
+  most steps on drives the model has already solved.
+- ``precision="bf16"`` runs the forward pass under bf16 autocast with channels-last images (on
+  CPUs with native bfloat16, AMX / AVX512-BF16; "auto" picks it there); weights, the loss and the
+  exported graphs stay float32.
 
 Checkpoints (``checkpoint.pt`` in the output folder, written atomically every few minutes and at
 the end) hold weights, optimiser, step and random state: a run that is killed resumes where it
@@ -138,20 +145,42 @@ class Batch:
     yaw: np.ndarray  # (B, T) float64 absolute yaw (with the random global offset)
     mask: np.ndarray  # (B, T) bool
     truth: np.ndarray  # (B, 3) float64 ENU (with the random global offset)
+    drive: np.ndarray  # (B,) int index of each window's drive in the sampler
 
 
 class WindowSampler:
-    """Random windows: a drive, ``frames`` of its frames, ``crops`` random crops each."""
+    """Random windows: a drive, ``frames`` of its frames, ``crops`` random crops each.
+
+    A ``hard_share`` of windows draws its drive in proportion to the drive's running error
+    (:meth:`record`); the rest in proportion to drive length, so every frame is equally likely.
+    A drive not yet seen counts as :data:`UNSEEN_ERR_DEG`, so early hard draws explore.
+    """
+
+    UNSEEN_ERR_DEG = 90.0
+    ERR_EMA = 0.3  # weight of the newest window in a drive's running error
 
     def __init__(self, drives: Sequence[Drive], frames: int, crops: int, crop_size: int,
-                 subset_prob: float, rng: np.random.Generator) -> None:
+                 subset_prob: float, rng: np.random.Generator, hard_share: float = 0.0) -> None:
         self.drives = list(drives)
         self.frames, self.crops, self.size = frames, crops, crop_size
         self.subset_prob = subset_prob
+        self.hard_share = hard_share
         self.rng = rng
-        # Drives are drawn in proportion to their length, so every frame is equally likely.
         lengths = np.array([len(d.images) for d in self.drives], dtype=np.float64)
         self.p = lengths / lengths.sum()
+        self.err_deg = np.full(len(self.drives), self.UNSEEN_ERR_DEG)
+
+    def record(self, drive_index: np.ndarray, err_deg: np.ndarray) -> None:
+        """Fold full windows' errors into their drives' running errors."""
+        for i, e in zip(drive_index, err_deg, strict=True):
+            self.err_deg[i] += self.ERR_EMA * (float(e) - self.err_deg[i])
+
+    def _drive_index(self) -> int:
+        rng = self.rng
+        if self.hard_share > 0.0 and rng.random() < self.hard_share:
+            w = self.err_deg * self.p
+            return int(rng.choice(len(self.drives), p=w / w.sum()))
+        return int(rng.choice(len(self.drives), p=self.p))
 
     def sample(self, batch: int) -> Batch:
         t = self.frames * self.crops
@@ -162,10 +191,12 @@ class WindowSampler:
             yaw=np.empty((batch, t)),
             mask=np.ones((batch, t), bool),
             truth=np.empty((batch, 3)),
+            drive=np.empty(batch, np.int64),
         )
         rng = self.rng
         for b in range(batch):
-            d = self.drives[rng.choice(len(self.drives), p=self.p)]
+            out.drive[b] = self._drive_index()
+            d = self.drives[out.drive[b]]
             n = len(d.images)
             idx = np.sort(rng.choice(n, size=self.frames, replace=n < self.frames))
             newest = idx[-1]
@@ -207,6 +238,8 @@ class TrainConfig:
     weight_decay: float = 0.05
     warmup_steps: int = 300
     subset_prob: float = 0.3
+    hard_share: float = 0.5  # windows whose drive is drawn by its running error
+    precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
     frames_per_window: int = 8
     crops_per_frame: int = 4
     crop_fov_deg: float = PAPER_CROP_FOV_DEG
@@ -218,11 +251,41 @@ class TrainConfig:
     data: dict[str, Any] = field(default_factory=dict)
 
 
-def _lr_at(step: int, total: int, cfg: TrainConfig) -> float:
-    if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    frac = min(1.0, (step - cfg.warmup_steps) / max(1, total - cfg.warmup_steps))
-    return cfg.lr * (0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * frac)))
+LR_FLOOR = 0.02  # the schedule ends at this share of the peak rate
+
+
+@dataclass
+class Schedule:
+    """Warmup, then cosine from ``start_lr`` at ``start_step`` down to the floor at the run's end.
+
+    A first run starts at step 0 from the peak rate. A run resumed with a longer budget starts a
+    new segment from the rate it stopped at, so the rate never rises again on resume: stretching
+    the original cosine over the new budget would lift a nearly finished run back to a high rate
+    and undo its last minutes (seen: 85 + 12 minutes trained to a worse model than 85).
+    """
+
+    start_step: int = 0
+    start_lr: float = 0.0  # 0: the config's peak rate
+    minutes: float = 0.0  # the budget this segment was planned for
+
+    def lr_at(self, step: int, total: int, cfg: TrainConfig) -> float:
+        peak = self.start_lr or cfg.lr
+        if self.start_step == 0 and step < cfg.warmup_steps:
+            return peak * (step + 1) / cfg.warmup_steps
+        begin = max(self.start_step, cfg.warmup_steps if self.start_step == 0 else 0)
+        frac = min(1.0, max(0.0, (step - begin) / max(1, total - begin)))
+        floor = LR_FLOOR * cfg.lr
+        return floor + (peak - floor) * 0.5 * (1.0 + math.cos(math.pi * frac))
+
+
+def use_bf16(precision: str) -> bool:
+    """Whether to train under bf16 autocast: only where the CPU computes bf16 natively, since
+    emulated bf16 is slower than float32."""
+    if precision not in ("auto", "bf16", "fp32"):
+        raise ValidationError(f"precision: expected auto, bf16 or fp32, got {precision!r}")
+    if precision == "auto":
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    return precision == "bf16"
 
 
 class _Normaliser:
@@ -252,6 +315,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     """Train (or resume) and export; returns the model folder."""
     if cfg.preset not in nets.PRESETS:
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
+    if not 0.0 <= cfg.hard_share <= 1.0:
+        raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
     net_cfg = nets.PRESETS[cfg.preset]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -269,6 +334,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     params = list(backbone.parameters()) + list(aggregator.parameters())
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     step, elapsed_s = 0, 0.0
+    schedule = Schedule(minutes=cfg.minutes)
+    drive_err = None
     rng = np.random.default_rng(cfg.seed)
     if ckpt_path.exists():
         state = torch.load(ckpt_path, weights_only=False)
@@ -283,10 +350,21 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         step, elapsed_s = state["step"], state["elapsed_s"]
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
+        schedule = Schedule(**state.get("schedule", {"minutes": state["config"]["minutes"]}))
+        if not cfg.max_steps and cfg.minutes != schedule.minutes:
+            # A new budget: a new cosine segment from where the rate stands now.
+            schedule = Schedule(start_step=step, start_lr=opt.param_groups[0]["lr"], minutes=cfg.minutes)
+        drive_err = state.get("drive_err_deg")
         log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
 
     sampler = WindowSampler(drives, cfg.frames_per_window, cfg.crops_per_frame, net_cfg.crop_size,
-                            cfg.subset_prob, rng)
+                            cfg.subset_prob, rng, hard_share=cfg.hard_share)
+    if drive_err is not None and len(drive_err) == len(drives):
+        sampler.err_deg[:] = drive_err
+    bf16 = use_bf16(cfg.precision)
+    if bf16:
+        backbone = backbone.to(memory_format=torch.channels_last)
+    log.info("training in %s", "bf16 autocast, channels-last" if bf16 else "float32")
     contract_stub = net_cfg.contract(crops_per_frame=cfg.crops_per_frame,
                                      frames_per_window=cfg.frames_per_window, crop_fov_deg=cfg.crop_fov_deg)
     normalise = _Normaliser(contract_stub.input_norm)
@@ -306,6 +384,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "config": asdict(cfg),
             "data_counts": {"drives": len(drives), "frames": n_frames},
             "err_deg_ema": None if ema_err is None else round(ema_err, 2),
+            "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(),
         }
 
     while True:
@@ -317,13 +396,18 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         if not cfg.max_steps and step >= 20:
             est_total = int(step * budget_s / max(elapsed, 1e-9))
         for g in opt.param_groups:
-            g["lr"] = _lr_at(step, est_total, cfg)
+            g["lr"] = schedule.lr_at(step, est_total, cfg)
 
         batch = sampler.sample(cfg.batch_windows)
         b, t = batch.mask.shape
-        emb = backbone(normalise(batch.crops.reshape(b * t, *batch.crops.shape[2:]))).view(b, t, -1)
+        x = normalise(batch.crops.reshape(b * t, *batch.crops.shape[2:]))
         mask = torch.from_numpy(batch.mask)
-        v_head = aggregator(emb, torch.from_numpy(batch.angles), mask)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            if bf16:
+                x = x.contiguous(memory_format=torch.channels_last)
+            emb = backbone(x).view(b, t, -1)
+            v_head = aggregator(emb, torch.from_numpy(batch.angles), mask)
+        v_head = v_head.float()
         v_world = nets.world_from_heading_torch(v_head, torch.from_numpy(batch.yaw).float())
         truth = torch.from_numpy(batch.truth).float()
         token_loss = nets.sun_loss(v_world, truth[:, None, :].expand_as(v_world), mask)
@@ -339,7 +423,10 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
 
         with torch.no_grad():
             cos = (torch.nn.functional.normalize(mean, dim=-1) * truth).sum(-1).clamp(-1, 1)
-            err_deg = float(torch.rad2deg(torch.acos(cos)).mean())
+            window_err = torch.rad2deg(torch.acos(cos)).numpy()
+            err_deg = float(window_err.mean())
+            full = batch.mask.all(axis=1)  # a subset window's error says little about its drive
+            sampler.record(batch.drive[full], window_err[full])
         loss_value = float(loss.detach())
         ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
         ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg
@@ -356,7 +443,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             last_ckpt = time.monotonic()
 
     _save_checkpoint(ckpt_path, state_dict())
-    return _export(backbone, aggregator, cfg, state_dict(), out_dir)
+    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, state_dict(), out_dir)
 
 
 def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path) -> Path:

@@ -443,7 +443,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     for p in paths:  # fail on a bad log now, not after loading the others
         open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
-                      batch_windows=args.batch, lr=args.lr, seed=args.seed, threads=args.threads,
+                      batch_windows=args.batch, lr=args.lr, hard_share=args.hard_share, precision=args.precision,
+                      seed=args.seed, threads=args.threads,
                       command=command_line(),
                       data={"logs": len(paths), "fingerprint": data_fingerprint(paths),
                             "source": args.data_note or ""})
@@ -718,6 +719,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=0, help="stop after this many steps instead")
     p.add_argument("--batch", type=int, default=6, help="windows per step (default 6)")
     p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
+    p.add_argument("--hard-share", type=float, default=0.5,
+                   help="share of windows drawn from drives in proportion to their running error (default 0.5)")
+    p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
+                   help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes
+from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes, spread_crop_boxes
 from rig.errors import ValidationError
 from rig.types import Intrinsics
 
@@ -34,11 +34,40 @@ def test_boxes_inside_image_uniform_and_seeded():
     assert (a == b).all() and not (a == c).all()
 
 
+def test_spread_boxes_one_per_stratum_and_each_uniform_within_it():
+    rng = np.random.default_rng(4)
+    span = KITTI.width - 224 + 1
+    lefts = []
+    for _ in range(2000):
+        boxes = spread_crop_boxes(KITTI, 4, 224, rng)
+        x0, y0, w, h = boxes.T
+        assert (x0 >= 0).all() and (x0 + w <= KITTI.width).all() and (y0 + h <= KITTI.height).all()
+        # Exactly one box in each quarter of the valid range of left edges.
+        edges = np.linspace(0, span, 5)
+        x_sorted = np.sort(x0)
+        assert ((x_sorted >= np.floor(edges[:-1])) & (x_sorted < edges[1:])).all()
+        lefts.append(x0)
+    x0 = np.concatenate(lefts)
+    # Pooled over frames the left edges are still uniform over the valid range (same marginal as
+    # the paper's independent draws): mean mid-range, both ends reached, flat histogram.
+    assert x0.mean() == pytest.approx((span - 1) / 2, rel=0.02)
+    assert x0.min() < 5 and x0.max() > span - 6
+    hist = np.histogram(x0, bins=8, range=(0, span))[0]
+    assert hist.min() > 0.85 * hist.mean()
+    # Deterministic per frame seed, and the order of the boxes is random too.
+    assert (spread_crop_boxes(KITTI, 4, 224, frame_rng(7, 12)) == spread_crop_boxes(KITTI, 4, 224, frame_rng(7, 12))).all()
+    # A crop as wide as the image has one valid left edge, and every layout uses it.
+    k = Intrinsics(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
+    assert (spread_crop_boxes(k, 3, 100, rng)[:, 0] == 0).all()
+
+
 def test_sample_rejects_bad_sizes():
     with pytest.raises(ValidationError, match="crop side"):
         sample_crop_boxes(KITTI, 4, 400, np.random.default_rng(0))
     with pytest.raises(ValidationError, match="crops per frame"):
         sample_crop_boxes(KITTI, 0, 100, np.random.default_rng(0))
+    with pytest.raises(ValidationError, match="crop side"):
+        spread_crop_boxes(KITTI, 4, 400, np.random.default_rng(0))
 
 
 def test_crop_angles_centre_zero_edges_half_fov():

@@ -92,3 +92,12 @@ def test_bad_windows(model):
         est.estimate([])
     with pytest.raises(ValidationError, match="aggregator"):
         SunEstimator(model, aggregator="median")
+    with pytest.raises(ValidationError, match="crop layout"):
+        SunEstimator(model, crop_layout="grid")
+
+
+def test_crop_layouts_place_crops_differently_from_the_same_seed(model):
+    frame = make_frames(1)[0]
+    spread = SunEstimator(model).encode(frame).crop_boxes_px
+    uniform = SunEstimator(model, crop_layout="uniform").encode(frame).crop_boxes_px
+    assert spread.shape == uniform.shape and not (spread[:, 0] == uniform[:, 0]).all()

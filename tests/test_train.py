@@ -12,7 +12,17 @@ from rig.types import Attitude, Frame, HeadingRef, Intrinsics
 pytestmark = pytest.mark.torch
 torch = pytest.importorskip("torch", reason="training needs the train extra")
 
-from estimator.train import CHECKPOINT, TrainConfig, TrainingDataError, WindowSampler, load_drive, train  # noqa: E402
+from estimator.train import (  # noqa: E402
+    CHECKPOINT,
+    LR_FLOOR,
+    Schedule,
+    TrainConfig,
+    TrainingDataError,
+    WindowSampler,
+    load_drive,
+    train,
+    use_bf16,
+)
 
 
 def _frames(n, seed, truth=True):
@@ -115,3 +125,62 @@ def test_resume_with_another_preset_is_refused(logs, tmp_path):
     train(logs, out, TrainConfig(preset="tiny", max_steps=1, batch_windows=1))
     with pytest.raises(ValidationError, match="preset"):
         train(logs, out, TrainConfig(preset="fast", max_steps=2, batch_windows=1))
+
+
+def test_hard_share_draws_drives_by_their_running_error():
+    drives = [load_drive(_frames(10, i), f"d{i}", crop_size=16, crop_fov_rad=math.radians(17.6)) for i in range(2)]
+    sampler = WindowSampler(drives, 8, 4, 16, subset_prob=0.0, rng=np.random.default_rng(0), hard_share=1.0)
+    assert (sampler.err_deg == WindowSampler.UNSEEN_ERR_DEG).all()  # unseen drives count as hard
+    for _ in range(30):  # drive 0 solved, drive 1 not
+        sampler.record(np.array([0, 1]), np.array([1.0, 60.0]))
+    assert sampler.err_deg[0] == pytest.approx(1.0, abs=1e-3) and sampler.err_deg[1] == pytest.approx(60.0, abs=1e-3)
+    drawn = sampler.sample(200).drive
+    assert 0.9 < np.mean(drawn == 1) < 1.0  # 60:1 odds, and drive 0 still drawn
+    uniform = WindowSampler(drives, 8, 4, 16, 0.0, np.random.default_rng(0), hard_share=0.0)
+    uniform.err_deg[:] = sampler.err_deg
+    assert 0.35 < np.mean(uniform.sample(200).drive == 1) < 0.65
+
+
+def test_schedule_warms_up_decays_and_never_rises_on_a_longer_resume():
+    cfg = TrainConfig(lr=1e-3, warmup_steps=10)
+    first = Schedule(minutes=10.0)
+    lrs = [first.lr_at(s, 100, cfg) for s in range(101)]
+    assert lrs[0] == pytest.approx(1e-4) and max(lrs) == pytest.approx(1e-3)
+    assert np.all(np.diff(lrs[10:]) <= 0) and lrs[100] == pytest.approx(LR_FLOOR * 1e-3)
+    # Stopped at step 80 of 100, resumed with twice the budget (about 200 steps in all): the new
+    # segment starts at the rate the run stopped at and decays from there to the same floor.
+    stop_lr = first.lr_at(80, 100, cfg)
+    resumed = Schedule(start_step=80, start_lr=stop_lr, minutes=20.0)
+    tail = [resumed.lr_at(s, 200, cfg) for s in range(80, 201)]
+    assert tail[0] == pytest.approx(stop_lr) and np.all(np.diff(tail) <= 0)
+    assert tail[-1] == pytest.approx(LR_FLOOR * 1e-3)
+
+
+def test_checkpoint_keeps_schedule_and_drive_errors(logs, tmp_path):
+    out = tmp_path / "model"
+    train(logs, out, TrainConfig(preset="tiny", max_steps=4, batch_windows=2, warmup_steps=1, subset_prob=0.0))
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    assert state["schedule"]["start_step"] == 0
+    errs = np.array(state["drive_err_deg"])
+    assert errs.shape == (3,) and (errs < WindowSampler.UNSEEN_ERR_DEG).any()  # 8 full windows were recorded
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_both_precisions_train_and_export_float32(logs, tmp_path, precision):
+    from estimator.runtime import OnnxModel
+
+    out = train(logs, tmp_path / precision, TrainConfig(preset="tiny", max_steps=2, batch_windows=2,
+                                                        warmup_steps=1, precision=precision))
+    model = OnnxModel.load(out)
+    crops = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+    emb = model.embed(crops)
+    assert emb.dtype == np.float32 and np.isfinite(emb).all()
+
+
+def test_bad_precision_and_hard_share_are_refused(logs, tmp_path):
+    from rig.errors import ValidationError
+
+    with pytest.raises(ValidationError, match="precision"):
+        use_bf16("fp16")
+    with pytest.raises(ValidationError, match="hard_share"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, hard_share=1.5))
