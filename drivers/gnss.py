@@ -35,19 +35,11 @@ from drivers.nmea import (
     newest_heading,
 )
 from rig.errors import GnssError
+from rig.portio import PORT_ERRORS, Backoff, join_worker
 from rig.types import GnssFix
 
 log = logging.getLogger(__name__)
 
-try:  # pyserial's posix port raises termios.error on a dead fd, not OSError
-    from termios import error as _TermiosError
-except ImportError:  # pragma: no cover - Windows
-
-    class _TermiosError(Exception):  # type: ignore[no-redef]
-        pass
-
-
-_PORT_ERRORS = (serial.SerialException, OSError, ValueError, _TermiosError)
 
 DEFAULT_BAUD = 115200  # what GNSS compasses ship with; NMEA 0183 itself says 4800, 0183-HS 38400
 # A heading older than this is stale. It is above 1 s because many GNSS compasses send one
@@ -118,7 +110,7 @@ def open_source(source: Any, *, baudrate: int = DEFAULT_BAUD, timeout_s: float =
         if not source.is_open:
             try:
                 source.open()
-            except _PORT_ERRORS as exc:
+            except PORT_ERRORS as exc:
                 raise _open_error(str(getattr(source, "port", source)), exc) from None
         return source
     name = os.fspath(source)
@@ -137,7 +129,7 @@ def open_source(source: Any, *, baudrate: int = DEFAULT_BAUD, timeout_s: float =
     try:
         port = serial.serial_for_url(name, baudrate=baudrate, timeout=timeout_s, do_not_open=True)
         port.open()
-    except _PORT_ERRORS as exc:
+    except PORT_ERRORS as exc:
         raise _open_error(name, exc) from None
     return port
 
@@ -178,13 +170,10 @@ class GnssReader:
         if not (isinstance(timeout_s, int | float) and math.isfinite(timeout_s) and timeout_s > 0):
             # None or 0 would make the thread block forever or spin; either breaks close().
             raise GnssError(f"timeout_s: expected a finite number of seconds > 0, got {timeout_s!r}")
-        lo, hi = backoff_s
-        if not 0 < lo <= hi:
-            raise GnssError(f"backoff_s: expected 0 < min <= max seconds, got {backoff_s!r}")
+        self._backoff = Backoff(backoff_s, GnssError)
         if history < 1 or events < 0:
             raise GnssError(f"history: expected >= 1 samples and events >= 0, got {history}, {events}")
         self._clock = clock
-        self._backoff_s = (float(lo), float(hi))
         self._join_timeout_s = join_timeout_s
         self._port = open_source(port_or_url, baudrate=baudrate, timeout_s=timeout_s)
         self._is_file = isinstance(self._port, FileTransport)
@@ -286,18 +275,9 @@ class GnssReader:
             self._closed = True
             self._stop.set()
             self._cond.notify_all()
-        cancel = getattr(self._port, "cancel_read", None)
-        if cancel is not None:
-            try:
-                cancel()  # wakes a pyserial read() waiting in select() at once
-            except _PORT_ERRORS:
-                pass
-        self._thread.join(self._join_timeout_s)
-        if self._thread.is_alive():
-            # A read stuck below Python (a driver, a port object without a timeout): leave the
-            # daemon thread; it closes the port itself when the read returns.
-            log.warning("GNSS reader for %s did not stop within %.1f s; it closes the port when its read returns",
-                        self._name, self._join_timeout_s)
+        # cancel_read wakes a pyserial read() waiting in select() at once.
+        join_worker(self._thread, self._join_timeout_s, getattr(self._port, "cancel_read", None), log,
+                    f"GNSS reader for {self._name}")
 
     def __enter__(self) -> GnssReader:
         return self
@@ -308,22 +288,19 @@ class GnssReader:
     # --- the reader thread: all port I/O happens here -----------------------------------------
 
     def _run(self) -> None:
-        backoff = self._backoff_s[0]
         try:
             while not self._stop.is_set():
                 if not self._port.is_open and not self._reopen():
-                    self._stop.wait(backoff)
-                    backoff = min(2 * backoff, self._backoff_s[1])
+                    self._backoff.wait(self._stop)
                     continue
                 try:
                     data = self._port.read(self._port.in_waiting or 1)
-                except _PORT_ERRORS as exc:
+                except PORT_ERRORS as exc:
                     self._read_failed(exc)
-                    self._stop.wait(backoff)  # a vanished device fails at once: do not spin
-                    backoff = min(2 * backoff, self._backoff_s[1])
+                    self._backoff.wait(self._stop)  # a vanished device fails at once: do not spin
                     continue
                 if data:
-                    backoff = self._backoff_s[0]
+                    self._backoff.reset()
                     self._take(data, self._clock())
                 elif self._is_file and self._port.at_eof:
                     self._take(b"", self._clock(), end=True)
@@ -384,7 +361,7 @@ class GnssReader:
     def _reopen(self) -> bool:
         try:
             self._port.open()
-        except _PORT_ERRORS as exc:
+        except PORT_ERRORS as exc:
             with self._cond:
                 self._last_error = f"reopen failed: {type(exc).__name__}: {exc}"
             return False
@@ -397,5 +374,5 @@ class GnssReader:
         try:
             if self._port.is_open:
                 self._port.close()
-        except _PORT_ERRORS:
+        except PORT_ERRORS:
             pass

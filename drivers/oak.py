@@ -49,6 +49,7 @@ from drivers.imu_heading import (
     validate_rotation,
 )
 from rig.errors import SunrigError, ValidationError
+from rig.portio import Backoff, join_worker
 from rig.types import Frame, Intrinsics
 
 log = logging.getLogger(__name__)
@@ -146,9 +147,7 @@ class OakConfig:
         d = self.declination_deg
         if d is not None and not (isinstance(d, int | float) and math.isfinite(d) and -180 <= d <= 180):
             raise ValidationError(f"OakConfig.declination_deg: expected within [-180, 180] (east +), got {d!r}")
-        lo, hi = self.backoff_s
-        if not 0 < lo <= hi:
-            raise ValidationError(f"OakConfig.backoff_s: expected 0 < first <= longest seconds, got {self.backoff_s!r}")
+        Backoff(self.backoff_s, lambda msg: ValidationError(f"OakConfig.{msg}"))  # validates
         if self.cam_from_imu is not None:
             validate_rotation("OakConfig.cam_from_imu", self.cam_from_imu)
         if self.intrinsics is not None and (self.intrinsics.width, self.intrinsics.height) != (self.width, self.height):
@@ -549,10 +548,7 @@ class OakCamera:
             self._closed = True
             self._stop.set()
             self._cond.notify_all()
-        self._thread.join(self._join_timeout_s)
-        if self._thread.is_alive():
-            log.warning("OAK reader did not stop within %.1f s; leaving it (daemon) to finish its depthai call",
-                        self._join_timeout_s)
+        join_worker(self._thread, self._join_timeout_s, None, log, "OAK reader")
 
     def __enter__(self) -> OakCamera:
         return self
@@ -567,8 +563,7 @@ class OakCamera:
             log.warning(msg, *args)
 
     def _run(self, session: OakSession | None) -> None:
-        lo, hi = self.config.backoff_s
-        backoff = lo
+        backoff = Backoff(self.config.backoff_s, ValidationError)
         had_session = False
         loss_errors = _loss_errors()
         try:
@@ -580,9 +575,9 @@ class OakCamera:
                         with self._cond:
                             self._counts["open_failures"] += 1
                             self._last_error = str(exc)
-                        self._warn_once("open", "OAK: %s; retrying every %.1f-%.0f s", exc, lo, hi)
-                        self._stop.wait(backoff)
-                        backoff = min(2 * backoff, hi)
+                        self._warn_once("open", "OAK: %s; retrying every %.1f-%.0f s", exc,
+                                        backoff.first_s, backoff.longest_s)
+                        backoff.wait(self._stop)
                         continue
                 if had_session:
                     with self._cond:
@@ -603,10 +598,8 @@ class OakCamera:
                     self._close_session(session)
                     session = None
                 if self._got_frame:
-                    backoff = lo  # it worked for a while: a new outage starts the backoff again
-                if self._stop.wait(backoff):
-                    break
-                backoff = min(2 * backoff, hi)
+                    backoff.reset()  # it worked for a while: a new outage starts the backoff again
+                backoff.wait(self._stop)
         except BaseException as exc:  # a bug: report it rather than die silently
             with self._cond:
                 self._failure = f"{type(exc).__name__}: {exc}"

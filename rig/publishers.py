@@ -24,20 +24,12 @@ from typing import IO, Any, Protocol, runtime_checkable
 import serial
 
 from rig.errors import PublishError
+from rig.portio import PORT_ERRORS, Backoff, join_worker
 from rig.protocol import DEFAULT_STATUS_RULE, StatusRule, encode_binary, encode_nmea
 from rig.types import SunEstimate
 
 log = logging.getLogger(__name__)
 
-try:  # pyserial's posix reset_output_buffer raises termios.error on a dead fd, not OSError
-    from termios import error as _TermiosError
-except ImportError:  # pragma: no cover - Windows
-
-    class _TermiosError(Exception):  # type: ignore[no-redef]
-        pass
-
-
-_PORT_ERRORS = (serial.SerialException, OSError, ValueError, _TermiosError)
 
 FORMATS: dict[str, Callable[[SunEstimate, StatusRule], bytes]] = {"nmea": encode_nmea, "binary": encode_binary}
 # After a timeout, an error or a reopen the controller may hold half a message. An NMEA line
@@ -96,7 +88,7 @@ def _plain_posix_fd(port: serial.SerialBase) -> int | None:
     try:
         fd = port.fileno()
         return fd if not os.get_blocking(fd) else None
-    except _PORT_ERRORS:
+    except PORT_ERRORS:
         return None
 
 
@@ -134,15 +126,12 @@ class SerialPublisher:
         # A finite timeout is what bounds every wait of the writer thread; None would block forever.
         if not (isinstance(write_timeout_s, int | float) and math.isfinite(write_timeout_s) and write_timeout_s > 0):
             raise PublishError(f"write_timeout_s: expected a finite number of seconds > 0, got {write_timeout_s!r}")
-        lo, hi = backoff_s
-        if not 0 < lo <= hi:
-            raise PublishError(f"backoff_s: expected 0 < min <= max seconds, got {backoff_s!r}")
+        self._backoff = Backoff(backoff_s, PublishError)
         self._format = format
         self._encode = FORMATS[format]
         self._rule = status_rule
         self._baudrate = baudrate
         self._write_timeout_s = float(write_timeout_s)
-        self._backoff_s = (float(lo), float(hi))
         self._join_timeout_s = join_timeout_s
         if isinstance(port, str):
             self._url: str | None = port
@@ -153,7 +142,7 @@ class SerialPublisher:
             if not port.is_open:
                 try:
                     port.open()
-                except _PORT_ERRORS as exc:
+                except PORT_ERRORS as exc:
                     raise _open_error(_port_name(port), exc) from None
             port.write_timeout = self._write_timeout_s
         self._name = self._url or _port_name(self._port)
@@ -207,21 +196,9 @@ class SerialPublisher:
             self._closed = True
             self._stop.set()
             self._cond.notify_all()
-        cancel = getattr(self._port, "cancel_write", None)
-        if cancel is not None:
-            try:
-                cancel()  # wakes a pyserial write() waiting in select() (ports not written by _write_fd)
-            except _PORT_ERRORS:
-                pass
-        self._thread.join(self._join_timeout_s)
-        if self._thread.is_alive():
-            # The write is stuck below Python (a driver, a blocking port object): leave the daemon
-            # thread; it closes the port itself when the write returns.
-            log.warning(
-                "serial writer for %s did not stop within %.1f s; it closes the port when its write returns",
-                self._name,
-                self._join_timeout_s,
-            )
+        # cancel_write wakes a pyserial write() waiting in select() (ports not written by _write_fd).
+        join_worker(self._thread, self._join_timeout_s, getattr(self._port, "cancel_write", None), log,
+                    f"serial writer for {self._name}")
 
     def __enter__(self) -> SerialPublisher:
         return self
@@ -232,21 +209,18 @@ class SerialPublisher:
     # --- the writer thread: all port I/O happens here ------------------------------------
 
     def _run(self) -> None:
-        backoff = self._backoff_s[0]
         try:
             while not self._stop.is_set():
                 if not self._port.is_open and not self._reopen():
-                    self._stop.wait(backoff)
-                    backoff = min(2 * backoff, self._backoff_s[1])
+                    self._backoff.wait(self._stop)
                     continue
                 message = self._take()
                 if message is None:
                     continue
                 if self._write(message):
-                    backoff = self._backoff_s[0]
+                    self._backoff.reset()
                 else:
-                    self._stop.wait(backoff)  # let a stalled reader drain, or a device come back
-                    backoff = min(2 * backoff, self._backoff_s[1])
+                    self._backoff.wait(self._stop)  # let a stalled reader drain, or a device come back
         finally:
             self._close_port()
 
@@ -275,7 +249,7 @@ class SerialPublisher:
                     outcome = "dropped_write_timeout"
         except serial.SerialTimeoutException:
             outcome = "dropped_write_timeout"
-        except _PORT_ERRORS as exc:
+        except PORT_ERRORS as exc:
             outcome, error = "write_errors", f"{type(exc).__name__}: {exc}"
         with self._cond:
             self._counts[outcome] += 1
@@ -321,11 +295,11 @@ class SerialPublisher:
             # A close with unsent data waits for it to drain (up to closing_wait, 30 s by
             # default on Linux UARTs); the data is stale anyway, so discard it first.
             port.reset_output_buffer()
-        except _PORT_ERRORS:
+        except PORT_ERRORS:
             pass
         try:
             port.close()
-        except _PORT_ERRORS:
+        except PORT_ERRORS:
             pass
         self._resync = True
 
@@ -340,7 +314,7 @@ class SerialPublisher:
                 self._port = port
             else:
                 self._port.open()
-        except _PORT_ERRORS as exc:
+        except PORT_ERRORS as exc:
             with self._cond:
                 self._last_error = f"reopen: {type(exc).__name__}: {exc}"
             return False

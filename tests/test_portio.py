@@ -1,0 +1,59 @@
+"""The reconnect backoff and bounded stop shared by the device workers (GNSS, serial, OAK)."""
+
+import logging
+import threading
+import time
+
+import pytest
+
+from rig.errors import PublishError
+from rig.portio import Backoff, join_worker
+
+
+def test_backoff_doubles_to_the_ceiling_and_resets():
+    stop = threading.Event()
+    stop.set()  # wait() returns at once: only the bookkeeping is under test
+    b = Backoff((0.1, 0.5), PublishError)
+    seen = []
+    for _ in range(5):
+        seen.append(b.current_s)
+        b.wait(stop)
+    assert seen == [0.1, 0.2, 0.4, 0.5, 0.5]
+    b.reset()
+    assert b.current_s == 0.1
+
+
+@pytest.mark.parametrize("bad", [(0.0, 1.0), (2.0, 1.0), (-1.0, 1.0), (0.1, float("inf")), (float("nan"), 1.0)])
+def test_backoff_refuses_bad_bounds_with_the_callers_error(bad):
+    with pytest.raises(PublishError, match="backoff_s"):
+        Backoff(bad, PublishError)
+
+
+def test_backoff_wait_ends_at_stop():
+    stop = threading.Event()
+    b = Backoff((30.0, 60.0), PublishError)
+    threading.Timer(0.05, stop.set).start()
+    t0 = time.monotonic()
+    b.wait(stop)
+    assert time.monotonic() - t0 < 5.0  # not the 30 s backoff
+
+
+def test_join_worker_wakes_joins_and_leaves_a_stuck_thread(caplog):
+    release = threading.Event()
+    woken = []
+    t = threading.Thread(target=release.wait, daemon=True)
+    t.start()
+    join_worker(t, 0.05, lambda: woken.append(True) or release.set(), logging.getLogger("t"), "worker")
+    assert woken and not t.is_alive()
+
+    stuck_release = threading.Event()
+    stuck = threading.Thread(target=stuck_release.wait, daemon=True)
+    stuck.start()
+
+    def wake_fails():
+        raise OSError("port gone")
+
+    with caplog.at_level(logging.WARNING):
+        join_worker(stuck, 0.05, wake_fails, logging.getLogger("t"), "stuck worker")  # the OSError is swallowed
+    assert stuck.is_alive() and "stuck worker did not stop within 0.1 s" in caplog.text
+    stuck_release.set()
