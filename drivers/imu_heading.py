@@ -509,6 +509,7 @@ class AttitudeTracker:
         max_gap_s: float = 0.1,
         max_accuracy_rad: float = math.radians(45.0),
         tilt_gain: float = 0.5,
+        epoch: int = 0,
     ) -> None:
         self.mode = ImuMode(mode)
         self.cam_from_imu = validate_rotation("cam_from_imu", cam_from_imu)
@@ -523,6 +524,9 @@ class AttitudeTracker:
         # A declination turns magnetic into true; it means nothing for a relative heading.
         self.declination_rad = declination_rad if self.mode is ImuMode.ROTATION_VECTOR else None
         self.heading_ref = heading_ref_for(self.mode, self.declination_rad)
+        # Carried by every Attitude. A relative heading's zero is this tracker's first sample, so
+        # a new tracker (a reconnected device) must come with a new epoch; absolute ones keep 0.
+        self.epoch = int(epoch) if self.heading_ref is HeadingRef.RELATIVE else 0
         self.max_accuracy_rad = float(max_accuracy_rad)
         self.buffer = OrientationBuffer(history_s=history_s, capacity=capacity, max_gap_s=max_gap_s)
         self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=tilt_gain) if self.mode is ImuMode.GYRO else None
@@ -591,7 +595,7 @@ class AttitudeTracker:
         heading -= self._zero_rad or 0.0
         if self.declination_rad is not None:
             heading = magnetic_to_true(heading, self.declination_rad)
-        return Attitude(heading, self.heading_ref, pitch, roll), OK
+        return Attitude(heading, self.heading_ref, pitch, roll, epoch=self.epoch), OK
 
     def reset(self) -> None:
         """Forget everything (a new device session): relative headings restart from a new zero."""

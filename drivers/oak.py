@@ -621,9 +621,13 @@ class OakCamera:
         if session.cam_from_imu_source.startswith("default"):
             self._warn_once("mount", "OAK %s: IMU-to-camera rotation is the %s: check it (docs/oak.md) or set "
                             "cam_from_imu", session.description, session.cam_from_imu_source)
+        # Each session re-zeroes a relative heading: its session number is the heading epoch.
+        with self._cond:
+            epoch = self._counts["sessions"]
         return AttitudeTracker(session.imu_mode, session.cam_from_imu, declination_rad=cfg.declination_rad,
                                sensor_world=cfg.sensor_world, history_s=cfg.imu_history_s,
-                               max_gap_s=cfg.max_imu_gap_s, max_accuracy_rad=math.radians(cfg.max_rv_accuracy_deg))
+                               max_gap_s=cfg.max_imu_gap_s, max_accuracy_rad=math.radians(cfg.max_rv_accuracy_deg),
+                               epoch=epoch)
 
     def _serve(self, session: OakSession) -> None:
         """Run one session until close() (returns) or a loss (raises)."""

@@ -74,6 +74,10 @@ def window_tokens(window: Sequence[FrameFeatures]) -> WindowTokens:
     refs = {f.frame.attitude.reference for f in window}
     if len(refs) > 1:
         raise EstimationError(f"window mixes heading references {sorted(r.value for r in refs)}")
+    epochs = {f.frame.attitude.epoch for f in window}
+    if len(epochs) > 1:
+        raise EstimationError(f"window mixes heading epochs {sorted(epochs)}: their zeros differ; "
+                              "form windows with rig.window.SpreadWindowPolicy, which keeps one epoch")
     models = {f.model_id for f in window}
     if len(models) > 1:
         raise EstimationError(f"window mixes embeddings of different models {sorted(models)}")

@@ -132,6 +132,8 @@ _ATTITUDE_SCHEMA = _json_schema(
         "reference": {"type": "string", "enum": [r.value for r in HeadingRef]},
         "pitch_deg": {"type": ["number", "null"], "description": "null when unknown"},
         "roll_deg": {"type": ["number", "null"], "description": "null when unknown"},
+        "epoch": {"type": "integer", "minimum": 0,
+                  "description": "which zero a relative heading counts from; absent in older logs (0)"},
         "seq": _SEQ,
     },
     ["heading_deg", "reference", "pitch_deg", "roll_deg", "seq"],
@@ -326,6 +328,7 @@ def encode_attitude(att: Attitude, seq: int) -> bytes:
             "reference": att.reference.value,
             "pitch_deg": _deg(att.pitch_rad),
             "roll_deg": _deg(att.roll_rad),
+            "epoch": att.epoch,
             "seq": seq,
         }
     )
@@ -338,6 +341,7 @@ def decode_attitude(data: bytes) -> Attitude:
         reference=d["reference"],
         pitch_rad=_rad(d.get("pitch_deg")),
         roll_rad=_rad(d.get("roll_deg")),
+        epoch=d.get("epoch", 0),
     )
 
 

@@ -100,12 +100,18 @@ class Intrinsics:
 
 @dataclass(frozen=True)
 class Attitude:
-    """Camera heading (yaw, clockwise from the reference's north) and, where known, pitch/roll."""
+    """Camera heading (yaw, clockwise from the reference's north) and, where known, pitch/roll.
+
+    ``epoch`` tells apart the zeros of a relative heading: a source that loses its zero (an IMU
+    that reconnects and starts again at 0, visual odometry that restarts) counts up, and headings
+    of different epochs are never put in one window. Absolute references keep epoch 0.
+    """
 
     heading_rad: float
     reference: HeadingRef
     pitch_rad: float | None = None
     roll_rad: float | None = None
+    epoch: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "heading_rad", float(wrap_2pi(_finite("heading_rad", self.heading_rad))))
@@ -115,6 +121,9 @@ class Attitude:
             raise ValidationError(
                 f"Attitude.reference: expected one of {[r.value for r in HeadingRef]}, got {self.reference!r}"
             ) from None
+        if isinstance(self.epoch, bool) or not isinstance(self.epoch, int | np.integer) or self.epoch < 0:
+            raise ValidationError(f"Attitude.epoch: expected an integer >= 0, got {self.epoch!r}")
+        object.__setattr__(self, "epoch", int(self.epoch))
         for name in ("pitch_rad", "roll_rad"):
             v = getattr(self, name)
             if v is not None:

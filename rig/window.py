@@ -46,10 +46,17 @@ class SpreadWindowPolicy:
             raise ValidationError(f"window yaw_scale_rad: expected > 0, got {self.yaw_scale_rad}")
 
     def select(self, candidates: Sequence[T]) -> list[T]:
-        """Chosen frames, oldest first. ``candidates`` must be ordered by time, oldest first."""
+        """Chosen frames, oldest first. ``candidates`` must be ordered by time, oldest first.
+
+        Only frames whose heading shares the newest heading's zero are candidates: the same
+        reference and, for relative headings, the same epoch (after a source lost its zero, the
+        window starts again from the frames after it)."""
         usable = [c for c in candidates if c.frame.attitude is not None]
         if not usable:
             return []
+        newest = usable[-1].frame.attitude
+        usable = [c for c in usable
+                  if (c.frame.attitude.reference, c.frame.attitude.epoch) == (newest.reference, newest.epoch)]
         t = np.array([c.frame.t_mono_s for c in usable])
         first = int(np.searchsorted(t, t[-1] - self.span_s, side="left"))
         pool = usable[first:]

@@ -88,6 +88,10 @@ def test_bad_windows(model):
                      attitude=Attitude(0.0, HeadingRef.RELATIVE))
     with pytest.raises(EstimationError, match="mixes heading references"):
         est.estimate(est.encode_batch([frames[0], relative]))
+    later = Frame(t_mono_s=1.1, seq=10, image_bgr=frames[0].image_bgr, intrinsics=INTR,
+                  attitude=Attitude(0.0, HeadingRef.RELATIVE, epoch=1))
+    with pytest.raises(EstimationError, match="mixes heading epochs"):
+        est.estimate(est.encode_batch([relative, later]))
     with pytest.raises(EstimationError, match="empty window"):
         est.estimate([])
     with pytest.raises(ValidationError, match="aggregator"):

@@ -73,9 +73,10 @@ def make_frames(n: int, seed: int = 0, *, full: bool = True, t0: float = 1234.56
             extra = dict(
                 attitude=Attitude(
                     heading_rad=rng.uniform(0, 2 * math.pi),
-                    reference=HeadingRef.TRUE if i % 2 else HeadingRef.MAGNETIC,
+                    reference=(HeadingRef.TRUE, HeadingRef.MAGNETIC, HeadingRef.RELATIVE)[i % 3],
                     pitch_rad=rng.uniform(-0.2, 0.2),
                     roll_rad=None if i % 3 == 0 else rng.uniform(-0.1, 0.1),
+                    epoch=i // 5 if i % 3 == 2 else 0,  # relative headings of two zeros
                 ),
                 utc_ns=UTC0 + i * 33_333_333,
                 gnss=GnssFix(
@@ -135,6 +136,7 @@ def assert_same_meta(got: Frame, want: Frame) -> None:
         assert got.attitude is None
     else:
         assert got.attitude.reference == want.attitude.reference
+        assert got.attitude.epoch == want.attitude.epoch
         assert got.attitude.heading_rad == pytest.approx(want.attitude.heading_rad, abs=EXACT_F64)
         for name in ("pitch_rad", "roll_rad"):
             w = getattr(want.attitude, name)

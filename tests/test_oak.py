@@ -341,6 +341,18 @@ def test_device_loss_is_reported_and_reconnected_and_seq_continues():
     assert "pipeline stopped" in stats["last_error"] or "closed" in stats["last_error"]
 
 
+def test_a_reconnect_starts_a_new_heading_epoch_only_for_relative_headings():
+    """A game-rotation-vector heading restarts at 0 when the device comes back: its frames carry
+    the session's epoch so no window mixes the two zeros. A true heading keeps epoch 0."""
+    for mode, want in ((ImuMode.GAME_ROTATION_VECTOR, [0] * 5 + [1] * 6), (ImuMode.ROTATION_VECTOR, [0] * 11)):
+        opener = host_sessions(script(5), script(6, first_seq=40), then=("stop", "idle"), imu_mode=mode)
+        with OakCamera(OakConfig(**FAST), open_session=opener) as cam:
+            frames = collect(cam, 11)
+        assert len(frames) == 11 and [f.attitude.epoch for f in frames] == want, mode
+        if mode is ImuMode.GAME_ROTATION_VECTOR:
+            assert frames[0].attitude.reference is HeadingRef.RELATIVE
+
+
 def test_a_stalled_device_counts_as_lost():
     opener = host_sessions(script(2), script(2, first_seq=10))
     cfg = OakConfig(**{**FAST, "stall_timeout_s": 0.3})

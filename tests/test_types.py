@@ -63,6 +63,10 @@ def test_attitude_wraps_and_checks_reference():
         Attitude(heading_rad=0.0, reference="north-ish")
     with pytest.raises(ValidationError, match="pitch_rad"):
         Attitude(heading_rad=0.0, reference="true", pitch_rad=4.0)
+    assert a.epoch == 0 and Attitude(0.0, "relative", epoch=np.int64(3)).epoch == 3
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(ValidationError, match="epoch"):
+            Attitude(heading_rad=0.0, reference="relative", epoch=bad)
 
 
 def test_gnss_ranges():

@@ -11,8 +11,8 @@ INTR = Intrinsics(fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
 IMG = np.zeros((16, 16, 3), np.uint8)
 
 
-def feats(seq, t, heading=True, yaw=None):
-    att = Attitude(0.1 * seq if yaw is None else yaw, HeadingRef.TRUE) if heading else None
+def feats(seq, t, heading=True, yaw=None, ref=HeadingRef.TRUE, epoch=0):
+    att = Attitude(0.1 * seq if yaw is None else yaw, ref, epoch=epoch) if heading else None
     frame = Frame(t_mono_s=t, seq=seq, image_bgr=IMG, intrinsics=INTR, attitude=att)
     return FrameFeatures(frame, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 2), np.float32), "m")
 
@@ -53,6 +53,17 @@ def test_frames_without_heading_are_never_chosen():
     ring = [feats(i, i * 0.1, heading=i % 2 == 0) for i in range(40)]
     assert all(f.frame.attitude is not None for f in SpreadWindowPolicy(8, 4.0).select(ring))
     assert SpreadWindowPolicy().select([feats(0, 0.0, heading=False)]) == []
+
+
+def test_only_frames_sharing_the_newest_headings_zero_are_chosen():
+    # A relative heading source lost its zero at frame 20 (epoch 0 -> 1): the window starts again.
+    ring = [feats(i, i * 0.1, ref=HeadingRef.RELATIVE, epoch=int(i >= 20)) for i in range(30)]
+    chosen = SpreadWindowPolicy(8, 4.0).select(ring)
+    assert len(chosen) == 8 and {f.frame.attitude.epoch for f in chosen} == {1}
+    assert [f.frame.seq for f in SpreadWindowPolicy(8, 4.0).select(ring[:21])] == [20]  # just after the loss
+    # A source that switched reference (GNSS heading back after a relative stretch) likewise.
+    mixed = [feats(i, i * 0.1, ref=HeadingRef.RELATIVE if i < 25 else HeadingRef.TRUE) for i in range(30)]
+    assert {f.frame.attitude.reference for f in SpreadWindowPolicy(8, 4.0).select(mixed)} == {HeadingRef.TRUE}
 
 
 def test_distinct_frames_even_when_sparse():
