@@ -12,38 +12,12 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import TextIO
 
 from rig.errors import SunrigError
+from rig.progress import Progress
 
 EXIT_USER_ERROR = 2
 EXIT_BUG = 1
-
-
-class Progress:
-    """A one-line progress counter on stderr, only when stderr is a terminal (logs stay clean)."""
-
-    def __init__(self, label: str, stream: TextIO = sys.stderr, enabled: bool | None = None) -> None:
-        self.label = label
-        self.stream = stream
-        self.enabled = stream.isatty() if enabled is None else enabled
-        self.start = time.monotonic()
-        self.last = 0.0
-
-    def update(self, done: int, extra: str = "") -> None:
-        now = time.monotonic()
-        if not self.enabled or now - self.last < 0.2:
-            return
-        self.last = now
-        rate = done / max(now - self.start, 1e-9)
-        self.stream.write(f"\r{self.label}: {done} ({rate:.1f}/s) {extra}\033[K")
-        self.stream.flush()
-
-    def close(self, summary: str) -> None:
-        if self.enabled:
-            self.stream.write("\r\033[K")
-        self.stream.write(f"{self.label}: {summary}\n")
-        self.stream.flush()
 
 
 def _load_model(model_dir: str | None):

@@ -18,7 +18,6 @@ ambient), ``render`` (rasteriser, shading, shadows), ``camera`` (exposure, noise
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ import numpy as np
 from replay.synthetic.camera import CameraEffects
 from replay.synthetic.drive import KITTI_INTRINSICS, Drive, DriveParams, kitti_intrinsics, plan_drive, synth_drive
 from rig.errors import ValidationError
+from rig.progress import Progress
 from rig.types import Intrinsics
 
 __all__ = [
@@ -44,34 +44,6 @@ __all__ = [
 def drive_seed(seed: int, index: int) -> int:
     """The seed of drive ``index`` of a set made with ``seed``: independent streams per drive."""
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint32)[0])
-
-
-class _Progress:
-    """tqdm when installed, else a counter on stderr."""
-
-    def __init__(self, total: int, enabled: bool, desc: str) -> None:
-        self.total, self.enabled, self.n = total, enabled, 0
-        self._bar = None
-        if enabled:
-            try:
-                from tqdm import tqdm
-            except ImportError:
-                pass
-            else:
-                self._bar = tqdm(total=total, desc=desc, unit="frame")
-
-    def update(self, n: int = 1) -> None:
-        self.n += n
-        if self._bar is not None:
-            self._bar.update(n)
-        elif self.enabled:
-            print(f"\rsynthetic: {self.n}/{self.total} frames", end="", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-        elif self.enabled:
-            print(file=sys.stderr)
 
 
 def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> tuple[Path, int]:
@@ -107,18 +79,18 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
             for i, p in enumerate(paths) if not p.exists()]
-    bar = _Progress(drives * frames, progress, "synthetic drives")
-    bar.update((drives - len(todo)) * frames)
+    bar = Progress("synth", total=drives * frames, unit="frames", enabled=None if progress else False)
+    bar.skip((drives - len(todo)) * frames)  # kept from an earlier run: not part of the rate
     try:
         if jobs == 1 or len(todo) <= 1:
             for job in todo:
-                bar.update(_write_one(job)[1])
+                bar.advance(_write_one(job)[1])
         else:
             import multiprocessing
 
             with multiprocessing.get_context("spawn").Pool(jobs) as pool:
                 for _, n in pool.imap_unordered(_write_one, todo):
-                    bar.update(n)
+                    bar.advance(n)
     finally:
         bar.close()
     return paths

@@ -1,0 +1,71 @@
+"""A one-line progress counter for long work (replay, eval, synth, train), on stderr.
+
+Only drawn when the stream is a terminal, so logs and pipes stay clean; the closing summary line
+is always written. Work already done before this run (a resumed ``synth``) counts toward the
+total but not toward the rate, so the rate and the time left describe this run.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+
+def _clock(seconds: float) -> str:
+    m, s = divmod(int(round(seconds)), 60)
+    h, m = divmod(m, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+class Progress:
+    """``label: done[/total] [unit] (rate/s[, time left]) extra``, redrawn at most every
+    ``min_interval_s``; ``clock`` is injectable for tests."""
+
+    def __init__(self, label: str, *, total: int | None = None, unit: str = "", stream: TextIO = sys.stderr,
+                 enabled: bool | None = None, min_interval_s: float = 0.2, clock=time.monotonic) -> None:
+        self.label, self.total, self.unit = label, total, unit
+        self.stream = stream
+        self.enabled = stream.isatty() if enabled is None else enabled
+        self.min_interval_s = min_interval_s
+        self.clock = clock
+        self.start = clock()
+        self.last = float("-inf")
+        self.done = 0
+        self.skipped = 0  # done before this run: not part of the rate
+
+    def line(self, extra: str = "") -> str:
+        elapsed = max(self.clock() - self.start, 1e-9)
+        rate = (self.done - self.skipped) / elapsed
+        count = f"{self.done}/{self.total}" if self.total is not None else f"{self.done}"
+        unit = f" {self.unit}" if self.unit else ""
+        timing = f"{rate:.1f}/s"
+        if self.total is not None and rate > 0 and self.done < self.total:
+            timing += f", {_clock((self.total - self.done) / rate)} left"
+        return f"{self.label}: {count}{unit} ({timing})" + (f" {extra}" if extra else "")
+
+    def update(self, done: int, extra: str = "") -> None:
+        """Set the count to ``done`` (work finished so far, including skipped) and maybe redraw."""
+        self.done = done
+        now = self.clock()
+        if not self.enabled or now - self.last < self.min_interval_s:
+            return
+        self.last = now
+        self.stream.write(f"\r{self.line(extra)}\033[K")
+        self.stream.flush()
+
+    def advance(self, n: int = 1, extra: str = "") -> None:
+        self.update(self.done + n, extra)
+
+    def skip(self, n: int) -> None:
+        """``n`` units were already done before this run (e.g. logs a resumed run keeps)."""
+        self.skipped += n
+        self.update(self.done + n)
+
+    def close(self, summary: str | None = None) -> None:
+        """Clear the counter; write ``summary`` as the final line when given."""
+        if self.enabled:
+            self.stream.write("\r\033[K")
+        if summary is not None:
+            self.stream.write(f"{self.label}: {summary}\n")
+        self.stream.flush()

@@ -1,0 +1,41 @@
+"""The progress line: drawn only on a terminal, rate and time left for this run only."""
+
+import io
+
+from rig.progress import Progress
+
+
+class _Tty(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_counts_rate_and_time_left_exclude_work_done_before_this_run():
+    now = [100.0]
+    out = _Tty()
+    p = Progress("synth", total=1000, unit="frames", stream=out, clock=lambda: now[0])
+    p.skip(400)  # a resumed run kept 400 frames
+    now[0] += 10.0
+    p.advance(100)  # 100 frames in 10 s: 10/s, 500 left -> 50 s
+    assert p.line() == "synth: 500/1000 frames (10.0/s, 0:50 left)"
+    assert out.getvalue().endswith("synth: 500/1000 frames (10.0/s, 0:50 left)\033[K")
+    p.close("done")
+    assert out.getvalue().endswith("\r\033[Ksynth: done\n")
+
+
+def test_not_a_terminal_gets_only_the_summary_and_redraws_are_throttled():
+    out = io.StringIO()
+    p = Progress("eval", stream=out)
+    for i in range(100):
+        p.update(i, "windows")
+    p.close("mean 9 deg")
+    assert out.getvalue() == "eval: mean 9 deg\n"
+    now = [0.0]
+    tty = _Tty()
+    q = Progress("eval", stream=tty, clock=lambda: now[0], min_interval_s=0.2)
+    for i in range(10):
+        now[0] += 0.05
+        q.update(i)
+    assert tty.getvalue().count("\r") == 3  # at 0.05 s, then every 0.2 s: 0.25, 0.45
+    q.close()
+    assert not tty.getvalue().endswith("\n")  # no summary: the line is only cleared
