@@ -48,7 +48,7 @@ from drivers.imu_heading import (
     imu_sensors,
     validate_rotation,
 )
-from rig.errors import SunrigError, ValidationError
+from rig.errors import OakError, ValidationError
 from rig.portio import Backoff, join_worker
 from rig.types import Frame, Intrinsics
 
@@ -78,10 +78,6 @@ CAMERA_COUNTS = (
     "device_lost",  # sessions that ended by an error, a stopped pipeline or a stall
     "reconnects",  # sessions started after a lost one
 )
-
-
-class OakError(SunrigError):
-    """The OAK source cannot be opened or used: no device, no calibration, a bad option, a lost device."""
 
 
 def _dai():

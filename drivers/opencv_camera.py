@@ -45,7 +45,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from rig.errors import SunrigError
+from rig.errors import CameraError, SunrigError
 from rig.types import Frame, Intrinsics
 
 log = logging.getLogger(__name__)
@@ -53,10 +53,6 @@ log = logging.getLogger(__name__)
 _URL_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "http://", "https://", "udp://", "tcp://", "srt://")
 _OPEN_TIMEOUT_MS = 5000
 _READ_TIMEOUT_MS = 5000
-
-
-class CameraError(SunrigError):
-    """A camera cannot be opened or used: no such device, file or stream, no intrinsics, a bad option."""
 
 
 # --- pure parts ----------------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from rig.errors import SunrigError
+from rig.errors import SourceError, SunrigError
 from rig.types import Frame
 
 log = logging.getLogger(__name__)
@@ -36,10 +36,6 @@ CAMERA_KINDS = ("oak", "opencv", "file")
 HEADING_KINDS = ("oak-imu", "nmea", "visual", "none", "log")
 CAMERA_HELP = "oak, oak:DEVICE_ID, opencv:0, opencv:rtsp://..., opencv:VIDEO_FILE or file:LOG"
 HEADING_HELP = "oak-imu, nmea:PORT, visual, none or log"
-
-
-class SourceError(SunrigError):
-    """A ``--camera`` / ``--heading`` spec is unknown, incomplete, or the two do not go together."""
 
 
 @dataclass(frozen=True)

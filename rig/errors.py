@@ -45,11 +45,28 @@ class ProtocolError(SunrigError, ValueError):
         self.reason = reason
 
 
-class GnssError(SunrigError):
+class DeviceError(SunrigError):
+    """A device source or sink cannot be opened or used. Raised at start-up; live, the device
+    workers retry with backoff and count failures instead (``rig.portio``)."""
+
+
+class GnssError(DeviceError):
     """A GNSS/INS source cannot be opened or used: no such device or file, no permission, a bad option."""
 
 
-class PublishError(SunrigError):
+class CameraError(DeviceError):
+    """A camera cannot be opened or used: no such device, file or stream, no intrinsics, a bad option."""
+
+
+class OakError(CameraError):
+    """The OAK source cannot be opened or used: no device, no calibration, a bad option, a lost device."""
+
+
+class SourceError(SunrigError):
+    """A ``--camera`` / ``--heading`` spec is unknown, incomplete, or the two do not go together."""
+
+
+class PublishError(DeviceError):
     """A publisher cannot start or be used: the serial port cannot be opened, a bad option, closed."""
 
 
