@@ -32,7 +32,7 @@ from estimator.contract import (
     METADATA_GRAPH_KEY,
     ModelContract,
 )
-from estimator.nets import Aggregator, Backbone, NetConfig
+from estimator.nets import TINY, Aggregator, Backbone, NetConfig
 from rig.errors import MissingExtraError, ModelError, ValidationError, require_torch
 
 torch = require_torch()
@@ -216,13 +216,8 @@ def build_random_nets(config: NetConfig, seed: int) -> tuple[Backbone, Aggregato
 
 def build_random_model(
     out_dir: str | os.PathLike,
+    config: NetConfig = TINY,
     *,
-    base_width: int = 8,
-    crop_size: int = 32,
-    width: int = 48,
-    layers: int = 1,
-    heads: int = 2,
-    mlp: int = 64,
     seed: int = 0,
     crops_per_frame: int = 4,
     frames_per_window: int = 8,
@@ -230,13 +225,11 @@ def build_random_model(
 ) -> Path:
     """Export an UNTRAINED model (random weights) for tests: a real folder, meaningless answers.
 
+    ``config`` is any architecture (default: the ``tiny`` preset, whose export takes seconds).
     The contract says so (``training.trained`` is False) and records the seed, so
     ``build_random_nets(NetConfig.from_architecture(contract.architecture), seed)`` rebuilds the
     exact torch modules behind the folder.
     """
-    config = NetConfig(
-        base_width=base_width, crop_size=crop_size, width=width, layers=layers, heads=heads, mlp=mlp
-    )
     backbone, aggregator = build_random_nets(config, seed)
     contract = config.contract(
         crops_per_frame=crops_per_frame,

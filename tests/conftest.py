@@ -10,22 +10,6 @@ from pathlib import Path
 
 import pytest
 
-# The tiny model every test shares: the real architecture (4 ResNet stages, multi-head attention,
-# cyclic encoding), shrunk until the export takes seconds on two cores. Contract: 4 crops x 8
-# frames per window, like the paper. (Its encoding fills the width exactly; the zero padding the
-# paper's width needs is tested in test_encoding.py.)
-TINY_MODEL = {
-    "base_width": 8,  # embedding D = 64
-    "crop_size": 32,
-    "width": 48,
-    "layers": 1,
-    "heads": 2,
-    "mlp": 64,
-    "seed": 0,
-    "crops_per_frame": 4,
-    "frames_per_window": 8,
-}
-
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
@@ -56,5 +40,12 @@ def tiny_model_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
         "onnx", reason="building the test model needs the train extra: pip install 'sunrig[train]'"
     )
     from estimator.export import build_random_model
+    from estimator.nets import TINY
 
-    return build_random_model(tmp_path_factory.mktemp("tiny_model"), **TINY_MODEL)
+    # The tiny model every test shares: the real architecture (4 ResNet stages, multi-head
+    # attention, cyclic encoding), shrunk until the export takes seconds on two cores (base width
+    # 8, embedding D = 64, 32 px crops, width 48, 1 layer). Contract: 4 crops x 8 frames per
+    # window, like the paper. (Its encoding fills the width exactly; the zero padding the paper's
+    # width needs is tested in test_encoding.py.)
+    return build_random_model(tmp_path_factory.mktemp("tiny_model"), TINY, seed=0, crops_per_frame=4,
+                              frames_per_window=8)

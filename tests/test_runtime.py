@@ -75,11 +75,13 @@ def crop48_model_dir(tmp_path_factory) -> Path:
     """Another tiny model with 48 px crops (same D), to swap graphs between folders. The legacy
     exporter is enough here and takes a tenth of the time."""
     pytest.importorskip("torch", reason="building a test model needs the train extra")
-    from estimator.export import build_random_model
+    from dataclasses import replace
 
-    return build_random_model(
-        tmp_path_factory.mktemp("crop48"), crop_size=48, seed=5, exporter="legacy"
-    )
+    from estimator.export import build_random_model
+    from estimator.nets import TINY
+
+    return build_random_model(tmp_path_factory.mktemp("crop48"), replace(TINY, crop_size=48), seed=5,
+                              exporter="legacy")
 
 
 # ---------------------------------------------------------------------------- loading
