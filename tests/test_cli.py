@@ -3,6 +3,7 @@
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -149,11 +150,18 @@ def test_run_file_camera_to_loop_serial_jsonl_and_record(tmp_path, tiny_model_di
 
     rec, out = tmp_path / "rec.mcap", tmp_path / "est.jsonl"
     res = run_cli("run", "--camera", f"file:{DEMO_LOG}", "--model", str(tiny_model_dir), "--serial", "loop://",
-                  "--jsonl", str(out), "--record", str(rec), "--quiet")
+                  "--jsonl", str(out), "--record", str(rec))
     assert res.returncode == 0, res.stderr
     rows = [json.loads(line) for line in out.read_text().splitlines()]
-    assert len(rows) >= 30  # paced at 10 Hz, the live path keeps up with nearly every frame
-    assert len(list(read_estimates(rec))) == len(rows)
+    assert len(list(read_estimates(rec))) == len(rows) >= 1, res.stderr
+    # Paced at 10 Hz the live path keeps up with nearly every frame on an idle machine, but how
+    # many it drops depends on the load; what must hold is that every frame is accounted for.
+    done = re.search(r"frames (\d+) \(dropped (\d+), no heading (\d+)\) \| estimates (\d+) at .*skipped (\d+), "
+                     r"failed (\d+)", res.stderr)
+    assert done, res.stderr
+    frames, dropped, no_heading, estimates, skipped, failed = map(int, done.groups())
+    assert frames == 40 and estimates == len(rows), res.stderr
+    assert dropped + no_heading + estimates + skipped + failed == frames, res.stderr
 
 
 def test_run_errors_are_one_line(tmp_path):
