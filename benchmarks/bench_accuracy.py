@@ -5,6 +5,7 @@ drives come from seed 1000), runs every aggregator over every full window, print
 and writes the figures.
 
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
+                                         [--crop-layout spread|uniform]
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ def main() -> None:
     ap.add_argument("--drives", type=int, default=100)
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--plot", default="data/heldout-eval.png")
+    ap.add_argument("--crop-layout", default="spread", choices=("spread", "uniform"),
+                    help="where each frame's crops go (default spread, as every command; uniform: the paper's draws)")
     args = ap.parse_args()
 
     from estimator.estimator import SunEstimator
@@ -41,7 +44,7 @@ def main() -> None:
     paths = write_synthetic_logs(args.data, drives=args.drives, frames=args.frames, seed=HELD_OUT_SEED,
                                  progress=sys.stderr.isatty(), jobs=2)
     model = OnnxModel.load(resolve_model_dir(args.model))
-    estimator = SunEstimator(model)
+    estimator = SunEstimator(model, crop_layout=args.crop_layout)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
     result = evaluate([(str(p), open_frames(p)) for p in paths], estimator, policy)
     Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
@@ -51,6 +54,7 @@ def main() -> None:
     print(json.dumps({
         "benchmark": "accuracy",
         "data": {"held_out_seed": HELD_OUT_SEED, "drives": args.drives, "frames_per_drive": args.frames},
+        "crop_layout": args.crop_layout,
         "model": {"dir": str(model.model_dir), "id": model.model_id,
                   "training_command": model.contract.training.get("command")},
         **summary,

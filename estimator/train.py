@@ -60,6 +60,10 @@ from estimator.export import export_model  # noqa: E402
 
 log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
+# The trained weights beside the exported graphs, as plain arrays (float16, no pickle, ignored by
+# the runtime): what ``--init`` starts a fine-tuning run from. The ONNX graphs cannot serve, since
+# export folds batch-norm into the convolutions.
+WEIGHTS = "weights.npz"
 METRICS = "train_metrics.jsonl"  # one line per 50 steps, appended across resumes
 
 
@@ -240,6 +244,7 @@ class TrainConfig:
     subset_prob: float = 0.3
     hard_share: float = 0.5  # windows whose drive is drawn by its running error
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
+    init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8
     crops_per_frame: int = 4
     crop_fov_deg: float = PAPER_CROP_FOV_DEG
@@ -333,6 +338,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     backbone, aggregator = net_cfg.build(seed=cfg.seed)
     params = list(backbone.parameters()) + list(aggregator.parameters())
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if cfg.init and not ckpt_path.exists():
+        load_weights(Path(cfg.init), net_cfg, backbone, aggregator)
+        log.info("starting from the weights of %s", cfg.init)
     step, elapsed_s = 0, 0.0
     schedule = Schedule(minutes=cfg.minutes)
     drive_err = None
@@ -461,7 +469,42 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
     contract = nets.PRESETS[cfg.preset].contract(
         crops_per_frame=cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
         crop_fov_deg=cfg.crop_fov_deg, training=training)
-    return export_model(backbone, aggregator, contract, out_dir)
+    out = export_model(backbone, aggregator, contract, out_dir)
+    save_weights(backbone, aggregator, out)
+    return out
+
+
+def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
+    """``weights.npz``: every tensor of both modules (batch-norm statistics included) as float16."""
+    arrays = {f"{part}/{k}": v.detach().cpu().numpy().astype(np.float16 if v.is_floating_point() else v.numpy().dtype)
+              for part, module in (("backbone", backbone), ("aggregator", aggregator))
+              for k, v in module.state_dict().items()}
+    path = Path(out_dir) / WEIGHTS
+    tmp = path.with_name(".weights.tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggregator: Any) -> None:
+    """Load a model folder's ``weights.npz`` into freshly built modules of the same architecture."""
+    from estimator.runtime import OnnxModel
+
+    path = Path(model_dir) / WEIGHTS
+    if not path.is_file():
+        raise ValidationError(f"--init {model_dir}: no {WEIGHTS} there; pass a model folder written by `sunrig train` "
+                              "(the shipped model has one)")
+    arch = OnnxModel.load(model_dir).contract.architecture
+    if arch != net_cfg.architecture():
+        diff = sorted(k for k in set(arch) | set(net_cfg.architecture())
+                      if arch.get(k) != net_cfg.architecture().get(k))
+        raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
+                              "pass the preset it was trained with")
+    with np.load(path, allow_pickle=False) as z:
+        for part, module in (("backbone", backbone), ("aggregator", aggregator)):
+            own = module.state_dict()
+            state = {k: torch.from_numpy(z[f"{part}/{k}"].astype(own[k].numpy().dtype)) for k in own}
+            module.load_state_dict(state)
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path) -> Path:

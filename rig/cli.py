@@ -418,6 +418,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, lr=args.lr, hard_share=args.hard_share, precision=args.precision,
+                      init=args.init or "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
                       data={"logs": len(paths), "fingerprint": data_fingerprint(paths),
@@ -703,6 +704,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--utc-offset", type=float, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
+    p.add_argument("--init", metavar="MODEL_DIR",
+                   help="fine-tune: start from this model's weights (e.g. the shipped model) instead of random ones")
     p.add_argument("--export-only", metavar="DIR",
                    help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run)")
     p.add_argument("--quiet", action="store_true")
