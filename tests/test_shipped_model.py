@@ -1,0 +1,76 @@
+"""The model inside the package: what every command uses unless --model says otherwise.
+
+Its accuracy is measured on 1700 held-out windows by benchmarks/bench_accuracy.py (docs/model.md);
+here only what must hold for any install: it is there, small enough, says how it was made, finds
+the sun on the bundled demo drive far better than chance, and its fine-tuning weights are the
+weights of its graphs.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from estimator.models import DEFAULT_MODEL_DIR, resolve_model_dir
+from estimator.runtime import OnnxModel
+
+MAX_MODEL_MB = 30.0  # the issue's cap on a shipped model
+# A random model's windows are off by ~90 deg on average (any direction on the upper half); the
+# shipped one is near 10 deg on held-out drives. 25 deg on the 33 demo windows separates the two
+# with a wide margin either way.
+DEMO_MEAN_ERR_DEG = 25.0
+
+
+@pytest.fixture(scope="module")
+def model():
+    return OnnxModel.load(resolve_model_dir(None))
+
+
+def test_it_is_the_default_small_and_records_how_it_was_made(model):
+    assert model.model_dir == DEFAULT_MODEL_DIR
+    size_mb = sum(p.stat().st_size for p in DEFAULT_MODEL_DIR.iterdir() if p.is_file()) / 1e6
+    assert size_mb <= MAX_MODEL_MB
+    training = model.contract.training
+    assert training["trained"] is True
+    assert training["command"].startswith("sunrig train ")
+    assert training["steps"] > 1000 and training["data"]["drives"] >= 1000
+
+
+def test_it_finds_the_sun_on_the_bundled_drive(model):
+    from estimator.estimator import SunEstimator
+    from replay.sources import DEMO_LOG, open_frames
+    from rig.offline import estimate_stream
+    from rig.window import SpreadWindowPolicy
+
+    est = SunEstimator(model)
+    errors = [math.degrees(w["transformer"].error_rad)
+              for w in estimate_stream(open_frames(DEMO_LOG), est, SpreadWindowPolicy(n_frames=8))
+              if w["transformer"].n_frames == 8]
+    assert len(errors) == 33
+    assert float(np.mean(errors)) < DEMO_MEAN_ERR_DEG
+
+
+@pytest.mark.torch
+def test_its_weights_npz_rebuilds_its_graphs(model):
+    pytest.importorskip("torch", reason="needs the train extra")
+    import torch
+
+    from estimator.nets import NetConfig
+    from estimator.train import load_weights
+
+    net_cfg = NetConfig.from_architecture(model.contract.architecture)
+    backbone, aggregator = net_cfg.build(seed=0)
+    load_weights(DEFAULT_MODEL_DIR, net_cfg, backbone, aggregator)
+    backbone.eval()
+    rng = np.random.default_rng(0)
+    crops = rng.integers(0, 256, (6, net_cfg.crop_size, net_cfg.crop_size, 3), dtype=np.uint8)
+    want = model.embed(crops)
+    from estimator.contract import input_affine
+
+    swap, gain, offset = input_affine(model.contract.input_norm)
+    x = torch.from_numpy(crops).permute(0, 3, 1, 2).float()
+    x = (x.flip(1) if swap else x) * torch.tensor(gain).view(1, 3, 1, 1) + torch.tensor(offset).view(1, 3, 1, 1)
+    with torch.no_grad():
+        got = backbone(x.float()).numpy()
+    # float16 storage: agreement to a few parts per thousand of the embedding's scale.
+    assert np.abs(got - want).max() < 1e-2 * (1.0 + np.abs(want).max())
