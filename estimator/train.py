@@ -324,6 +324,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if not 0.0 <= cfg.hard_share <= 1.0:
         raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
     net_cfg = nets.PRESETS[cfg.preset]
+    if cfg.init:
+        check_init(Path(cfg.init), net_cfg)  # before minutes of loading data
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if cfg.threads:
@@ -487,8 +489,8 @@ def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
     return path
 
 
-def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggregator: Any) -> None:
-    """Load a model folder's ``weights.npz`` into freshly built modules of the same architecture."""
+def check_init(model_dir: Path, net_cfg: nets.NetConfig) -> Path:
+    """The ``weights.npz`` a run can start from, or a one-line error (checked before any data loads)."""
     from estimator.runtime import OnnxModel
 
     path = Path(model_dir) / WEIGHTS
@@ -501,6 +503,12 @@ def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggreg
                       if arch.get(k) != net_cfg.architecture().get(k))
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
                               "pass the preset it was trained with")
+    return path
+
+
+def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggregator: Any) -> None:
+    """Load a model folder's ``weights.npz`` into freshly built modules of the same architecture."""
+    path = check_init(model_dir, net_cfg)
     with np.load(path, allow_pickle=False) as z:
         for part, module in (("backbone", backbone), ("aggregator", aggregator)):
             own = module.state_dict()

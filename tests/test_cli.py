@@ -177,3 +177,23 @@ def test_config_print_merges_file_and_flags(tmp_path):
     res = run_cli("config", "--print", "--config", str(cfg))
     assert res.returncode == 0
     assert "baud = 9600" in res.stdout and "span_s = 6.0" in res.stdout and "[rig]" in res.stdout
+
+
+@pytest.mark.torch
+def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
+    from replay.sources import DEMO_LOG
+
+    for init, needle in ((tmp_path, "no weights.npz"), (None, "architecture differs")):
+        # The shipped model is the fast preset: --init it into a tiny run is refused by name.
+        args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--steps", "1", "--quiet"]
+        if init is not None:
+            args += ["--init", str(init)]
+        else:
+            from estimator.models import DEFAULT_MODEL_DIR
+
+            args += ["--init", str(DEFAULT_MODEL_DIR)]
+        res = run_cli(*args)
+        assert res.returncode == 2, res.stderr
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr
+    assert not (tmp_path / "m" / "checkpoint.pt").exists()
