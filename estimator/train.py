@@ -469,6 +469,8 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
         "minutes": round(state["elapsed_s"] / 60.0, 1),
         "final_train_err_deg_ema": state.get("err_deg_ema"),
     }
+    if cfg.init:
+        training["init"] = _init_provenance(Path(cfg.init))
     contract = nets.PRESETS[cfg.preset].contract(
         crops_per_frame=cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
         crop_fov_deg=cfg.crop_fov_deg, training=training)
@@ -514,6 +516,20 @@ def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggreg
             own = module.state_dict()
             state = {k: torch.from_numpy(z[f"{part}/{k}"].astype(own[k].numpy().dtype)) for k in own}
             module.load_state_dict(state)
+
+
+def _init_provenance(model_dir: Path) -> dict[str, Any]:
+    """What a fine-tuned model started from: the starting model's id and how it was trained, so
+    the contract still says how to remake the whole chain after that folder is gone."""
+    from estimator.runtime import OnnxModel
+
+    try:
+        start = OnnxModel.load(model_dir)
+    except SunrigError as exc:  # moved or deleted since the run started
+        return {"dir": str(model_dir), "unavailable": str(exc)}
+    t = start.contract.training
+    return {"dir": str(model_dir), "model_id": start.model_id,
+            **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None}}
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path) -> Path:

@@ -208,7 +208,11 @@ def test_init_starts_a_new_run_from_a_model_folders_weights(logs, tmp_path):
                                                         warmup_steps=1, init=str(first)))
     from estimator.runtime import OnnxModel
 
-    assert OnnxModel.load(tuned).contract.training["recipe"]["init"] == str(first)
+    training = OnnxModel.load(tuned).contract.training
+    assert training["recipe"]["init"] == str(first)
+    # The contract keeps the chain: the starting model's id and how it was trained.
+    assert training["init"]["model_id"] == OnnxModel.load(first).model_id
+    assert training["init"]["steps"] == 3
     with pytest.raises(ValidationError, match="architecture differs"):
         load_weights(first, nets.FAST, *nets.FAST.build())
     with pytest.raises(ValidationError, match="no weights.npz"):
