@@ -35,7 +35,7 @@ from drivers.nmea import (
     newest_heading,
 )
 from rig.errors import GnssError
-from rig.portio import PORT_ERRORS, Backoff, join_worker
+from rig.portio import PORT_ERRORS, Backoff, begin_stop, join_worker
 from rig.types import GnssFix
 
 log = logging.getLogger(__name__)
@@ -193,7 +193,6 @@ class GnssReader:
         self._last_error: str | None = None
         self._failing = False  # only the reader thread touches it
         self._failure: str | None = None
-        self._closed = False
         self._finished = threading.Event()  # the thread has ended (end of a capture, close, a bug)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sunrig-gnss {self._name}", daemon=True)
@@ -269,12 +268,8 @@ class GnssReader:
 
     def close(self) -> None:
         """Stop the thread and close the port. Idempotent; returns within about ``join_timeout_s``."""
-        with self._cond:
-            if self._closed:
-                return
-            self._closed = True
-            self._stop.set()
-            self._cond.notify_all()
+        if not begin_stop(self._cond, self._stop):
+            return
         # cancel_read wakes a pyserial read() waiting in select() at once.
         join_worker(self._thread, self._join_timeout_s, getattr(self._port, "cancel_read", None), log,
                     f"GNSS reader for {self._name}")

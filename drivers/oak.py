@@ -49,7 +49,7 @@ from drivers.imu_heading import (
     validate_rotation,
 )
 from rig.errors import OakError, ValidationError
-from rig.portio import Backoff, join_worker
+from rig.portio import Backoff, begin_stop, join_worker
 from rig.types import Frame, Intrinsics
 
 log = logging.getLogger(__name__)
@@ -492,7 +492,6 @@ class OakCamera:
                                       "imu_counts": {}}
         self._last_error: str | None = None
         self._failure: str | None = None
-        self._closed = False
         self._next_seq = 0
         self._stop = threading.Event()
         self._finished = threading.Event()
@@ -517,7 +516,7 @@ class OakCamera:
             if frame is not None:
                 yield frame
                 continue
-            if self._closed or self._finished.is_set():
+            if self._stop.is_set() or self._finished.is_set():
                 if self._failure is not None:
                     raise OakError(f"OAK reader failed: {self._failure}")
                 return
@@ -538,12 +537,8 @@ class OakCamera:
 
     def close(self) -> None:
         """Stop the reader and release the device. Idempotent; returns within about ``join_timeout_s``."""
-        with self._cond:
-            if self._closed:
-                return
-            self._closed = True
-            self._stop.set()
-            self._cond.notify_all()
+        if not begin_stop(self._cond, self._stop):
+            return
         join_worker(self._thread, self._join_timeout_s, None, log, "OAK reader")
 
     def __enter__(self) -> OakCamera:

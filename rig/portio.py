@@ -49,6 +49,18 @@ class Backoff:
         self.current_s = self.first_s
 
 
+def begin_stop(cond: threading.Condition, stop: threading.Event) -> bool:
+    """Set the worker's stop event under its lock and wake everything waiting on the lock.
+    False when it was already set: ``close()`` is idempotent, and the stop event is the one record
+    of "closed"."""
+    with cond:
+        if stop.is_set():
+            return False
+        stop.set()
+        cond.notify_all()
+    return True
+
+
 def join_worker(thread: threading.Thread, join_timeout_s: float, wake: Callable[[], object] | None,
                 log: logging.Logger, what: str) -> None:
     """After the stop event is set: wake the thread's blocking call (``wake``, e.g. pyserial's

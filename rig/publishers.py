@@ -24,7 +24,7 @@ from typing import IO, Any, Protocol, runtime_checkable
 import serial
 
 from rig.errors import PublishError
-from rig.portio import PORT_ERRORS, Backoff, join_worker
+from rig.portio import PORT_ERRORS, Backoff, begin_stop, join_worker
 from rig.protocol import DEFAULT_STATUS_RULE, StatusRule, encode_binary, encode_nmea
 from rig.types import SunEstimate
 
@@ -149,7 +149,6 @@ class SerialPublisher:
         self._cond = threading.Condition()  # guards the mailbox, the counters and _in_flight
         self._slot: bytes | None = None
         self._in_flight = False
-        self._closed = False
         self._resync = False
         self._last_error: str | None = None
         self._counts = dict.fromkeys(
@@ -165,7 +164,7 @@ class SerialPublisher:
         """Encode ``est`` and leave it for the writer; returns at once, replacing an unsent message."""
         message = self._encode(est, self._rule)
         with self._cond:
-            if self._closed:
+            if self._stop.is_set():
                 raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
             if self._slot is not None:
                 self._counts["dropped_overwritten"] += 1
@@ -190,12 +189,8 @@ class SerialPublisher:
     def close(self) -> None:
         """Stop the writer and close the port. Idempotent; returns within about ``join_timeout_s``
         even when a write is stuck (the writer thread then closes the port when its write returns)."""
-        with self._cond:
-            if self._closed:
-                return
-            self._closed = True
-            self._stop.set()
-            self._cond.notify_all()
+        if not begin_stop(self._cond, self._stop):
+            return
         # cancel_write wakes a pyserial write() waiting in select() (ports not written by _write_fd).
         join_worker(self._thread, self._join_timeout_s, getattr(self._port, "cancel_write", None), log,
                     f"serial writer for {self._name}")

@@ -7,7 +7,7 @@ import time
 import pytest
 
 from rig.errors import PublishError
-from rig.portio import Backoff, join_worker
+from rig.portio import Backoff, begin_stop, join_worker
 
 
 def test_backoff_doubles_to_the_ceiling_and_resets():
@@ -57,3 +57,21 @@ def test_join_worker_wakes_joins_and_leaves_a_stuck_thread(caplog):
         join_worker(stuck, 0.05, wake_fails, logging.getLogger("t"), "stuck worker")  # the OSError is swallowed
     assert stuck.is_alive() and "stuck worker did not stop within 0.1 s" in caplog.text
     stuck_release.set()
+
+
+def test_begin_stop_sets_once_and_wakes_waiters():
+    cond, stop = threading.Condition(), threading.Event()
+    woke = threading.Event()
+
+    def waiter():
+        with cond:
+            while not stop.is_set():
+                cond.wait(30.0)  # only a notify_all ends this before 30 s
+        woke.set()
+
+    t = threading.Thread(target=waiter, daemon=True)
+    t.start()
+    time.sleep(0.05)  # most likely waiting by now; if not, it sees the event and never waits
+    assert begin_stop(cond, stop) is True and stop.is_set()
+    assert begin_stop(cond, stop) is False  # idempotent: the second close does nothing
+    assert woke.wait(10.0)
