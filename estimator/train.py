@@ -324,8 +324,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if not 0.0 <= cfg.hard_share <= 1.0:
         raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
     net_cfg = nets.PRESETS[cfg.preset]
-    if cfg.init:
-        check_init(Path(cfg.init), net_cfg)  # before minutes of loading data
+    # Checked before minutes of loading data; loaded only if there is no checkpoint to resume.
+    init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init else None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if cfg.threads:
@@ -341,8 +341,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     backbone, aggregator = net_cfg.build(seed=cfg.seed)
     params = list(backbone.parameters()) + list(aggregator.parameters())
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    if cfg.init and not ckpt_path.exists():
-        load_weights(Path(cfg.init), net_cfg, backbone, aggregator)
+    if init_weights is not None and not ckpt_path.exists():
+        _load_npz(init_weights, backbone, aggregator)
         log.info("starting from the weights of %s", cfg.init)
     step, elapsed_s = 0, 0.0
     schedule = Schedule(minutes=cfg.minutes)
@@ -510,7 +510,10 @@ def check_init(model_dir: Path, net_cfg: nets.NetConfig) -> Path:
 
 def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggregator: Any) -> None:
     """Load a model folder's ``weights.npz`` into freshly built modules of the same architecture."""
-    path = check_init(model_dir, net_cfg)
+    _load_npz(check_init(model_dir, net_cfg), backbone, aggregator)
+
+
+def _load_npz(path: Path, backbone: Any, aggregator: Any) -> None:
     with np.load(path, allow_pickle=False) as z:
         for part, module in (("backbone", backbone), ("aggregator", aggregator)):
             own = module.state_dict()
