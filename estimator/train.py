@@ -323,6 +323,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
     if not 0.0 <= cfg.hard_share <= 1.0:
         raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
+    if cfg.crops_per_frame < 1 or cfg.batch_windows < 1:
+        raise ValidationError(f"crops per frame and windows per step: expected at least 1 each, "
+                              f"got {cfg.crops_per_frame} and {cfg.batch_windows}")
     net_cfg = nets.PRESETS[cfg.preset]
     # Checked before minutes of loading data; loaded only if there is no checkpoint to resume.
     init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init else None
@@ -354,6 +357,13 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             raise ValidationError(
                 f"{ckpt_path} was trained with preset {state['config']['preset']!r}, not {cfg.preset!r}; "
                 "pass the same preset or another --out"
+            )
+        trained_crops = state["config"].get("crops_per_frame", 4)
+        if trained_crops != cfg.crops_per_frame:
+            # The contract records one crop count for the whole run; a resume must keep it.
+            raise ValidationError(
+                f"{ckpt_path} was trained with {trained_crops} crops per frame, not {cfg.crops_per_frame}; "
+                "pass the same --crops or another --out"
             )
         backbone.load_state_dict(state["backbone"])
         aggregator.load_state_dict(state["aggregator"])

@@ -417,7 +417,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     for p in paths:  # fail on a bad log now, not after loading the others
         open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
-                      batch_windows=args.batch, lr=args.lr, hard_share=args.hard_share, precision=args.precision,
+                      batch_windows=args.batch, crops_per_frame=args.crops, lr=args.lr, hard_share=args.hard_share, precision=args.precision,
                       init=args.init or "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
@@ -693,6 +693,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--minutes", type=float, default=80.0, help="training time budget (default 80)")
     p.add_argument("--steps", type=int, default=0, help="stop after this many steps instead")
     p.add_argument("--batch", type=int, default=6, help="windows per step (default 6)")
+    p.add_argument("--crops", type=int, default=4,
+                   help="crops per frame, recorded in the contract and used at run time (default 4, the paper's)")
     p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
     p.add_argument("--hard-share", type=float, default=0.5,
                    help="share of windows drawn from drives in proportion to their running error (default 0.5)")

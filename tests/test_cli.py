@@ -197,3 +197,17 @@ def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr
     assert not (tmp_path / "m" / "checkpoint.pt").exists()
+
+
+def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(tmp_path):
+    from estimator.runtime import OnnxModel
+    from replay.sources import DEMO_LOG
+
+    args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--batch", "1", "--quiet"]
+    res = run_cli(*args, "--steps", "1", "--crops", "6")
+    assert res.returncode == 0, res.stderr
+    assert OnnxModel.load(tmp_path / "m").contract.crops_per_frame == 6
+    res = run_cli(*args, "--steps", "2", "--crops", "4")
+    assert res.returncode == 2 and "6 crops per frame" in res.stderr and "Traceback" not in res.stderr
+    res = run_cli(*args[:3], str(tmp_path / "other"), *args[4:], "--steps", "1", "--crops", "0")
+    assert res.returncode == 2 and "crops per frame" in res.stderr and "Traceback" not in res.stderr
