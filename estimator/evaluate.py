@@ -49,6 +49,16 @@ class EvalResult:
     windows_failed: int = 0
     windows_without_truth: int = 0
 
+    def extend(self, other: EvalResult) -> None:
+        """Pool another evaluation of the same logs into this one (e.g. with other crop seeds):
+        its windows' errors and counts are added; the logs and the sample windows stay this one's."""
+        for name, errs in other.errors_deg.items():
+            self.errors_deg.setdefault(name, []).extend(errs)
+        self.frames += other.frames
+        self.windows_skipped_filling += other.windows_skipped_filling
+        self.windows_failed += other.windows_failed
+        self.windows_without_truth += other.windows_without_truth
+
     def summary(self) -> dict:
         return {
             "aggregators": {name: error_summary(e) for name, e in self.errors_deg.items()},

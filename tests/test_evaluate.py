@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from estimator.evaluate import error_summary
+from estimator.evaluate import EvalResult, error_summary
 
 
 def test_error_summary_numbers():
@@ -20,6 +20,20 @@ def test_error_summary_numbers():
     assert s["under_20_deg"] == pytest.approx(0.8)
     assert error_summary([]) == {"n_windows": 0}
 
+
+
+def test_pooled_results_add_windows_and_keep_this_ones_logs():
+    a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]}, logs=["d0"], frames=10,
+                   windows_skipped_filling=7, windows_failed=1)
+    b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, logs=["d0"], frames=10,
+                   windows_skipped_filling=7, windows_without_truth=2)
+    a.extend(b)
+    s = a.summary()
+    assert s["aggregators"]["transformer"]["n_windows"] == 3
+    assert s["aggregators"]["transformer"]["max_deg"] == 40.0
+    assert s["aggregators"]["mean"]["mean_deg"] == pytest.approx(14.0 / 3)
+    assert s["logs"] == ["d0"]
+    assert (s["frames"], s["windows_skipped_filling"], s["windows_failed"], s["windows_without_truth"]) == (20, 14, 1, 2)
 
 @pytest.mark.torch
 def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
