@@ -41,7 +41,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -247,7 +247,7 @@ class TrainConfig:
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8
-    crops_per_frame: int = 4
+    crops_per_frame: int = 0  # 0: the resumed checkpoint's, else DEFAULT_CROPS_PER_FRAME
     crop_fov_deg: float = PAPER_CROP_FOV_DEG
     seed: int = 0
     threads: int = 0  # 0: all cores
@@ -257,6 +257,7 @@ class TrainConfig:
     data: dict[str, Any] = field(default_factory=dict)
 
 
+DEFAULT_CROPS_PER_FRAME = 4  # the paper's 8 frames x 4 crops
 LR_FLOOR = 0.02  # the schedule ends at this share of the peak rate
 
 
@@ -323,7 +324,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
     if not 0.0 <= cfg.hard_share <= 1.0:
         raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
-    if cfg.crops_per_frame < 1 or cfg.batch_windows < 1:
+    if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each, "
                               f"got {cfg.crops_per_frame} and {cfg.batch_windows}")
     net_cfg = nets.PRESETS[cfg.preset]
@@ -358,7 +359,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                 f"{ckpt_path} was trained with preset {state['config']['preset']!r}, not {cfg.preset!r}; "
                 "pass the same preset or another --out"
             )
-        trained_crops = state["config"].get("crops_per_frame", 4)
+        trained_crops = state["config"].get("crops_per_frame") or DEFAULT_CROPS_PER_FRAME
+        if not cfg.crops_per_frame:
+            cfg = replace(cfg, crops_per_frame=trained_crops)
         if trained_crops != cfg.crops_per_frame:
             # The contract records one crop count for the whole run; a resume must keep it.
             raise ValidationError(
@@ -378,6 +381,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         drive_err = state.get("drive_err_deg")
         log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
 
+    if not cfg.crops_per_frame:
+        cfg = replace(cfg, crops_per_frame=DEFAULT_CROPS_PER_FRAME)
     sampler = WindowSampler(drives, cfg.frames_per_window, cfg.crops_per_frame, net_cfg.crop_size,
                             cfg.subset_prob, rng, hard_share=cfg.hard_share)
     if drive_err is not None and len(drive_err) == len(drives):
@@ -467,8 +472,13 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, state_dict(), out_dir)
 
 
-def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path) -> Path:
-    """The two graphs with a contract that records the recipe, the data and how far training got."""
+def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path,
+            run_crops_per_frame: int = 0, export_command: str = "") -> Path:
+    """The two graphs with a contract that records the recipe, the data and how far training got.
+
+    The contract's ``crops_per_frame`` is what the runtime feeds the model: the training count
+    unless ``run_crops_per_frame`` says otherwise (the recipe keeps the training count).
+    """
     training = {
         "trained": True,
         "command": cfg.command,
@@ -481,8 +491,10 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
     }
     if cfg.init:
         training["init"] = _init_provenance(Path(cfg.init))
+    if export_command:
+        training["export_command"] = export_command
     contract = nets.PRESETS[cfg.preset].contract(
-        crops_per_frame=cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
+        crops_per_frame=run_crops_per_frame or cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
         crop_fov_deg=cfg.crop_fov_deg, training=training)
     out = export_model(backbone, aggregator, contract, out_dir)
     save_weights(backbone, aggregator, out)
@@ -545,17 +557,27 @@ def _init_provenance(model_dir: Path) -> dict[str, Any]:
             **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None}}
 
 
-def export_checkpoint(checkpoint_dir: Path, out_dir: Path) -> Path:
-    """Export the model in ``checkpoint_dir``'s checkpoint as it stands (e.g. while it trains)."""
+def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: int = 0,
+                      export_command: str = "") -> Path:
+    """Export the model in ``checkpoint_dir``'s checkpoint as it stands (e.g. while it trains).
+
+    ``run_crops_per_frame`` sets the crops per frame the runtime will feed it (default: as
+    trained). The aggregator takes any number of tokens, and more crops than it was trained with
+    average out more of the luck of where crops land (docs/model.md measures it).
+    """
     path = Path(checkpoint_dir) / CHECKPOINT
     if not path.is_file():
         raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")
     state = torch.load(path, weights_only=False)
     cfg = TrainConfig(**state["config"])
+    if not cfg.crops_per_frame:
+        cfg = replace(cfg, crops_per_frame=DEFAULT_CROPS_PER_FRAME)
+    if run_crops_per_frame < 0:
+        raise ValidationError(f"crops per frame: expected at least 1, got {run_crops_per_frame}")
     backbone, aggregator = nets.PRESETS[cfg.preset].build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
-    return _export(backbone, aggregator, cfg, state, Path(out_dir))
+    return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command)
 
 
 def data_fingerprint(paths: Sequence[Path]) -> str:

@@ -20,6 +20,16 @@ EXIT_USER_ERROR = 2
 EXIT_BUG = 1
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
 def _load_model(model_dir: str | None):
     from estimator.models import resolve_model_dir
     from estimator.runtime import OnnxModel
@@ -405,7 +415,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.export_only:
         from estimator.train import export_checkpoint
 
-        out = export_checkpoint(Path(args.out), Path(args.export_only))
+        out = export_checkpoint(Path(args.out), Path(args.export_only), run_crops_per_frame=args.crops or 0,
+                                export_command=command_line() if args.crops else "")
         if not args.quiet:
             print(f"train: exported the checkpoint in {args.out} to {out}", file=sys.stderr)
         return 0
@@ -417,7 +428,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     for p in paths:  # fail on a bad log now, not after loading the others
         open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
-                      batch_windows=args.batch, crops_per_frame=args.crops, lr=args.lr, hard_share=args.hard_share, precision=args.precision,
+                      batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr, hard_share=args.hard_share, precision=args.precision,
                       init=args.init or "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
@@ -693,8 +704,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--minutes", type=float, default=80.0, help="training time budget (default 80)")
     p.add_argument("--steps", type=int, default=0, help="stop after this many steps instead")
     p.add_argument("--batch", type=int, default=6, help="windows per step (default 6)")
-    p.add_argument("--crops", type=int, default=4,
-                   help="crops per frame, recorded in the contract and used at run time (default 4, the paper's)")
+    p.add_argument("--crops", type=_positive_int, metavar="N",
+                   help="crops per frame, recorded in the contract and used at run time (default 4, the paper's; "
+                        "a resume keeps its run's). With --export-only: the run-time count of the exported model")
     p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
     p.add_argument("--hard-share", type=float, default=0.5,
                    help="share of windows drawn from drives in proportion to their running error (default 0.5)")

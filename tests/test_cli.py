@@ -209,5 +209,27 @@ def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(
     assert OnnxModel.load(tmp_path / "m").contract.crops_per_frame == 6
     res = run_cli(*args, "--steps", "2", "--crops", "4")
     assert res.returncode == 2 and "6 crops per frame" in res.stderr and "Traceback" not in res.stderr
+    res = run_cli(*args, "--steps", "2")  # no --crops: the resume keeps its run's 6
+    assert res.returncode == 0, res.stderr
+    assert OnnxModel.load(tmp_path / "m").contract.training["steps"] == 2
     res = run_cli(*args[:3], str(tmp_path / "other"), *args[4:], "--steps", "1", "--crops", "0")
-    assert res.returncode == 2 and "crops per frame" in res.stderr and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "--crops: expected a positive integer" in res.stderr
+    assert "Traceback" not in res.stderr and not (tmp_path / "other").exists()
+
+
+def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
+    from estimator.runtime import OnnxModel
+    from replay.sources import DEMO_LOG
+
+    out = tmp_path / "m"
+    res = run_cli("train", str(DEMO_LOG), "--out", str(out), "--preset", "tiny", "--batch", "1", "--steps", "1",
+                  "--quiet")
+    assert res.returncode == 0, res.stderr
+    res = run_cli("train", "--out", str(out), "--export-only", str(tmp_path / "e8"), "--crops", "8", "--quiet")
+    assert res.returncode == 0, res.stderr
+    trained, exported = OnnxModel.load(out), OnnxModel.load(tmp_path / "e8")
+    assert (trained.contract.crops_per_frame, exported.contract.crops_per_frame) == (4, 8)
+    assert exported.contract.training["recipe"]["crops_per_frame"] == 4
+    assert "--crops 8" in exported.contract.training["export_command"]
+    crops = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(exported.embed(crops), trained.embed(crops))
