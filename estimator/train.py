@@ -565,15 +565,13 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     trained). The aggregator takes any number of tokens, and more crops than it was trained with
     average out more of the luck of where crops land (docs/model.md measures it).
     """
+    if run_crops_per_frame < 0:
+        raise ValidationError(f"crops per frame: expected at least 1, got {run_crops_per_frame}")
     path = Path(checkpoint_dir) / CHECKPOINT
     if not path.is_file():
         raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")
     state = torch.load(path, weights_only=False)
-    cfg = TrainConfig(**state["config"])
-    if not cfg.crops_per_frame:
-        cfg = replace(cfg, crops_per_frame=DEFAULT_CROPS_PER_FRAME)
-    if run_crops_per_frame < 0:
-        raise ValidationError(f"crops per frame: expected at least 1, got {run_crops_per_frame}")
+    cfg = TrainConfig(**state["config"])  # train() saves the crop count resolved, never 0
     backbone, aggregator = nets.PRESETS[cfg.preset].build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
