@@ -32,6 +32,7 @@ AGG_OUTPUT = "sun_heading"  # [B, T, 3] float32: per-token sun vector in its hea
 
 # KITTI's image_02 (fx = 721.5377) cropped at 224 px native: the paper's angular coverage per crop.
 PAPER_CROP_FOV_DEG = math.degrees(2.0 * math.atan(112.0 / 721.5377))
+PAPER_CROPS_PER_FRAME = 4  # 32 crops from 8 frames (paper Sec. 4)
 YAW_INPUT = "relative-to-newest-frame"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -65,7 +66,7 @@ class ModelContract:
     crop_size_px: int
     embedding_dim: int
     crop_fov_deg: float = PAPER_CROP_FOV_DEG
-    crops_per_frame: int = 4
+    crops_per_frame: int = PAPER_CROPS_PER_FRAME
     frames_per_window: int = 8
     encoding: dict[str, Any] = field(default_factory=_encoding_default)
     input_norm: dict[str, Any] = field(default_factory=_input_norm_default)

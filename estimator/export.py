@@ -30,6 +30,7 @@ from estimator.contract import (
     BACKBONE_OUTPUT,
     METADATA_CONTRACT_KEY,
     METADATA_GRAPH_KEY,
+    PAPER_CROPS_PER_FRAME,
     ModelContract,
 )
 from estimator.nets import TINY, Aggregator, Backbone, NetConfig
@@ -219,7 +220,7 @@ def build_random_model(
     config: NetConfig = TINY,
     *,
     seed: int = 0,
-    crops_per_frame: int = 4,
+    crops_per_frame: int = PAPER_CROPS_PER_FRAME,
     frames_per_window: int = 8,
     exporter: str = "dynamo",
 ) -> Path:

@@ -16,7 +16,7 @@ import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-from estimator.contract import PAPER_CROP_FOV_DEG, YAW_INPUT, ModelContract
+from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, YAW_INPUT, ModelContract
 from rig.errors import ValidationError, require_torch
 
 torch = require_torch()
@@ -402,7 +402,7 @@ class NetConfig:
     def contract(
         self,
         *,
-        crops_per_frame: int = 4,
+        crops_per_frame: int = PAPER_CROPS_PER_FRAME,
         frames_per_window: int = 8,
         crop_fov_deg: float = PAPER_CROP_FOV_DEG,
         training: dict[str, Any] | None = None,

@@ -48,7 +48,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from estimator.contract import PAPER_CROP_FOV_DEG, input_affine
+from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
 from estimator.crops import crop_side_px
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import view_angles_rad, wrap_pi
@@ -247,7 +247,7 @@ class TrainConfig:
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8
-    crops_per_frame: int = 0  # 0: the resumed checkpoint's, else DEFAULT_CROPS_PER_FRAME
+    crops_per_frame: int = 0  # 0: the resumed checkpoint's, else the paper's 4
     crop_fov_deg: float = PAPER_CROP_FOV_DEG
     seed: int = 0
     threads: int = 0  # 0: all cores
@@ -257,7 +257,6 @@ class TrainConfig:
     data: dict[str, Any] = field(default_factory=dict)
 
 
-DEFAULT_CROPS_PER_FRAME = 4  # the paper's 8 frames x 4 crops
 LR_FLOOR = 0.02  # the schedule ends at this share of the peak rate
 
 
@@ -359,15 +358,14 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                 f"{ckpt_path} was trained with preset {state['config']['preset']!r}, not {cfg.preset!r}; "
                 "pass the same preset or another --out"
             )
-        trained_crops = state["config"].get("crops_per_frame") or DEFAULT_CROPS_PER_FRAME
-        if not cfg.crops_per_frame:
-            cfg = replace(cfg, crops_per_frame=trained_crops)
-        if trained_crops != cfg.crops_per_frame:
+        trained_crops = state["config"]["crops_per_frame"]  # saved resolved, never 0
+        if cfg.crops_per_frame not in (0, trained_crops):
             # The contract records one crop count for the whole run; a resume must keep it.
             raise ValidationError(
                 f"{ckpt_path} was trained with {trained_crops} crops per frame, not {cfg.crops_per_frame}; "
                 "pass the same --crops or another --out"
             )
+        cfg = replace(cfg, crops_per_frame=trained_crops)
         backbone.load_state_dict(state["backbone"])
         aggregator.load_state_dict(state["aggregator"])
         opt.load_state_dict(state["optimizer"])
@@ -382,7 +380,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
 
     if not cfg.crops_per_frame:
-        cfg = replace(cfg, crops_per_frame=DEFAULT_CROPS_PER_FRAME)
+        cfg = replace(cfg, crops_per_frame=PAPER_CROPS_PER_FRAME)
     sampler = WindowSampler(drives, cfg.frames_per_window, cfg.crops_per_frame, net_cfg.crop_size,
                             cfg.subset_prob, rng, hard_share=cfg.hard_share)
     if drive_err is not None and len(drive_err) == len(drives):
