@@ -428,7 +428,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     for p in paths:  # fail on a bad log now, not after loading the others
         open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
-                      batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr, hard_share=args.hard_share, precision=args.precision,
+                      batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
+                      hard_share=args.hard_share, precision=args.precision,
                       init=args.init or "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
