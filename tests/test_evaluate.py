@@ -33,7 +33,8 @@ def test_pooled_results_add_windows_and_keep_this_ones_logs():
     assert s["aggregators"]["transformer"]["max_deg"] == 40.0
     assert s["aggregators"]["mean"]["mean_deg"] == pytest.approx(14.0 / 3)
     assert s["logs"] == ["d0"]
-    assert (s["frames"], s["windows_skipped_filling"], s["windows_failed"], s["windows_without_truth"]) == (20, 14, 1, 2)
+    counts = (s["frames"], s["windows_skipped_filling"], s["windows_failed"], s["windows_without_truth"])
+    assert counts == (20, 14, 1, 2)
 
 @pytest.mark.torch
 def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
