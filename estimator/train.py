@@ -343,7 +343,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
 
     backbone, aggregator = net_cfg.build(seed=cfg.seed)
     params = list(backbone.parameters()) + list(aggregator.parameters())
-    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    # fused: one kernel over all parameters instead of a loop of small ops (7 vs 13 ms a step
+    # for the fast preset on this machine); same update, same state dict for resumes.
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
     if init_weights is not None and not ckpt_path.exists():
         _load_npz(init_weights, backbone, aggregator)
         log.info("starting from the weights of %s", cfg.init)
