@@ -337,7 +337,11 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     fov = math.radians(cfg.crop_fov_deg)
 
     t_load = time.monotonic()
-    drives = load_drives(sorted(Path(p) for p in log_paths), net_cfg.crop_size, fov)
+    on_load = None
+    if progress:
+        def on_load(done: int, total: int) -> None:
+            progress({"phase": "load", "done": done, "total": total})
+    drives = load_drives(sorted(Path(p) for p in log_paths), net_cfg.crop_size, fov, progress=on_load)
     n_frames = sum(len(d.images) for d in drives)
     log.info("loaded %d drives, %d frames in %.0f s", len(drives), n_frames, time.monotonic() - t_load)
 
@@ -400,6 +404,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     backbone.train()
     aggregator.train()
     start = time.monotonic() - elapsed_s
+    start_step = step  # where this session began: a resumed run's earlier steps are not its rate
     last_ckpt = time.monotonic()
     ema_loss, ema_err = None, None
 
@@ -462,8 +467,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                                      "lr": opt.param_groups[0]["lr"], "loss_ema": round(ema_loss, 4),
                                      "window_err_deg_ema": round(ema_err, 2)}) + "\n")
         if progress:
-            progress({"step": step, "total": est_total, "elapsed_s": time.monotonic() - start,
-                      "budget_s": budget_s, "loss": ema_loss, "err_deg": ema_err})
+            progress({"phase": "train", "step": step, "start_step": start_step, "total": est_total,
+                      "elapsed_s": time.monotonic() - start, "budget_s": None if cfg.max_steps else budget_s,
+                      "loss": ema_loss, "err_deg": ema_err})
         if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:
             _save_checkpoint(ckpt_path, state_dict())
             last_ckpt = time.monotonic()

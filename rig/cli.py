@@ -435,34 +435,33 @@ def cmd_train(args: argparse.Namespace) -> int:
                       command=command_line(),
                       data={"logs": len(paths), "fingerprint": data_fingerprint(paths),
                             "source": args.data_note or ""})
-    bar = None
-    if not args.quiet:
-        try:
-            from tqdm import tqdm
-
-            bar = tqdm(total=0, unit="step", dynamic_ncols=True)
-        except ImportError:  # pragma: no cover
-            bar = None
-    progress_line = Progress("train", enabled=None if not args.quiet and bar is None else False)
+    enabled = None if not args.quiet else False
+    loading = Progress("train: loading", unit="logs", enabled=enabled)
+    steps: Progress | None = None
 
     def on_progress(p: dict) -> None:
-        if bar is not None:
-            bar.total = p["total"] if p["total"] < 10**9 else None
-            bar.n = p["step"]
-            bar.set_postfix(loss=f"{p['loss']:.3f}", err=f"{p['err_deg']:.1f}deg",
-                            min=f"{p['elapsed_s'] / 60:.0f}/{p['budget_s'] / 60:.0f}", refresh=False)
-            bar.refresh()
-        else:
-            progress_line.update(p["step"], f"loss {p['loss']:.3f} err {p['err_deg']:.1f} deg")
+        nonlocal steps
+        if p["phase"] == "load":
+            loading.total = p["total"]
+            loading.update(p["done"])
+            return
+        if steps is None:
+            # Created when the first step ends, so minutes of loading and a resumed run's earlier
+            # steps stay out of the rate and the time left.
+            loading.close()
+            steps = Progress("train", unit="steps", enabled=enabled)
+            steps.skip(p["start_step"])
+        steps.total = p["total"] if p["total"] < 10**9 else None
+        budget = f" [{p['elapsed_s'] / 60:.0f}/{p['budget_s'] / 60:.0f} min]" if p["budget_s"] else ""
+        steps.update(p["step"], f"loss {p['loss']:.3f} err {p['err_deg']:.1f} deg{budget}")
 
     from replay.sources import utc_offset_default
 
     with utc_offset_default(args.utc_offset):  # train() opens the logs itself
         out = train(paths, Path(args.out), cfg, progress=on_progress)
-    if bar is not None:
-        bar.close()
+    (steps or loading).close()
     if not args.quiet:
-        progress_line.close(f"model written to {out}")
+        print(f"train: model written to {out}", file=sys.stderr)
     return 0
 
 

@@ -89,15 +89,21 @@ def test_train_checkpoint_resume_export(logs, tmp_path):
 
     out = tmp_path / "model"
     cfg = TrainConfig(preset="tiny", max_steps=3, batch_windows=2, warmup_steps=1, command="test")
-    train(logs, out, cfg)
+    events = []
+    train(logs, out, cfg, progress=events.append)
+    # Progress: every log loaded, then every step, each saying where this session started.
+    assert [(e["done"], e["total"]) for e in events if e["phase"] == "load"] == [(1, 3), (2, 3), (3, 3)]
+    assert [(e["step"], e["start_step"]) for e in events if e["phase"] == "train"] == [(1, 0), (2, 0), (3, 0)]
     state = torch.load(out / CHECKPOINT, weights_only=False)
     assert state["step"] == 3
     model = OnnxModel.load(out)
     assert model.contract.training["trained"] is True and model.contract.training["steps"] == 3
     assert model.contract.training["data"]["drives"] == 3
     # Resume: a larger step budget continues from step 3, not from scratch.
-    train(logs, out, TrainConfig(preset="tiny", max_steps=5, batch_windows=2, warmup_steps=1))
+    events.clear()
+    train(logs, out, TrainConfig(preset="tiny", max_steps=5, batch_windows=2, warmup_steps=1), progress=events.append)
     assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 5
+    assert [(e["step"], e["start_step"]) for e in events if e["phase"] == "train"] == [(4, 3), (5, 3)]
     assert OnnxModel.load(out).contract.training["steps"] == 5
     # The checkpoint exports on its own (to watch a run while it trains) to the same model.
     from estimator.train import export_checkpoint
