@@ -21,21 +21,28 @@ from rig.types import Frame, SunEstimate
 from rig.window import SpreadWindowPolicy
 
 THRESHOLDS_DEG = (5.0, 10.0, 20.0)
+# The model's target for its worst window (issue #3). The max alone is one estimate of thousands
+# and moves with the crop draw, so the summary also counts the windows past it and gives the p99.
+TAIL_DEG = 30.0
+TAIL_KEY = f"windows_over_{TAIL_DEG:g}_deg"
 
 
 def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int]:
-    """Mean, median, max and the share of windows under 5, 10 and 20 degrees."""
+    """Mean, median, p99, max, the share of windows under 5, 10 and 20 degrees and the number
+    of windows over :data:`TAIL_DEG`."""
     e = np.asarray(errors_deg, dtype=np.float64)
     if e.size == 0:
         return {"n_windows": 0}
     out: dict[str, float | int] = {
         "mean_deg": float(e.mean()),
         "median_deg": float(np.median(e)),
+        "p99_deg": float(np.percentile(e, 99)),
         "max_deg": float(e.max()),
         "n_windows": int(e.size),
     }
     for th in THRESHOLDS_DEG:
         out[f"under_{th:g}_deg"] = float((e < th).mean())
+    out[TAIL_KEY] = int((e > TAIL_DEG).sum())
     return out
 
 

@@ -375,7 +375,7 @@ def _expand_logs(items: list[str]) -> list[Path]:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from estimator.estimator import AGGREGATORS, SunEstimator
-    from estimator.evaluate import evaluate, plot_eval
+    from estimator.evaluate import TAIL_DEG, TAIL_KEY, evaluate, plot_eval
     from replay.sources import open_frames
     from rig.window import SpreadWindowPolicy
 
@@ -398,7 +398,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.plot:
         plot_eval(result, Path(args.plot))
     lines = [f"{name}: mean {s['mean_deg']:.2f} deg, median {s['median_deg']:.2f}, max {s['max_deg']:.1f} "
-             f"over {s['n_windows']} windows" for name, s in summary["aggregators"].items() if s["n_windows"]]
+             f"over {s['n_windows']} windows ({s[TAIL_KEY]} over {TAIL_DEG:g} deg)"
+             for name, s in summary["aggregators"].items() if s["n_windows"]]
     if not args.quiet:
         progress.close("; ".join(lines) if lines else "no full window with ground truth in these logs")
     if not lines:

@@ -18,6 +18,9 @@ def test_error_summary_numbers():
     assert s["under_5_deg"] == pytest.approx(0.4)
     assert s["under_10_deg"] == pytest.approx(0.6)
     assert s["under_20_deg"] == pytest.approx(0.8)
+    assert s["windows_over_30_deg"] == 0  # 30.0 itself is on target, not past it
+    assert s["p99_deg"] == pytest.approx(np.percentile([1.0, 4.0, 6.0, 12.0, 30.0], 99))
+    assert error_summary([10.0, 30.5, 75.0])["windows_over_30_deg"] == 2
     assert error_summary([]) == {"n_windows": 0}
 
 
