@@ -397,8 +397,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(text)
     if args.plot:
         plot_eval(result, Path(args.plot))
-    lines = [f"{name}: mean {s['mean_deg']:.2f} deg, median {s['median_deg']:.2f}, max {s['max_deg']:.1f} "
-             f"over {s['n_windows']} windows ({s[TAIL_KEY]} over {TAIL_DEG:g} deg)"
+    lines = [f"{name}: mean {s['mean_deg']:.2f} deg, median {s['median_deg']:.2f}, max {s['max_deg']:.1f}, "
+             f"{s[TAIL_KEY]} of {s['n_windows']} windows over {TAIL_DEG:g} deg"
              for name, s in summary["aggregators"].items() if s["n_windows"]]
     if not args.quiet:
         progress.close("; ".join(lines) if lines else "no full window with ground truth in these logs")
