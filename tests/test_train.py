@@ -223,3 +223,15 @@ def test_init_starts_a_new_run_from_a_model_folders_weights(logs, tmp_path):
         load_weights(first, nets.FAST, *nets.FAST.build())
     with pytest.raises(ValidationError, match="no weights.npz"):
         load_weights(tmp_path, nets.TINY, backbone, aggregator)
+
+
+@pytest.mark.parametrize("extra_load, warned", [(3.0, True), (0.0, False)])
+def test_a_minutes_budget_on_a_shared_cpu_is_warned_about(logs, tmp_path, monkeypatch, caplog, extra_load, warned):
+    import os
+
+    monkeypatch.setattr(os, "getloadavg", lambda: (torch.get_num_threads() + extra_load, 0.0, 0.0))
+    cfg = TrainConfig(preset="tiny", minutes=0.02, batch_windows=1, warmup_steps=1, checkpoint_every_s=0.0)
+    with caplog.at_level("WARNING", logger="estimator.train"):
+        train(logs, tmp_path / "m", cfg)
+    busy = [r for r in caplog.records if "using the CPU" in r.getMessage()]
+    assert len(busy) == (1 if warned else 0)  # once per run, however many checkpoints
