@@ -413,8 +413,10 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                                      frames_per_window=cfg.frames_per_window, crop_fov_deg=cfg.crop_fov_deg)
     normalise = _Normaliser(contract_stub.input_norm)
     budget_s = cfg.minutes * 60.0
-    # The schedule's length: steps if given, else estimated from the measured step time.
-    est_total = cfg.max_steps or 10**9
+    # The schedule's length: steps if given, else estimated from the measured step time once 20
+    # steps are timed (until then a length so long the rate is flat, and no total to report).
+    unknown_total = 10**9
+    est_total = cfg.max_steps or unknown_total
     backbone.train()
     aggregator.train()
     start = time.monotonic() - elapsed_s
@@ -482,7 +484,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                                      "lr": opt.param_groups[0]["lr"], "loss_ema": round(ema_loss, 4),
                                      "window_err_deg_ema": round(ema_err, 2)}) + "\n")
         if progress:
-            progress({"phase": "train", "step": step, "start_step": start_step, "total": est_total,
+            progress({"phase": "train", "step": step, "start_step": start_step,
+                      "total": None if est_total == unknown_total else est_total,
                       "elapsed_s": time.monotonic() - start, "budget_s": None if cfg.max_steps else budget_s,
                       "loss": ema_loss, "err_deg": ema_err})
         if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:

@@ -452,7 +452,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             loading.close()
             steps = Progress("train", unit="steps", enabled=enabled)
             steps.skip(p["start_step"])
-        steps.total = p["total"] if p["total"] < 10**9 else None
+        steps.total = p["total"]  # None until train() has timed enough steps to know
         budget = f" [{p['elapsed_s'] / 60:.0f}/{p['budget_s'] / 60:.0f} min]" if p["budget_s"] else ""
         steps.update(p["step"], f"loss {p['loss']:.3f} err {p['err_deg']:.1f} deg{budget}")
 

@@ -94,6 +94,7 @@ def test_train_checkpoint_resume_export(logs, tmp_path):
     # Progress: every log loaded, then every step, each saying where this session started.
     assert [(e["done"], e["total"]) for e in events if e["phase"] == "load"] == [(1, 3), (2, 3), (3, 3)]
     assert [(e["step"], e["start_step"]) for e in events if e["phase"] == "train"] == [(1, 0), (2, 0), (3, 0)]
+    assert {e["total"] for e in events if e["phase"] == "train"} == {3}  # a step budget is its own total
     state = torch.load(out / CHECKPOINT, weights_only=False)
     assert state["step"] == 3
     model = OnnxModel.load(out)
