@@ -300,8 +300,8 @@ BUSY_EXTRA_LOAD = 0.5
 
 def other_cpu_load(threads: int) -> float | None:
     """The 1-minute load average beyond ``threads`` (training's own), or None where the OS has
-    no load average. A minutes budget on a shared CPU trains fewer steps: the shipped recipe made
-    18 329 steps beside evaluations and 30 065 alone, and the second model is clearly better."""
+    no load average. A minutes budget on a shared CPU trains fewer steps and a weaker model
+    (docs/model.md, "Training", measures it)."""
     try:
         return os.getloadavg()[0] - threads
     except (AttributeError, OSError):
@@ -491,12 +491,14 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:
             _save_checkpoint(ckpt_path, state_dict())
             last_ckpt = time.monotonic()
-            extra = other_cpu_load(torch.get_num_threads())
-            if not warned_busy and not cfg.max_steps and extra is not None and extra > BUSY_EXTRA_LOAD:
-                warned_busy = True  # once: the advice does not change, and the log stays readable
-                log.warning("other work is using the CPU (load %.1f beyond training's %d threads): this "
-                            "%.0f-minute budget will train fewer steps; leave the machine idle while it trains",
-                            extra, torch.get_num_threads(), cfg.minutes)
+            if not warned_busy and not cfg.max_steps:  # a step budget is not shortened by load
+                threads = torch.get_num_threads()
+                extra = other_cpu_load(threads)
+                if extra is not None and extra > BUSY_EXTRA_LOAD:
+                    warned_busy = True  # once: the advice does not change, and the log stays readable
+                    log.warning("other work is using the CPU (load %.1f beyond training's %d threads): this "
+                                "%.0f-minute budget will train fewer steps; leave the machine idle while it trains",
+                                extra, threads, cfg.minutes)
 
     _save_checkpoint(ckpt_path, state_dict())
     return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, state_dict(), out_dir)
