@@ -338,8 +338,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if not 0.0 <= cfg.hard_share <= 1.0:
         raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
     if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
-        raise ValidationError(f"crops per frame and windows per step: expected at least 1 each, "
-                              f"got {cfg.crops_per_frame} and {cfg.batch_windows}")
+        raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
+                              f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
     net_cfg = nets.PRESETS[cfg.preset]
     # Checked before minutes of loading data; loaded only if there is no checkpoint to resume.
     init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init else None
@@ -598,7 +598,7 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     average out more of the luck of where crops land (docs/model.md measures it).
     """
     if run_crops_per_frame < 0:
-        raise ValidationError(f"crops per frame: expected at least 1, got {run_crops_per_frame}")
+        raise ValidationError(f"crops per frame: expected at least 1 (0: as trained), got {run_crops_per_frame}")
     path = Path(checkpoint_dir) / CHECKPOINT
     if not path.is_file():
         raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")
