@@ -16,13 +16,10 @@ calibrated by each frame's yaw, and L = cosine + norm + hemisphere. What differs
   so this only guards the calibration path; it costs nothing.
 - The backbone starts from scratch (no ImageNet weights can be downloaded here) with a higher
   learning rate than the paper's fine-tuning rate of 2e-5.
-- Hard windows are drawn more often: each drive and each frame keeps a running error of the full
-  windows it was in, and a share of windows (``hard_share``) picks its drive, then its frames, in
-  proportion to them. The held-out errors that matter most are the worst ones (low sun, dimmed
-  sun, few shadows, a high sun behind the camera), and uniform sampling spends most steps on
-  windows the model has already solved. Frames matter as well as drives because a drive is often
-  hard only along part of it: while the road keeps the sun behind the camera, say, and not after
-  it turns.
+- Hard drives are drawn more often: each drive keeps a running error of its full windows, and a
+  share of windows (``hard_share``) picks drives in proportion to it. The held-out errors that
+  matter most are the worst ones (low sun, dimmed sun, few shadows), and uniform sampling spends
+  most steps on drives the model has already solved.
 - ``precision="bf16"`` runs the forward pass under bf16 autocast with channels-last images (on
   CPUs with native bfloat16, AMX / AVX512-BF16; "auto" picks it there); weights, the loss and the
   exported graphs stay float32. It buys 1.1-1.3x the steps per minute for the fast preset on this
@@ -154,16 +151,14 @@ class Batch:
     mask: np.ndarray  # (B, T) bool
     truth: np.ndarray  # (B, 3) float64 ENU (with the random global offset)
     drive: np.ndarray  # (B,) int index of each window's drive in the sampler
-    frames: np.ndarray  # (B, frames) int index of each window's frames in its drive
 
 
 class WindowSampler:
     """Random windows: a drive, ``frames`` of its frames, ``crops`` random crops each.
 
-    A ``hard_share`` of windows draws its drive in proportion to the drive's running error and
-    then its frames in proportion to theirs (:meth:`record`); the rest draw the drive in proportion
-    to its length and the frames uniformly, so every frame is equally likely. A drive or frame not
-    yet seen counts as :data:`UNSEEN_ERR_DEG`, so early hard draws explore.
+    A ``hard_share`` of windows draws its drive in proportion to the drive's running error
+    (:meth:`record`); the rest in proportion to drive length, so every frame is equally likely.
+    A drive not yet seen counts as :data:`UNSEEN_ERR_DEG`, so early hard draws explore.
     """
 
     UNSEEN_ERR_DEG = 90.0
@@ -179,33 +174,18 @@ class WindowSampler:
         lengths = np.array([len(d.images) for d in self.drives], dtype=np.float64)
         self.p = lengths / lengths.sum()
         self.err_deg = np.full(len(self.drives), self.UNSEEN_ERR_DEG)
-        self.frame_err_deg = [np.full(len(d.images), self.UNSEEN_ERR_DEG) for d in self.drives]
 
-    def record(self, drive_index: np.ndarray, err_deg: np.ndarray, frame_index: np.ndarray | None = None) -> None:
-        """Fold full windows' errors into their drives' running errors and, given each window's
-        frames (rows of ``frame_index``), into those frames' running errors."""
-        for k, (i, e) in enumerate(zip(drive_index, err_deg, strict=True)):
+    def record(self, drive_index: np.ndarray, err_deg: np.ndarray) -> None:
+        """Fold full windows' errors into their drives' running errors."""
+        for i, e in zip(drive_index, err_deg, strict=True):
             self.err_deg[i] += self.ERR_EMA * (float(e) - self.err_deg[i])
-            if frame_index is not None:
-                fe = self.frame_err_deg[i]
-                fi = np.unique(frame_index[k])
-                fe[fi] += self.ERR_EMA * (float(e) - fe[fi])
 
-    def _window(self) -> tuple[int, np.ndarray]:
-        """A drive and its window's frame indices, sorted (the last is the newest)."""
+    def _drive_index(self) -> int:
         rng = self.rng
-        hard = self.hard_share > 0.0 and rng.random() < self.hard_share
-        if hard:
+        if self.hard_share > 0.0 and rng.random() < self.hard_share:
             w = self.err_deg * self.p
-            i = int(rng.choice(len(self.drives), p=w / w.sum()))
-        else:
-            i = int(rng.choice(len(self.drives), p=self.p))
-        n = len(self.drives[i].images)
-        fp = None
-        if hard and n >= self.frames:
-            fe = self.frame_err_deg[i]
-            fp = fe / fe.sum()
-        return i, np.sort(rng.choice(n, size=self.frames, replace=n < self.frames, p=fp))
+            return int(rng.choice(len(self.drives), p=w / w.sum()))
+        return int(rng.choice(len(self.drives), p=self.p))
 
     def sample(self, batch: int) -> Batch:
         t = self.frames * self.crops
@@ -217,13 +197,13 @@ class WindowSampler:
             mask=np.ones((batch, t), bool),
             truth=np.empty((batch, 3)),
             drive=np.empty(batch, np.int64),
-            frames=np.empty((batch, self.frames), np.int64),
         )
         rng = self.rng
         for b in range(batch):
-            out.drive[b], idx = self._window()
-            out.frames[b] = idx
+            out.drive[b] = self._drive_index()
             d = self.drives[out.drive[b]]
+            n = len(d.images)
+            idx = np.sort(rng.choice(n, size=self.frames, replace=n < self.frames))
             newest = idx[-1]
             offset = rng.uniform(0.0, 2.0 * math.pi)
             h, w = d.images.shape[1:3]
@@ -389,7 +369,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         log.info("starting from the weights of %s", cfg.init)
     step, elapsed_s = 0, 0.0
     schedule = Schedule(minutes=cfg.minutes)
-    drive_err, frame_err = None, None
+    drive_err = None
     rng = np.random.default_rng(cfg.seed)
     if ckpt_path.exists():
         state = torch.load(ckpt_path, weights_only=False)
@@ -417,7 +397,6 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             # A new budget: a new cosine segment from where the rate stands now.
             schedule = Schedule(start_step=step, start_lr=opt.param_groups[0]["lr"], minutes=cfg.minutes)
         drive_err = state.get("drive_err_deg")
-        frame_err = state.get("frame_err_deg")  # absent from checkpoints of older versions
         log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
 
     if not cfg.crops_per_frame:
@@ -426,8 +405,6 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                             cfg.subset_prob, rng, hard_share=cfg.hard_share)
     if drive_err is not None and len(drive_err) == len(drives):
         sampler.err_deg[:] = drive_err
-        if frame_err is not None and [len(f) for f in frame_err] == [len(d.images) for d in drives]:
-            sampler.frame_err_deg = [np.array(f, dtype=np.float64) for f in frame_err]
     bf16 = use_bf16(cfg.precision)
     if bf16:
         backbone = backbone.to(memory_format=torch.channels_last)
@@ -456,7 +433,6 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "data_counts": {"drives": len(drives), "frames": n_frames},
             "err_deg_ema": None if ema_err is None else round(ema_err, 2),
             "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(),
-            "frame_err_deg": [f.round(2).tolist() for f in sampler.frame_err_deg],
         }
 
     while True:
@@ -498,7 +474,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             window_err = torch.rad2deg(torch.acos(cos)).numpy()
             err_deg = float(window_err.mean())
             full = batch.mask.all(axis=1)  # a subset window's error says little about its drive
-            sampler.record(batch.drive[full], window_err[full], batch.frames[full])
+            sampler.record(batch.drive[full], window_err[full])
         loss_value = float(loss.detach())
         ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
         ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg

@@ -149,25 +149,6 @@ def test_hard_share_draws_drives_by_their_running_error():
     assert 0.35 < np.mean(uniform.sample(200).drive == 1) < 0.65
 
 
-def test_hard_share_draws_frames_by_their_running_error():
-    # One drive of 16 frames, hard only along its first half (the sun behind the camera until the
-    # road turns, say): hard draws fill windows from that half; plain draws do not.
-    drive = load_drive(_frames(16, 0), "d0", crop_size=16, crop_fov_rad=math.radians(17.6))
-    sampler = WindowSampler([drive], 4, 2, 16, subset_prob=0.0, rng=np.random.default_rng(0), hard_share=1.0)
-    early, late = np.arange(0, 8), np.arange(8, 16)
-    for _ in range(60):
-        sampler.record(np.array([0, 0]), np.array([40.0, 2.0]), np.stack([early[:4], late[:4]]))
-        sampler.record(np.array([0, 0]), np.array([40.0, 2.0]), np.stack([early[4:], late[4:]]))
-    assert sampler.frame_err_deg[0][:8] == pytest.approx(40.0, abs=1e-3)
-    assert sampler.frame_err_deg[0][8:] == pytest.approx(2.0, abs=1e-3)
-    hard = sampler.sample(200)
-    assert (hard.frames[:, 0] == hard.frames.min(axis=1)).all()  # sorted: the last is the newest
-    assert 0.85 < np.mean(hard.frames < 8) < 1.0  # 20:1 odds a frame, and late frames still drawn
-    uniform = WindowSampler([drive], 4, 2, 16, 0.0, np.random.default_rng(0), hard_share=0.0)
-    uniform.frame_err_deg = sampler.frame_err_deg
-    assert 0.35 < np.mean(uniform.sample(200).frames < 8) < 0.65
-
-
 def test_schedule_warms_up_decays_and_never_rises_on_a_longer_resume():
     cfg = TrainConfig(lr=1e-3, warmup_steps=10)
     first = Schedule(minutes=10.0)
@@ -190,8 +171,6 @@ def test_checkpoint_keeps_schedule_and_drive_errors(logs, tmp_path):
     assert state["schedule"]["start_step"] == 0
     errs = np.array(state["drive_err_deg"])
     assert errs.shape == (3,) and (errs < WindowSampler.UNSEEN_ERR_DEG).any()  # 8 full windows were recorded
-    frame_errs = state["frame_err_deg"]
-    assert len(frame_errs) == 3 and any(min(f) < WindowSampler.UNSEEN_ERR_DEG for f in frame_errs)
 
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
