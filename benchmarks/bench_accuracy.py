@@ -7,7 +7,8 @@ and writes the figures.
 The crops of a frame are random (seeded by ``--seeds`` and the frame's number), and one model's
 worst window moves a lot with them: on the session-2 model, crop seeds 0, 1 and 2 gave a maximum
 of 35, 85 and 80 deg on the same windows. So every window is estimated once per crop seed and the
-headline numbers pool all of them (3 x 1700 estimates by default); ``per_seed`` gives each seed's.
+headline numbers pool all of them (3 x 1700 estimates by default); ``per_seed`` gives each seed's,
+with the drives of its worst windows (``worst_logs``).
 
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
@@ -54,7 +55,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from estimator.estimator import SunEstimator
-    from estimator.evaluate import error_summary, evaluate, plot_eval
+    from estimator.evaluate import WORST_LOGS, error_summary, evaluate, plot_eval
     from estimator.models import resolve_model_dir
     from estimator.runtime import OnnxModel
     from replay.sources import open_frames
@@ -68,8 +69,9 @@ def main() -> None:
     for seed in args.seeds:
         estimator = SunEstimator(model, seed=seed, crop_layout=args.crop_layout)
         policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
-        result = evaluate([(str(p), open_frames(p)) for p in paths], estimator, policy)
-        per_seed[str(seed)] = error_summary(result.errors_deg["transformer"])
+        result = evaluate([(p.name, open_frames(p)) for p in paths], estimator, policy)
+        per_seed[str(seed)] = {**error_summary(result.errors_deg["transformer"]),
+                               "worst_logs": result.by_log("transformer")[:WORST_LOGS]}
         print(f"crop seed {seed}: transformer mean {per_seed[str(seed)]['mean_deg']:.2f} deg, "
               f"max {per_seed[str(seed)]['max_deg']:.2f} deg", file=sys.stderr)
         if pooled is None:

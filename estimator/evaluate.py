@@ -25,6 +25,9 @@ THRESHOLDS_DEG = (5.0, 10.0, 20.0)
 # and moves with the crop draw, so the summary also counts the windows past it and gives the p99.
 TAIL_DEG = 30.0
 TAIL_KEY = f"windows_over_{TAIL_DEG:g}_deg"
+# Logs listed in a summary's ``worst_logs``, per aggregator: a tail usually comes from a few drives,
+# and which ones is the first thing to know about it.
+WORST_LOGS = 5
 
 
 def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int]:
@@ -51,6 +54,7 @@ class EvalResult:
     errors_deg: dict[str, list[float]] = field(default_factory=dict)
     samples: list[dict[str, SunEstimate]] = field(default_factory=list)  # a few windows, for plots
     logs: list[str] = field(default_factory=list)
+    window_logs: list[str] = field(default_factory=list)  # each window's log, in the order of every errors_deg list
     frames: int = 0
     windows_skipped_filling: int = 0
     windows_failed: int = 0
@@ -61,14 +65,30 @@ class EvalResult:
         its windows' errors and counts are added; the logs and the sample windows stay this one's."""
         for name, errs in other.errors_deg.items():
             self.errors_deg.setdefault(name, []).extend(errs)
+        self.window_logs.extend(other.window_logs)
         self.frames += other.frames
         self.windows_skipped_filling += other.windows_skipped_filling
         self.windows_failed += other.windows_failed
         self.windows_without_truth += other.windows_without_truth
 
+    def by_log(self, aggregator: str) -> list[dict[str, float | int | str]]:
+        """One aggregator's windows log by log (pooled evaluations of a log count together):
+        windows, mean, max and windows over :data:`TAIL_DEG`, the worst max first."""
+        errs = np.asarray(self.errors_deg[aggregator], dtype=np.float64)
+        if len(self.window_logs) != errs.size:
+            raise ValueError(f"{aggregator}: {errs.size} window errors but {len(self.window_logs)} window logs")
+        logs = np.asarray(self.window_logs)
+        rows: list[dict[str, float | int | str]] = []
+        for name in dict.fromkeys(self.window_logs):  # first-seen order, so ties stay in log order
+            e = errs[logs == name]
+            rows.append({"log": name, "n_windows": int(e.size), "mean_deg": float(e.mean()),
+                         "max_deg": float(e.max()), TAIL_KEY: int((e > TAIL_DEG).sum())})
+        return sorted(rows, key=lambda r: -r["max_deg"])
+
     def summary(self) -> dict:
         return {
             "aggregators": {name: error_summary(e) for name, e in self.errors_deg.items()},
+            "worst_logs": {name: self.by_log(name)[:WORST_LOGS] for name in self.errors_deg},
             "logs": self.logs,
             "frames": self.frames,
             "windows_skipped_filling": self.windows_skipped_filling,
@@ -97,6 +117,7 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
                 continue
             for agg, est in estimates.items():
                 result.errors_deg[agg].append(math.degrees(est.error_rad))
+            result.window_logs.append(name)
             # The first full window of each of the first logs, for the scatter figure: each log
             # has its own sun, so the figure shows different skies.
             if len(result.samples) < n_samples and not sampled_this_log:

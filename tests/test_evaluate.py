@@ -26,18 +26,33 @@ def test_error_summary_numbers():
 
 
 def test_pooled_results_add_windows_and_keep_this_ones_logs():
-    a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]}, logs=["d0"], frames=10,
-                   windows_skipped_filling=7, windows_failed=1)
-    b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, logs=["d0"], frames=10,
+    a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]}, logs=["d0"],
+                   window_logs=["d0", "d0"], frames=10, windows_skipped_filling=7, windows_failed=1)
+    b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, logs=["d0"], window_logs=["d0"], frames=10,
                    windows_skipped_filling=7, windows_without_truth=2)
     a.extend(b)
     s = a.summary()
+    assert s["worst_logs"]["transformer"] == [{"log": "d0", "n_windows": 3, "mean_deg": pytest.approx(43.0 / 3),
+                                               "max_deg": 40.0, "windows_over_30_deg": 1}]
     assert s["aggregators"]["transformer"]["n_windows"] == 3
     assert s["aggregators"]["transformer"]["max_deg"] == 40.0
     assert s["aggregators"]["mean"]["mean_deg"] == pytest.approx(14.0 / 3)
     assert s["logs"] == ["d0"]
     counts = (s["frames"], s["windows_skipped_filling"], s["windows_failed"], s["windows_without_truth"])
     assert counts == (20, 14, 1, 2)
+
+def test_worst_logs_come_first_and_the_list_is_cut():
+    errs = {"d0": [3.0, 5.0], "d1": [2.0, 31.0, 45.0], "d2": [1.0], "d3": [9.0], "d4": [8.0], "d5": [7.0]}
+    r = EvalResult(errors_deg={"transformer": [e for v in errs.values() for e in v]},
+                   window_logs=[name for name, v in errs.items() for _ in v])
+    rows = r.by_log("transformer")
+    assert [row["log"] for row in rows] == ["d1", "d3", "d4", "d5", "d0", "d2"]
+    assert rows[0]["n_windows"] == 3 and rows[0]["mean_deg"] == pytest.approx(26.0)
+    assert rows[0]["windows_over_30_deg"] == 2 and rows[1]["windows_over_30_deg"] == 0
+    assert [row["log"] for row in r.summary()["worst_logs"]["transformer"]] == ["d1", "d3", "d4", "d5", "d0"]
+    with pytest.raises(ValueError, match="window logs"):
+        EvalResult(errors_deg={"transformer": [1.0]}).by_log("transformer")
+
 
 @pytest.mark.torch
 def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
@@ -69,4 +84,7 @@ def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
         assert 0.0 <= s["median_deg"] <= s["max_deg"] <= 180.0
         assert {"mean_deg", "median_deg", "max_deg", "under_5_deg", "under_10_deg", "under_20_deg"} <= set(s)
     assert summary["windows_skipped_filling"] == 14
+    worst = summary["worst_logs"]["transformer"]
+    assert sorted(row["log"] for row in worst) == sorted(str(p) for p in logs)
+    assert worst[0]["max_deg"] == aggs["transformer"]["max_deg"] and sum(r["n_windows"] for r in worst) == 10
     assert png.stat().st_size > 10_000 and (tmp_path / "eval-tokens.png").stat().st_size > 10_000
