@@ -500,8 +500,11 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                                 "%.0f-minute budget will train fewer steps; leave the machine idle while it trains",
                                 extra, threads, cfg.minutes)
 
-    _save_checkpoint(ckpt_path, state_dict())
-    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, state_dict(), out_dir)
+    # One snapshot for both, so the exported contract's minutes are the checkpoint's to the second
+    # (a second snapshot after a slow save reads a later clock).
+    final = state_dict()
+    _save_checkpoint(ckpt_path, final)
+    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, final, out_dir)
 
 
 def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path,
