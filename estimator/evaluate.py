@@ -28,6 +28,7 @@ TAIL_KEY = f"windows_over_{TAIL_DEG:g}_deg"
 # Logs listed in a summary's ``worst_logs``, per aggregator: a tail usually comes from a few drives,
 # and which ones is the first thing to know about it.
 WORST_LOGS = 5
+LOG_KEYS = ("n_windows", "mean_deg", "max_deg", TAIL_KEY)  # of error_summary, per log
 
 
 def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int]:
@@ -80,9 +81,8 @@ class EvalResult:
         logs = np.asarray(self.window_logs)
         rows: list[dict[str, float | int | str]] = []
         for name in dict.fromkeys(self.window_logs):  # first-seen order, so ties stay in log order
-            e = errs[logs == name]
-            rows.append({"log": name, "n_windows": int(e.size), "mean_deg": float(e.mean()),
-                         "max_deg": float(e.max()), TAIL_KEY: int((e > TAIL_DEG).sum())})
+            s = error_summary(errs[logs == name])
+            rows.append({"log": name, **{k: s[k] for k in LOG_KEYS}})
         return sorted(rows, key=lambda r: -r["max_deg"])
 
     def summary(self) -> dict:
