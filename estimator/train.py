@@ -330,6 +330,29 @@ def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     os.replace(tmp, path)  # atomic: a kill mid-save leaves the previous checkpoint intact
 
 
+def _trim_metrics(path: Path, step: int) -> int:
+    """Keep the metric lines up to ``step``, the checkpoint a run resumes from; returns how many
+    were dropped. Lines after it describe steps a kill threw away (they are trained again), and a
+    kill mid-write can leave a torn last line; either would make the curve run backwards."""
+    if not path.exists():
+        return 0
+    kept, dropped = [], 0
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            row_step = json.loads(line)["step"]
+        except (ValueError, KeyError, TypeError):
+            row_step = None
+        if isinstance(row_step, int) and row_step <= step:
+            kept.append(line + "\n")
+        else:
+            dropped += 1
+    if dropped:
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text("".join(kept), encoding="utf-8")
+        os.replace(tmp, path)
+    return dropped
+
+
 def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
           progress: Callable[[dict[str, Any]], None] | None = None) -> Path:
     """Train (or resume) and export; returns the model folder."""
@@ -398,6 +421,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             schedule = Schedule(start_step=step, start_lr=opt.param_groups[0]["lr"], minutes=cfg.minutes)
         drive_err = state.get("drive_err_deg")
         log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
+        dropped = _trim_metrics(out_dir / METRICS, step)
+        if dropped:
+            log.info("dropped %d metric lines past the checkpoint (steps lost when the run stopped)", dropped)
 
     if not cfg.crops_per_frame:
         cfg = replace(cfg, crops_per_frame=PAPER_CROPS_PER_FRAME)

@@ -15,6 +15,7 @@ torch = pytest.importorskip("torch", reason="training needs the train extra")
 from estimator.train import (  # noqa: E402
     CHECKPOINT,
     LR_FLOOR,
+    METRICS,
     Schedule,
     TrainConfig,
     TrainingDataError,
@@ -100,11 +101,14 @@ def test_train_checkpoint_resume_export(logs, tmp_path):
     model = OnnxModel.load(out)
     assert model.contract.training["trained"] is True and model.contract.training["steps"] == 3
     assert model.contract.training["data"]["drives"] == 3
-    # Resume: a larger step budget continues from step 3, not from scratch.
+    # Resume: a larger step budget continues from step 3, not from scratch. Metric lines written
+    # after the checkpoint (steps a kill threw away) and a torn last line do not survive it.
+    (out / METRICS).write_text('{"step": 2}\n{"step": 4}\n{"st', encoding="utf-8")
     events.clear()
     train(logs, out, TrainConfig(preset="tiny", max_steps=5, batch_windows=2, warmup_steps=1), progress=events.append)
     assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 5
     assert [(e["step"], e["start_step"]) for e in events if e["phase"] == "train"] == [(4, 3), (5, 3)]
+    assert (out / METRICS).read_text(encoding="utf-8") == '{"step": 2}\n'
     assert OnnxModel.load(out).contract.training["steps"] == 5
     # The checkpoint exports on its own (to watch a run while it trains) to the same model.
     from estimator.train import export_checkpoint
