@@ -65,7 +65,7 @@ CHECKPOINT = "checkpoint.pt"
 # the runtime): what ``--init`` starts a fine-tuning run from. The ONNX graphs cannot serve, since
 # export folds batch-norm into the convolutions.
 WEIGHTS = "weights.npz"
-METRICS = "train_metrics.jsonl"  # one line per 50 steps, appended across resumes
+METRICS = "train_metrics.jsonl"  # one line per 50 steps, appended across resumes (see _trim_metrics)
 
 
 class TrainingDataError(SunrigError):
