@@ -324,10 +324,16 @@ class _Normaliser:
         return x * self.gain + self.offset
 
 
+def _write_atomically(path: Path, write: Callable[[Path], None]) -> None:
+    """``write`` a hidden sibling, then rename it over ``path``: a kill mid-write leaves the previous
+    file intact. The sibling keeps the suffix, which ``np.savez`` would otherwise append."""
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    write(tmp)
+    os.replace(tmp, path)
+
+
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)  # atomic: a kill mid-save leaves the previous checkpoint intact
+    _write_atomically(path, lambda tmp: torch.save(state, tmp))
 
 
 def _trim_metrics(path: Path, step: int) -> int:
@@ -347,9 +353,7 @@ def _trim_metrics(path: Path, step: int) -> int:
         else:
             dropped += 1
     if dropped:
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text("".join(kept), encoding="utf-8")
-        os.replace(tmp, path)
+        _write_atomically(path, lambda tmp: tmp.write_text("".join(kept), encoding="utf-8"))
     return dropped
 
 
@@ -568,9 +572,7 @@ def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
               for part, module in (("backbone", backbone), ("aggregator", aggregator))
               for k, v in module.state_dict().items()}
     path = Path(out_dir) / WEIGHTS
-    tmp = path.with_name(".weights.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    _write_atomically(path, lambda tmp: np.savez_compressed(tmp, **arrays))
     return path
 
 
