@@ -41,6 +41,7 @@ def test_pooled_results_add_windows_and_keep_this_ones_logs():
     counts = (s["frames"], s["windows_skipped_filling"], s["windows_failed"], s["windows_without_truth"])
     assert counts == (20, 14, 1, 2)
 
+
 def test_worst_logs_come_first_and_the_list_is_cut():
     errs = {"d0": [3.0, 5.0], "d1": [2.0, 31.0, 45.0], "d2": [1.0], "d3": [9.0], "d4": [8.0], "d5": [7.0]}
     r = EvalResult(errors_deg={"transformer": [e for v in errs.values() for e in v]},
