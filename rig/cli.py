@@ -117,6 +117,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     summary = f"{stats.frames} frames, {stats.windows - stats.windows_failed} estimates"
     if stats.frames_without_heading:
         summary += f", {stats.frames_without_heading} frames without heading skipped"
+    if stats.frames_bad_exposure:
+        summary += f", {stats.frames_bad_exposure} frames too dark, bright or flat to show the sun skipped"
     if stats.windows_failed:
         summary += f", {stats.windows_failed} windows failed"
     if errors:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
+from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.ring import FrameRing
 from rig.types import Frame, SunEstimate
 from rig.window import SpreadWindowPolicy
@@ -24,6 +25,7 @@ log = logging.getLogger(__name__)
 class OfflineStats:
     frames: int = 0
     frames_without_heading: int = 0
+    frames_bad_exposure: int = 0
     frames_out_of_order: int = 0
     windows: int = 0
     windows_failed: int = 0
@@ -32,11 +34,13 @@ class OfflineStats:
 
 def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: SpreadWindowPolicy,
                     *, aggregators: Sequence[str] | None = None, encode_batch: int = 8,
-                    stats: OfflineStats | None = None) -> Iterator[dict[str, SunEstimate]]:
+                    stats: OfflineStats | None = None,
+                    exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE) -> Iterator[dict[str, SunEstimate]]:
     """One window per frame with a heading, estimated with each aggregator.
 
     Yields ``{aggregator: SunEstimate}`` per window. Frames without heading are counted and left
-    out of windows (a frame's heading is never guessed). A window that cannot be estimated is
+    out of windows (a frame's heading is never guessed), and so are frames too dark, bright or
+    flat to show the sun (``rig/exposure.py``; ``exposure_gate=None`` keeps them). A window that cannot be estimated is
     counted, logged and skipped: one bad window does not end a replay.
     """
     aggregators = list(aggregators or [estimator.aggregator])
@@ -66,6 +70,9 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
         stats.frames += 1
         if frame.attitude is None:
             stats.frames_without_heading += 1
+            continue
+        if exposure_gate is not None and exposure_gate.rejects(frame.image_bgr):
+            stats.frames_bad_exposure += 1
             continue
         pending.append(frame)
         if len(pending) >= encode_batch:

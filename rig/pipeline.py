@@ -29,6 +29,7 @@ import numpy as np
 from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
 from rig.errors import SunrigError
+from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.publishers import Publisher
 from rig.ring import DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
@@ -51,6 +52,7 @@ class RigConfig:
     ring_max_age_s: float = 10.0
     status_every_s: float = 5.0
     realtime: bool = False  # pace a recorded source by its timestamps
+    exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE  # None: every frame joins windows
 
 
 @dataclass
@@ -76,6 +78,7 @@ class RigStats:
     frames_captured: int = 0
     frames_dropped_queue: int = 0
     frames_without_heading: int = 0
+    frames_bad_exposure: int = 0
     frames_encoded: int = 0
     frames_out_of_order: int = 0
     windows_skipped: int = 0
@@ -100,8 +103,9 @@ class RigStats:
         lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
         pub_drops = sum(v.get("dropped", 0) for v in self.publishers.values())
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
-                f"{self.frames_without_heading}) | estimates {self.estimates} at {rate:.1f} Hz, skipped "
-                f"{self.windows_skipped}, failed {self.estimates_failed} | {lat_text} | publish drops {pub_drops}")
+                f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}) | estimates "
+                f"{self.estimates} at {rate:.1f} Hz, skipped {self.windows_skipped}, failed "
+                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}")
 
 
 class RigPipeline:
@@ -223,6 +227,11 @@ class RigPipeline:
             if frame.attitude is None:
                 # A frame without heading can never join a window: skip the backbone for it.
                 self.stats.frames_without_heading += 1
+                continue
+            gate = self.config.exposure_gate
+            if gate is not None and gate.rejects(frame.image_bgr):
+                # Too dark, bright or flat to show the sun (rig/exposure.py): recorded, never estimated.
+                self.stats.frames_bad_exposure += 1
                 continue
             if not self._frames.put((frame, self.clock())):
                 self.stats.frames_dropped_queue += 1

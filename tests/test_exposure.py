@@ -1,0 +1,95 @@
+"""The exposure gate: frames that cannot show the sun are counted and left out of windows."""
+
+import math
+
+import numpy as np
+import pytest
+
+from replay.sources import DEMO_LOG, open_frames
+from rig.errors import ValidationError
+from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate, luminance_stats
+from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+
+INTR = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+RNG = np.random.default_rng(0)
+TEXTURED = RNG.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
+
+
+def test_luminance_uses_bt601_weights_in_bgr_order():
+    blue, green, red = (np.zeros((16, 16, 3), np.uint8) for _ in range(3))
+    blue[..., 0], green[..., 1], red[..., 2] = 200, 200, 200
+    means = [luminance_stats(img)[0] for img in (blue, green, red)]
+    assert means == pytest.approx([0.114 * 200, 0.587 * 200, 0.299 * 200], rel=1e-5)
+    assert luminance_stats(green)[1] == 0.0
+
+
+@pytest.mark.parametrize(("image", "reason"), [
+    (np.zeros((80, 128, 3), np.uint8), "dark"),  # night, a lens cap
+    (np.full((80, 128, 3), 8, np.uint8), "dark"),
+    (np.full((80, 128, 3), 255, np.uint8), "bright"),  # a blinded sensor
+    (np.full((80, 128, 3), 128, np.uint8), "flat"),  # a covered lens
+    (np.clip(128 + RNG.normal(0, 1, (80, 128, 3)), 0, 255).astype(np.uint8), "flat"),
+    (TEXTURED, None),
+])
+def test_gate_names_why_a_frame_cannot_show_the_sun(image, reason):
+    assert DEFAULT_EXPOSURE_GATE.rejects(image) == reason
+
+
+def test_gate_thresholds_are_checked():
+    for bad in ({"min_mean": 200.0, "max_mean": 100.0}, {"max_mean": 300.0}, {"min_std": -1.0}):
+        with pytest.raises(ValidationError, match="ExposureGate"):
+            ExposureGate(**bad)
+
+
+def test_the_bundled_drive_passes_the_gate():
+    # The bundled drive is auto-exposed like the training data: none of its frames may be lost.
+    frames = list(open_frames(DEMO_LOG))
+    assert frames and not [f.seq for f in frames if DEFAULT_EXPOSURE_GATE.rejects(f.image_bgr)]
+
+
+def drive(n, dark_from=None, dark_to=None):
+    for i in range(n):
+        dark = dark_from is not None and dark_from <= i < dark_to
+        yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=np.zeros_like(TEXTURED) if dark else TEXTURED,
+                    intrinsics=INTR, attitude=Attitude(math.radians(3.0 * i), HeadingRef.TRUE),
+                    sun_enu_truth=[0.0, 0.8, 0.6])
+
+
+@pytest.mark.torch
+def test_replay_leaves_dark_frames_out_of_every_window(tiny_model_dir):
+    from estimator.estimator import SunEstimator
+    from estimator.runtime import OnnxModel
+    from rig.offline import OfflineStats, estimate_stream
+    from rig.window import SpreadWindowPolicy
+
+    est = SunEstimator(OnnxModel.load(tiny_model_dir))
+    stats = OfflineStats()
+    out = [r["transformer"] for r in estimate_stream(drive(30, 10, 14), est, SpreadWindowPolicy(8, 4.0), stats=stats)]
+    assert stats.frames == 30 and stats.frames_bad_exposure == 4
+    assert [e.seq for e in out] == [*range(10), *range(14, 30)]
+    # After the dark stretch the window refills from lit frames only: 10 lit frames remain in
+    # the 4 s span before seq 14, so the window is full again at once, never padded with dark.
+    assert all(e.n_frames == min(e.seq + 1, 8) for e in out)
+
+    kept = OfflineStats()
+    assert len(list(estimate_stream(drive(30, 10, 14), est, SpreadWindowPolicy(8, 4.0), stats=kept,
+                                    exposure_gate=None))) == 30
+    assert kept.frames_bad_exposure == 0
+
+
+@pytest.mark.torch
+def test_live_rig_counts_dark_frames_and_never_estimates_them(tiny_model_dir):
+    from estimator.estimator import SunEstimator
+    from estimator.runtime import OnnxModel
+    from rig.pipeline import RigConfig, RigPipeline
+    from rig.window import SpreadWindowPolicy
+
+    est = SunEstimator(OnnxModel.load(tiny_model_dir))
+    seen = []
+    pipe = RigPipeline(drive(40, 0, 40), est, SpreadWindowPolicy(8, 4.0), config=RigConfig(queue_size=100),
+                       on_frame=seen.append)
+    stats = pipe.run(timeout_s=30.0)
+    # Night all the way: every frame is still handed to the recorder, none reaches the backbone.
+    assert len(seen) == stats.frames_captured == stats.frames_bad_exposure == 40
+    assert stats.frames_encoded == stats.estimates == 0
+    assert "bad exposure 40" in stats.status_line(stats.ended_s)
