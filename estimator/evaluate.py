@@ -57,6 +57,8 @@ class EvalResult:
     logs: list[str] = field(default_factory=list)
     window_logs: list[str] = field(default_factory=list)  # each window's log, in the order of every errors_deg list
     frames: int = 0
+    frames_without_heading: int = 0  # left out of windows, as in a replay
+    frames_bad_exposure: int = 0  # too dark, bright or flat to show the sun (rig/exposure.py)
     windows_skipped_filling: int = 0
     windows_failed: int = 0
     windows_without_truth: int = 0
@@ -68,6 +70,8 @@ class EvalResult:
             self.errors_deg.setdefault(name, []).extend(errs)
         self.window_logs.extend(other.window_logs)
         self.frames += other.frames
+        self.frames_without_heading += other.frames_without_heading
+        self.frames_bad_exposure += other.frames_bad_exposure
         self.windows_skipped_filling += other.windows_skipped_filling
         self.windows_failed += other.windows_failed
         self.windows_without_truth += other.windows_without_truth
@@ -91,6 +95,8 @@ class EvalResult:
             "worst_logs": {name: self.by_log(name)[:WORST_LOGS] for name in self.errors_deg},
             "logs": self.logs,
             "frames": self.frames,
+            "frames_without_heading": self.frames_without_heading,
+            "frames_bad_exposure": self.frames_bad_exposure,
             "windows_skipped_filling": self.windows_skipped_filling,
             "windows_failed": self.windows_failed,
             "windows_without_truth": self.windows_without_truth,
@@ -127,6 +133,8 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
             if progress:
                 progress(n_done)
         result.frames += stats.frames
+        result.frames_without_heading += stats.frames_without_heading
+        result.frames_bad_exposure += stats.frames_bad_exposure
         result.windows_failed += stats.windows_failed
     return result
 

@@ -27,9 +27,10 @@ def test_error_summary_numbers():
 
 def test_pooled_results_add_windows_and_keep_this_ones_logs():
     a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]}, logs=["d0"],
-                   window_logs=["d0", "d0"], frames=10, windows_skipped_filling=7, windows_failed=1)
+                   window_logs=["d0", "d0"], frames=10, frames_bad_exposure=2, windows_skipped_filling=7,
+                   windows_failed=1)
     b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, logs=["d0"], window_logs=["d0"], frames=10,
-                   windows_skipped_filling=7, windows_without_truth=2)
+                   frames_without_heading=3, frames_bad_exposure=2, windows_skipped_filling=7, windows_without_truth=2)
     a.extend(b)
     s = a.summary()
     assert s["worst_logs"]["transformer"] == [{"log": "d0", "n_windows": 3, "mean_deg": pytest.approx(43.0 / 3),
@@ -38,8 +39,9 @@ def test_pooled_results_add_windows_and_keep_this_ones_logs():
     assert s["aggregators"]["transformer"]["max_deg"] == 40.0
     assert s["aggregators"]["mean"]["mean_deg"] == pytest.approx(14.0 / 3)
     assert s["logs"] == ["d0"]
-    counts = (s["frames"], s["windows_skipped_filling"], s["windows_failed"], s["windows_without_truth"])
-    assert counts == (20, 14, 1, 2)
+    counts = (s["frames"], s["frames_without_heading"], s["frames_bad_exposure"], s["windows_skipped_filling"],
+              s["windows_failed"], s["windows_without_truth"])
+    assert counts == (20, 3, 4, 14, 1, 2)
 
 
 def test_worst_logs_come_first_and_the_list_is_cut():
@@ -67,7 +69,11 @@ def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
         path = tmp_path / f"d{d}.mcap"
         with LogWriter(path) as w:
             for i in range(12):
-                w.write_frame(Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8),
+                # The second log opens with two black frames: counted, and left out of its windows.
+                img = rng.integers(0, 256, (80, 128, 3), np.uint8)
+                if d == 1 and i < 2:
+                    img[:] = 0
+                w.write_frame(Frame(t_mono_s=0.1 * i, seq=i, image_bgr=img,
                                     intrinsics=k, attitude=Attitude(math.radians(7.0 * i), HeadingRef.TRUE),
                                     sun_enu_truth=[0.0, 0.8, 0.6]))
         logs.append(path)
@@ -80,12 +86,13 @@ def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
     aggs = summary["aggregators"]
     assert set(aggs) == {"transformer", "mean", "meanshift", "single"}
     for s in aggs.values():
-        # 12 frames per log, windows full from the 8th frame on: 5 per log.
-        assert s["n_windows"] == 10
+        # Windows are full from the 8th usable frame on: 5 of the first log's 12, 3 of the second's 10.
+        assert s["n_windows"] == 8
         assert 0.0 <= s["median_deg"] <= s["max_deg"] <= 180.0
         assert {"mean_deg", "median_deg", "max_deg", "under_5_deg", "under_10_deg", "under_20_deg"} <= set(s)
     assert summary["windows_skipped_filling"] == 14
+    assert (summary["frames"], summary["frames_bad_exposure"], summary["frames_without_heading"]) == (24, 2, 0)
     worst = summary["worst_logs"]["transformer"]
     assert sorted(row["log"] for row in worst) == sorted(str(p) for p in logs)
-    assert worst[0]["max_deg"] == aggs["transformer"]["max_deg"] and sum(r["n_windows"] for r in worst) == 10
+    assert worst[0]["max_deg"] == aggs["transformer"]["max_deg"] and sum(r["n_windows"] for r in worst) == 8
     assert png.stat().st_size > 10_000 and (tmp_path / "eval-tokens.png").stat().st_size > 10_000
