@@ -133,6 +133,7 @@ class RigPipeline:
         self.ring = FrameRing(self.config.ring_capacity, self.config.ring_max_age_s)
         self._failure: tuple[str, BaseException] | None = None
         self._failure_lock = threading.Lock()
+        self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
 
     # -- control -----------------------------------------------------------------------------
     def stop(self) -> None:
@@ -229,12 +230,24 @@ class RigPipeline:
                 self.stats.frames_without_heading += 1
                 continue
             gate = self.config.exposure_gate
-            if gate is not None and gate.rejects(frame.image_bgr):
+            reason = gate.rejects(frame.image_bgr) if gate is not None else None
+            if reason != self._exposure_reason:
+                self._log_exposure_change(frame.seq, reason)
+            if reason:
                 # Too dark, bright or flat to show the sun (rig/exposure.py): recorded, never estimated.
                 self.stats.frames_bad_exposure += 1
                 continue
             if not self._frames.put((frame, self.clock())):
                 self.stats.frames_dropped_queue += 1
+
+    def _log_exposure_change(self, seq: int, reason: str | None) -> None:
+        # Once per change, not per frame: a night is one message, not one per frame.
+        if reason:
+            log.warning("from seq %d frames are too %s to show the sun: left out of windows until that changes",
+                        seq, reason)
+        else:
+            log.info("from seq %d frames show the scene again: windows refill", seq)
+        self._exposure_reason = reason
 
     def _encode(self) -> None:
         while not self._stop.is_set():

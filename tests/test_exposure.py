@@ -78,7 +78,7 @@ def test_replay_leaves_dark_frames_out_of_every_window(tiny_model_dir):
 
 
 @pytest.mark.torch
-def test_live_rig_counts_dark_frames_and_never_estimates_them(tiny_model_dir):
+def test_live_rig_counts_dark_frames_and_never_estimates_them(tiny_model_dir, caplog):
     from estimator.estimator import SunEstimator
     from estimator.runtime import OnnxModel
     from rig.pipeline import RigConfig, RigPipeline
@@ -93,3 +93,26 @@ def test_live_rig_counts_dark_frames_and_never_estimates_them(tiny_model_dir):
     assert len(seen) == stats.frames_captured == stats.frames_bad_exposure == 40
     assert stats.frames_encoded == stats.estimates == 0
     assert "bad exposure 40" in stats.status_line(stats.ended_s)
+    # Reported once, when it starts, not once per frame.
+    warned = [r.getMessage() for r in caplog.records if "show the sun" in r.getMessage()]
+    assert warned == ["from seq 0 frames are too dark to show the sun: left out of windows until that changes"]
+
+
+@pytest.mark.torch
+def test_live_rig_recovers_when_the_light_returns(tiny_model_dir, caplog):
+    import logging
+
+    from estimator.estimator import SunEstimator
+    from estimator.runtime import OnnxModel
+    from rig.pipeline import RigConfig, RigPipeline
+    from rig.window import SpreadWindowPolicy
+
+    caplog.set_level(logging.INFO, logger="rig.pipeline")
+    est = SunEstimator(OnnxModel.load(tiny_model_dir))
+    pipe = RigPipeline(drive(30, 0, 10), est, SpreadWindowPolicy(8, 4.0), config=RigConfig(queue_size=100))
+    stats = pipe.run(timeout_s=30.0)
+    assert stats.frames_bad_exposure == 10 and stats.frames_encoded == 20
+    assert stats.estimates + stats.windows_skipped + stats.estimates_failed == 20 and stats.estimates >= 1
+    said = [r.getMessage() for r in caplog.records if r.name == "rig.pipeline"]
+    assert said == ["from seq 0 frames are too dark to show the sun: left out of windows until that changes",
+                    "from seq 10 frames show the scene again: windows refill"]
