@@ -67,8 +67,8 @@ def test_replay_leaves_dark_frames_out_of_every_window(tiny_model_dir):
     out = [r["transformer"] for r in estimate_stream(drive(30, 10, 14), est, SpreadWindowPolicy(8, 4.0), stats=stats)]
     assert stats.frames == 30 and stats.frames_bad_exposure == 4
     assert [e.seq for e in out] == [*range(10), *range(14, 30)]
-    # After the dark stretch the window refills from lit frames only: 10 lit frames remain in
-    # the 4 s span before seq 14, so the window is full again at once, never padded with dark.
+    # The lit frames before the 0.4 s dark stretch are still within the 4 s span, so the first
+    # window after it is full at once: the gate takes frames out, it does not reset the ring.
     assert all(e.n_frames == min(e.seq + 1, 8) for e in out)
 
     kept = OfflineStats()
