@@ -63,18 +63,20 @@ class EvalResult:
     windows_failed: int = 0
     windows_without_truth: int = 0
 
+    # The counters above: pooled by addition and reported as they are, in this order.
+    COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "windows_skipped_filling",
+              "windows_failed", "windows_without_truth")
+    # Those that estimate_stream counts per log (the others are counted here, per window).
+    STREAM_COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "windows_failed")
+
     def extend(self, other: EvalResult) -> None:
         """Pool another evaluation of the same logs into this one (e.g. with other crop seeds):
         its windows' errors and counts are added; the logs and the sample windows stay this one's."""
         for name, errs in other.errors_deg.items():
             self.errors_deg.setdefault(name, []).extend(errs)
         self.window_logs.extend(other.window_logs)
-        self.frames += other.frames
-        self.frames_without_heading += other.frames_without_heading
-        self.frames_bad_exposure += other.frames_bad_exposure
-        self.windows_skipped_filling += other.windows_skipped_filling
-        self.windows_failed += other.windows_failed
-        self.windows_without_truth += other.windows_without_truth
+        for name in self.COUNTS:
+            setattr(self, name, getattr(self, name) + getattr(other, name))
 
     def by_log(self, aggregator: str) -> list[dict[str, float | int | str]]:
         """One aggregator's windows log by log (pooled evaluations of a log count together):
@@ -94,12 +96,7 @@ class EvalResult:
             "aggregators": {name: error_summary(e) for name, e in self.errors_deg.items()},
             "worst_logs": {name: self.by_log(name)[:WORST_LOGS] for name in self.errors_deg},
             "logs": self.logs,
-            "frames": self.frames,
-            "frames_without_heading": self.frames_without_heading,
-            "frames_bad_exposure": self.frames_bad_exposure,
-            "windows_skipped_filling": self.windows_skipped_filling,
-            "windows_failed": self.windows_failed,
-            "windows_without_truth": self.windows_without_truth,
+            **{name: getattr(self, name) for name in self.COUNTS},
         }
 
 
@@ -132,10 +129,8 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
             n_done += 1
             if progress:
                 progress(n_done)
-        result.frames += stats.frames
-        result.frames_without_heading += stats.frames_without_heading
-        result.frames_bad_exposure += stats.frames_bad_exposure
-        result.windows_failed += stats.windows_failed
+        for name in EvalResult.STREAM_COUNTS:
+            setattr(result, name, getattr(result, name) + getattr(stats, name))
     return result
 
 
