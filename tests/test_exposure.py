@@ -1,14 +1,19 @@
 """The exposure gate: frames that cannot show the sun are counted and left out of windows."""
 
+import logging
 import math
 
 import numpy as np
 import pytest
 
+from estimator.estimator import SunEstimator
 from replay.sources import DEMO_LOG, open_frames
 from rig.errors import ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate, luminance_stats
+from rig.offline import OfflineStats, estimate_stream
+from rig.pipeline import RigConfig, RigPipeline
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+from rig.window import SpreadWindowPolicy
 
 INTR = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
 RNG = np.random.default_rng(0)
@@ -55,16 +60,23 @@ def drive(n, dark_from=None, dark_to=None):
                     sun_enu_truth=[0.0, 0.8, 0.6])
 
 
-@pytest.mark.torch
-def test_replay_leaves_dark_frames_out_of_every_window(tiny_model_dir):
-    from estimator.estimator import SunEstimator
+@pytest.fixture(scope="module")
+def estimator(tiny_model_dir):
     from estimator.runtime import OnnxModel
-    from rig.offline import OfflineStats, estimate_stream
-    from rig.window import SpreadWindowPolicy
 
-    est = SunEstimator(OnnxModel.load(tiny_model_dir))
+    return SunEstimator(OnnxModel.load(tiny_model_dir))
+
+
+def run_live(frames, estimator, **kw):
+    pipe = RigPipeline(frames, estimator, SpreadWindowPolicy(8, 4.0), config=RigConfig(queue_size=100), **kw)
+    return pipe.run(timeout_s=30.0)
+
+
+@pytest.mark.torch
+def test_replay_leaves_dark_frames_out_of_every_window(estimator):
     stats = OfflineStats()
-    out = [r["transformer"] for r in estimate_stream(drive(30, 10, 14), est, SpreadWindowPolicy(8, 4.0), stats=stats)]
+    out = [r["transformer"] for r in estimate_stream(drive(30, 10, 14), estimator, SpreadWindowPolicy(8, 4.0),
+                                                     stats=stats)]
     assert stats.frames == 30 and stats.frames_bad_exposure == 4
     assert [e.seq for e in out] == [*range(10), *range(14, 30)]
     # The lit frames before the 0.4 s dark stretch are still within the 4 s span, so the first
@@ -72,23 +84,15 @@ def test_replay_leaves_dark_frames_out_of_every_window(tiny_model_dir):
     assert all(e.n_frames == min(e.seq + 1, 8) for e in out)
 
     kept = OfflineStats()
-    assert len(list(estimate_stream(drive(30, 10, 14), est, SpreadWindowPolicy(8, 4.0), stats=kept,
+    assert len(list(estimate_stream(drive(30, 10, 14), estimator, SpreadWindowPolicy(8, 4.0), stats=kept,
                                     exposure_gate=None))) == 30
     assert kept.frames_bad_exposure == 0
 
 
 @pytest.mark.torch
-def test_live_rig_counts_dark_frames_and_never_estimates_them(tiny_model_dir, caplog):
-    from estimator.estimator import SunEstimator
-    from estimator.runtime import OnnxModel
-    from rig.pipeline import RigConfig, RigPipeline
-    from rig.window import SpreadWindowPolicy
-
-    est = SunEstimator(OnnxModel.load(tiny_model_dir))
+def test_live_rig_counts_dark_frames_and_never_estimates_them(estimator, caplog):
     seen = []
-    pipe = RigPipeline(drive(40, 0, 40), est, SpreadWindowPolicy(8, 4.0), config=RigConfig(queue_size=100),
-                       on_frame=seen.append)
-    stats = pipe.run(timeout_s=30.0)
+    stats = run_live(drive(40, 0, 40), estimator, on_frame=seen.append)
     # Night all the way: every frame is still handed to the recorder, none reaches the backbone.
     assert len(seen) == stats.frames_captured == stats.frames_bad_exposure == 40
     assert stats.frames_encoded == stats.estimates == 0
@@ -99,18 +103,9 @@ def test_live_rig_counts_dark_frames_and_never_estimates_them(tiny_model_dir, ca
 
 
 @pytest.mark.torch
-def test_live_rig_recovers_when_the_light_returns(tiny_model_dir, caplog):
-    import logging
-
-    from estimator.estimator import SunEstimator
-    from estimator.runtime import OnnxModel
-    from rig.pipeline import RigConfig, RigPipeline
-    from rig.window import SpreadWindowPolicy
-
+def test_live_rig_recovers_when_the_light_returns(estimator, caplog):
     caplog.set_level(logging.INFO, logger="rig.pipeline")
-    est = SunEstimator(OnnxModel.load(tiny_model_dir))
-    pipe = RigPipeline(drive(30, 0, 10), est, SpreadWindowPolicy(8, 4.0), config=RigConfig(queue_size=100))
-    stats = pipe.run(timeout_s=30.0)
+    stats = run_live(drive(30, 0, 10), estimator)
     assert stats.frames_bad_exposure == 10 and stats.frames_encoded == 20
     assert stats.estimates + stats.windows_skipped + stats.estimates_failed == 20 and stats.estimates >= 1
     said = [r.getMessage() for r in caplog.records if r.name == "rig.pipeline"]
