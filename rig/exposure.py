@@ -3,14 +3,15 @@
 The model reads the sun from shading, shadows and the sky. A black frame (night, a lens cap), a
 white one (a blinded or saturated sensor) or a flat one (a covered or fogged lens) shows none of
 them, yet a trained model still answers with a direction, and its tokens agree on it. Measured on
-the shipped model: a window of eight black frames gets 1.2 deg of token spread and an elevation
-of 51 deg, so the status rule (``rig/protocol.py``) would call it valid. Such frames are therefore
-counted and left out of windows, as frames without heading are, before the backbone runs on them.
+the shipped model (``benchmarks/bench_spread.py``): a window of eight black frames gets 0.5 deg of
+token spread and an elevation of 50 deg, so the status rule (``rig/protocol.py``) would call it
+valid. Such frames are therefore counted and left out of windows, as frames without heading are,
+before the backbone runs on them.
 
-The thresholds sit far outside what a usable frame looks like: the 7200 frames of the 300
-synthetic validation drives (auto-exposed, as most vehicle cameras are) have a mean luminance of
-73-150 and a standard deviation of at least 18. The gate does not catch a night scene that auto
-exposure has brightened into noise: that frame has contrast, only not of the sun.
+The thresholds sit far outside what a usable frame looks like: the 7200 frames of the 300 synthetic
+validation drives (auto-exposed, as most vehicle cameras are) have a mean luma of 73-150 and a
+standard deviation of at least 18 (``benchmarks/bench_spread.py``). The gate does not catch a night
+scene that auto exposure has brightened into noise: that frame has contrast, only not of the sun.
 """
 
 from __future__ import annotations

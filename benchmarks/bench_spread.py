@@ -1,0 +1,106 @@
+"""What the per-token spread says about a model's windows: the spread figures in docs/protocol.md.
+
+The status rule (``rig/protocol.py``) calls a window valid when its tokens agree (spread under
+30 deg). This prints, as JSON, the transformer's spread over every full window of the drives
+(percentiles, and on the windows more than 30 deg off), and on windows with nothing to see:
+eight frames of a drive made black, white, mid-grey or pure noise, with the elevation the model
+answers. Those are estimated directly, as if the exposure gate (``rig/exposure.py``) were off.
+It also gives the range of the drives' frame luma that the gate's thresholds are placed against.
+
+    python3 benchmarks/bench_spread.py [--model DIR] [--data data/val --drives 300 --drive-seed 2500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import machine  # noqa: E402
+
+TAIL_DEG = 30.0
+BLANK_IMAGES = {
+    "black": lambda img, rng: np.zeros_like(img),
+    "white": lambda img, rng: np.full_like(img, 255),
+    "grey": lambda img, rng: np.full_like(img, 128),
+    "noise": lambda img, rng: rng.integers(0, 256, img.shape, dtype=np.uint8),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", help="model folder (default: the shipped model)")
+    ap.add_argument("--data", default="data/val", help="where the drives are (made if missing)")
+    ap.add_argument("--drives", type=int, default=300)
+    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--drive-seed", type=int, default=2500, help="seed of the drives (default 2500: validation)")
+    ap.add_argument("--seed", type=int, default=0, help="crop seed (default 0)")
+    args = ap.parse_args()
+
+    from estimator.estimator import SunEstimator
+    from estimator.models import resolve_model_dir
+    from estimator.runtime import OnnxModel
+    from replay.sources import open_frames
+    from replay.synthetic import write_synthetic_logs
+    from rig.exposure import luminance_stats
+    from rig.offline import estimate_stream
+    from rig.window import SpreadWindowPolicy
+
+    paths = write_synthetic_logs(args.data, drives=args.drives, frames=args.frames, seed=args.drive_seed,
+                                 progress=sys.stderr.isatty(), jobs=2)
+    model = OnnxModel.load(resolve_model_dir(args.model))
+    estimator = SunEstimator(model, seed=args.seed)
+    policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
+
+    spread, error, luma = [], [], []
+
+    def measured(frames):
+        for frame in frames:
+            luma.append(luminance_stats(frame.image_bgr))
+            yield frame
+
+    for path in paths:
+        for result in estimate_stream(measured(open_frames(path)), estimator, policy):
+            est = result[estimator.aggregator]
+            if est.n_frames == policy.n_frames and est.error_rad is not None:
+                spread.append(math.degrees(est.spread_rad))
+                error.append(math.degrees(est.error_rad))
+    spread_a, error_a = np.asarray(spread), np.asarray(error)
+    tail = spread_a[error_a > TAIL_DEG]
+    luma_a = np.asarray(luma)
+
+    frames = list(open_frames(paths[0]))[: estimator.frames_per_window]
+    rng = np.random.default_rng(0)
+    blank = {}
+    for name, make in BLANK_IMAGES.items():
+        feats = estimator.encode_batch([dataclasses.replace(f, image_bgr=make(f.image_bgr, rng)) for f in frames])
+        est = estimator.estimate(feats)
+        blank[name] = {"spread_deg": math.degrees(est.spread_rad), "elevation_deg": math.degrees(est.elevation_rad)}
+
+    print(json.dumps({
+        "benchmark": "spread",
+        "data": {"seed": args.drive_seed, "drives": args.drives, "frames_per_drive": args.frames},
+        "crop_seed": args.seed,
+        "model": {"dir": str(model.model_dir), "id": model.model_id},
+        "windows": len(spread),
+        "spread_deg": {"p5": float(np.percentile(spread_a, 5)), "median": float(np.median(spread_a)),
+                       "p99": float(np.percentile(spread_a, 99)), "max": float(spread_a.max())},
+        f"windows_over_{TAIL_DEG:.0f}_deg": int(tail.size),
+        f"spread_deg_on_windows_over_{TAIL_DEG:.0f}_deg": (
+            {"min": float(tail.min()), "max": float(tail.max())} if tail.size else None),
+        "blank_windows": blank,
+        "frame_luma": {"frames": len(luma_a), "mean_min": float(luma_a[:, 0].min()),
+                       "mean_max": float(luma_a[:, 0].max()), "std_min": float(luma_a[:, 1].min())},
+        "machine": machine(),
+    }, indent=2))
+
+
+if __name__ == "__main__":
+    main()
