@@ -10,6 +10,10 @@ of 35, 85 and 80 deg on the same windows. So every window is estimated once per 
 headline numbers pool all of them (3 x 1700 estimates by default); ``per_seed`` gives each seed's,
 with the drives of its worst windows (``worst_logs``).
 
+``status`` says what a controller would have been told of those windows (the model's status rule,
+docs/protocol.md), and ``elevation`` how far above the truth the answers for the highest training
+suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DEG).
+
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
 """
@@ -36,6 +40,22 @@ def _seeds(text: str) -> list[int]:
     if not seeds or len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"expected distinct comma-separated integers, got {text!r}")
     return seeds
+
+
+def elevation_excess(result, trained_max_deg: float | None, band_deg: float = 5.0) -> dict | None:
+    """For windows whose true sun is within ``band_deg`` of the highest training sun: how far the
+    transformer's answer lies above the truth (p99 and max)."""
+    import numpy as np
+
+    if trained_max_deg is None:
+        return None
+    truth = np.asarray(result.truth_elevation_deg)
+    excess = np.asarray(result.elevation_deg["transformer"]) - truth
+    top = truth >= trained_max_deg - band_deg
+    return {"trained_max_deg": trained_max_deg, "truth_from_deg": trained_max_deg - band_deg,
+            "n_windows": int(top.sum()),
+            "excess_p99_deg": float(np.percentile(excess[top], 99)) if top.any() else None,
+            "excess_max_deg": float(excess[top].max()) if top.any() else None}
 
 
 def main() -> None:
@@ -82,6 +102,7 @@ def main() -> None:
     plot_eval(pooled, Path(args.plot))
     summary = pooled.summary()
     summary.pop("logs")
+    trained = model.contract.trained_sun_elevation_deg
     print(json.dumps({
         "benchmark": "accuracy",
         "data": {"held_out_seed": args.drive_seed, "drives": args.drives, "frames_per_drive": args.frames},
@@ -91,6 +112,8 @@ def main() -> None:
         "model": {"dir": str(model.model_dir), "id": model.model_id,
                   "training_command": model.contract.training.get("command")},
         **summary,
+        "status_rule": {"max_elevation_deg": estimator.status_rule().max_elevation_deg},
+        "elevation": elevation_excess(pooled, None if trained is None else trained[1]),
         "per_seed": {"transformer": per_seed},
         "machine": machine(),
     }, indent=2))

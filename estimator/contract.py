@@ -108,6 +108,17 @@ class ModelContract:
     def tokens_per_window(self) -> int:
         return self.crops_per_frame * self.frames_per_window
 
+    @property
+    def trained_sun_elevation_deg(self) -> tuple[float, float] | None:
+        """The lowest and highest true sun of the training data (deg above the horizon), which
+        ``sunrig train`` records; None for a contract without it (an older or a hand-made model)."""
+        data = self.training.get("data")
+        rng = data.get("sun_elevation_deg") if isinstance(data, dict) else None
+        if (isinstance(rng, list | tuple) and len(rng) == 2
+                and all(isinstance(x, int | float) and -90.0 <= x <= 90.0 for x in rng) and rng[0] <= rng[1]):
+            return float(rng[0]), float(rng[1])
+        return None
+
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
 

@@ -28,6 +28,7 @@ from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng,
 from estimator.meanshift import meanshift_aggregate
 from rig.errors import ValidationError
 from rig.geometry import wrap_pi
+from rig.protocol import StatusRule
 from rig.types import Frame, FrameFeatures, HeadingRef, SunEstimate
 
 AGGREGATORS = ("transformer", "mean", "meanshift", "single")
@@ -132,6 +133,12 @@ class SunEstimator:
         self.crop_size_px = int(contract.crop_size_px)
         self.crop_fov_rad = math.radians(contract.crop_fov_deg)
         self.frames_per_window = int(contract.frames_per_window)
+
+    def status_rule(self) -> StatusRule:
+        """When the rig calls this model's estimates valid: a full window of its frames, and a
+        sun no higher than its training suns allow (:meth:`StatusRule.for_model`)."""
+        trained = self.model.contract.trained_sun_elevation_deg
+        return StatusRule.for_model(self.frames_per_window, None if trained is None else trained[1])
 
     # -- per frame ---------------------------------------------------------------------------
     def _crops(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -17,6 +17,7 @@ import numpy as np
 
 from estimator.estimator import AGGREGATORS, SunEstimator
 from rig.offline import OfflineStats, estimate_stream
+from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_SPREAD_HIGH, FLAG_VALID, StatusRule
 from rig.types import Frame, SunEstimate
 from rig.window import SpreadWindowPolicy
 
@@ -50,9 +51,30 @@ def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int]:
     return out
 
 
+def status_summary(flags: Sequence[int], errors_deg: Sequence[float]) -> dict[str, float | int | None]:
+    """What a controller would have been told of these windows (their status flags, in the same
+    order as their errors): how many it could trust, why the others not, and how wrong the
+    trusted ones were at worst. The error figures of :func:`error_summary` stay over every window."""
+    f = np.asarray(flags, dtype=np.int64)
+    e = np.asarray(errors_deg, dtype=np.float64)
+    valid = (f & FLAG_VALID) != 0
+    return {
+        "valid_windows": int(valid.sum()),
+        "above_trained": int(((f & FLAG_ABOVE_TRAINED) != 0).sum()),
+        "spread_high": int(((f & FLAG_SPREAD_HIGH) != 0).sum()),
+        f"{TAIL_KEY}_not_valid": int((~valid & (e > TAIL_DEG)).sum()),
+        "valid_max_deg": float(e[valid].max()) if valid.any() else None,
+    }
+
+
 @dataclass
 class EvalResult:
     errors_deg: dict[str, list[float]] = field(default_factory=dict)
+    # Per aggregator, in the order of errors_deg: the status flags a controller would get
+    # (rig/protocol.StatusRule) and the answer's elevation; then each window's true elevation.
+    flags: dict[str, list[int]] = field(default_factory=dict)
+    elevation_deg: dict[str, list[float]] = field(default_factory=dict)
+    truth_elevation_deg: list[float] = field(default_factory=list)
     samples: list[dict[str, SunEstimate]] = field(default_factory=list)  # a few windows, for plots
     logs: list[str] = field(default_factory=list)
     window_logs: list[str] = field(default_factory=list)  # each window's log, in the order of every errors_deg list
@@ -72,8 +94,10 @@ class EvalResult:
     def extend(self, other: EvalResult) -> None:
         """Pool another evaluation of the same logs into this one (e.g. with other crop seeds):
         its windows' errors and counts are added; the logs and the sample windows stay this one's."""
-        for name, errs in other.errors_deg.items():
-            self.errors_deg.setdefault(name, []).extend(errs)
+        for per_agg in ("errors_deg", "flags", "elevation_deg"):
+            for name, values in getattr(other, per_agg).items():
+                getattr(self, per_agg).setdefault(name, []).extend(values)
+        self.truth_elevation_deg.extend(other.truth_elevation_deg)
         self.window_logs.extend(other.window_logs)
         for name in self.COUNTS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
@@ -94,6 +118,7 @@ class EvalResult:
     def summary(self) -> dict:
         return {
             "aggregators": {name: error_summary(e) for name, e in self.errors_deg.items()},
+            "status": {name: status_summary(self.flags[name], e) for name, e in self.errors_deg.items()},
             "worst_logs": {name: self.by_log(name)[:WORST_LOGS] for name in self.errors_deg},
             "logs": self.logs,
             **{name: getattr(self, name) for name in self.COUNTS},
@@ -102,9 +127,14 @@ class EvalResult:
 
 def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstimator, policy: SpreadWindowPolicy,
              aggregators: Sequence[str] = AGGREGATORS, n_samples: int = 6,
-             progress: Callable[[int], None] | None = None) -> EvalResult:
-    """Every full window of every source, estimated by each aggregator on the same crops."""
-    result = EvalResult(errors_deg={a: [] for a in aggregators})
+             progress: Callable[[int], None] | None = None, status_rule: StatusRule | None = None) -> EvalResult:
+    """Every full window of every source, estimated by each aggregator on the same crops.
+
+    ``status_rule``: what decides each window's status flags (default: the estimator's model's,
+    as the rig's outputs use)."""
+    rule = status_rule or estimator.status_rule()
+    result = EvalResult(errors_deg={a: [] for a in aggregators}, flags={a: [] for a in aggregators},
+                        elevation_deg={a: [] for a in aggregators})
     n_done = 0
     for name, frames in sources:
         result.logs.append(name)
@@ -120,6 +150,9 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
                 continue
             for agg, est in estimates.items():
                 result.errors_deg[agg].append(math.degrees(est.error_rad))
+                result.flags[agg].append(rule.flags(est))
+                result.elevation_deg[agg].append(math.degrees(est.elevation_rad))
+            result.truth_elevation_deg.append(math.degrees(math.asin(max(-1.0, min(1.0, float(first.truth_enu[2]))))))
             result.window_logs.append(name)
             # The first full window of each of the first logs, for the scatter figure: each log
             # has its own sun, so the figure shows different skies.

@@ -40,7 +40,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -460,7 +460,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "backbone": backbone.state_dict(), "aggregator": aggregator.state_dict(),
             "optimizer": opt.state_dict(), "step": step, "elapsed_s": time.monotonic() - start,
             "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "config": asdict(cfg),
-            "data_counts": {"drives": len(drives), "frames": n_frames},
+            "data_counts": {"drives": len(drives), "frames": n_frames,
+                            "sun_elevation_deg": sun_elevation_range_deg(d.sun_enu for d in drives)},
             "err_deg_ema": None if ema_err is None else round(ema_err, 2),
             "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(),
         }
@@ -621,12 +622,17 @@ def _init_provenance(model_dir: Path) -> dict[str, Any]:
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: int = 0,
-                      export_command: str = "") -> Path:
+                      export_command: str = "", log_paths: Sequence[Path] = ()) -> Path:
     """Export the model in ``checkpoint_dir``'s checkpoint as it stands (e.g. while it trains).
 
     ``run_crops_per_frame`` sets the crops per frame the runtime will feed it (default: as
     trained). The aggregator takes any number of tokens, and more crops than it was trained with
     average out more of the luck of where crops land (docs/model.md measures it).
+
+    ``log_paths``: the run's training logs, for a checkpoint written before training recorded
+    its data's sun elevations (the status rule's limit, :meth:`ModelContract.trained_sun_elevation_deg`).
+    They must be the logs the run trained on (same fingerprint); a checkpoint that has the range
+    keeps its own.
     """
     if run_crops_per_frame < 0:
         raise ValidationError(f"crops per frame: expected at least 1 (0: as trained), got {run_crops_per_frame}")
@@ -635,10 +641,35 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
         raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")
     state = torch.load(path, weights_only=False)
     cfg = TrainConfig(**state["config"])  # train() saves the crop count resolved, never 0
+    counts = state.setdefault("data_counts", {})
+    if log_paths and "sun_elevation_deg" not in counts:
+        trained_on = cfg.data.get("fingerprint")
+        if data_fingerprint(log_paths) != trained_on:
+            raise ValidationError(f"these {len(log_paths)} logs are not the ones {checkpoint_dir} trained on "
+                                  f"(fingerprint {data_fingerprint(log_paths)}, not {trained_on}); "
+                                  "pass the run's training logs, or none")
+        counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
     backbone, aggregator = nets.PRESETS[cfg.preset].build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
     return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command)
+
+
+def sun_elevation_range_deg(sun_enu: Iterable[np.ndarray]) -> list[float]:
+    """The lowest and highest true sun (deg above the horizon) in arrays of (F, 3) ENU vectors."""
+    z = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1, 3)[:, 2] for v in sun_enu])
+    if z.size == 0:
+        raise TrainingDataError("no frame with a true sun in the training data")
+    el = np.degrees(np.arcsin(np.clip(z, -1.0, 1.0)))
+    return [round(float(el.min()), 1), round(float(el.max()), 1)]
+
+
+def _truth_enu(path: Path) -> np.ndarray:
+    """A log's true sun for the frames training uses (those with heading and a true sun)."""
+    from replay.sources import open_frames
+
+    rows = [f.sun_enu_truth for f in open_frames(Path(path)) if f.attitude is not None and f.sun_enu_truth is not None]
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
 
 
 def data_fingerprint(paths: Sequence[Path]) -> str:

@@ -37,13 +37,11 @@ def _load_model(model_dir: str | None):
     return OnnxModel.load(resolve_model_dir(model_dir or None))
 
 
-def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, full_window: int,
+def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, rule,
                 record: str | None = None, record_frames: bool = False, nmea_stdout: bool = False) -> list:
     """The outputs a command asked for. Opened before any work, so a bad port fails at once."""
-    from rig.protocol import StatusRule
     from rig.publishers import JsonlPublisher, SentencePublisher, SerialPublisher
 
-    rule = StatusRule(full_window=full_window)
     pubs: list = []
     try:
         if serial:
@@ -97,7 +95,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
     pubs = _publishers(serial=args.serial, baud=args.baud, fmt=args.format, jsonl=args.jsonl,
-                       full_window=estimator.frames_per_window)
+                       rule=estimator.status_rule())
     stats = OfflineStats()
     progress = Progress(f"replay {Path(log_path).name}", enabled=None if not args.quiet else False)
     frames = paced(source) if args.realtime else source
@@ -192,7 +190,7 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
                                 yaw_scale_rad=math.radians(cfg["window"]["yaw_scale_deg"]))
     out = cfg["output"]
     pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
-                       jsonl=out["jsonl"] or None, full_window=estimator.frames_per_window,
+                       jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
                        record=out["record"] or None, record_frames=out["record_frames"], nmea_stdout=nmea_stdout)
     recorder = next((p for p in pubs if type(p).__name__ == "RecorderPublisher"), None)
     r = cfg["rig"]
@@ -418,8 +416,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.export_only:
         from estimator.train import export_checkpoint
 
+        # Logs beside --export-only: a checkpoint from before training recorded its data's sun
+        # elevations takes them from its logs (checked to be the run's by their fingerprint).
+        logs = _expand_logs(args.logs) if args.logs else []
         out = export_checkpoint(Path(args.out), Path(args.export_only), run_crops_per_frame=args.crops or 0,
-                                export_command=command_line() if args.crops else "")
+                                export_command=command_line() if args.crops or logs else "", log_paths=logs)
         if not args.quiet:
             print(f"train: exported the checkpoint in {args.out} to {out}", file=sys.stderr)
         return 0
@@ -724,7 +725,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init", metavar="MODEL_DIR",
                    help="fine-tune: start from this model's weights (e.g. the shipped model) instead of random ones")
     p.add_argument("--export-only", metavar="DIR",
-                   help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run)")
+                   help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run); "
+                        "with the run's logs, a checkpoint that predates it also records their sun elevations")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_train)
 

@@ -33,36 +33,70 @@ FLAG_VALID = 0x01  # the estimate passes the StatusRule (NMEA status A)
 FLAG_HAS_UTC = 0x02  # utc_ns is set (otherwise the binary field is 0 and the NMEA time is empty)
 FLAG_PARTIAL_WINDOW = 0x04  # fewer frames than a full window (start-up, heading gaps)
 FLAG_SPREAD_HIGH = 0x08  # the per-token estimates disagree by more than max_spread_deg
+FLAG_ABOVE_TRAINED = 0x10  # the sun is higher than max_elevation_deg: the model's compromise, not a sighting
+
+# How far above the highest sun of its training data a model's answer may lie before it is
+# flagged: the scatter of answers for the highest suns. For the shipped model's suns within 5 deg
+# of its highest, answers lie up to 6.2 deg (validation drives) and 9.9 deg (held-out drives) above
+# the truth at the 99th percentile (benchmarks/bench_accuracy.py JSON, ``elevation``): a 5-deg
+# margin flags some high suns whose answers are only 5-10 deg off, and catches the hedges.
+ELEVATION_MARGIN_DEG = 5.0
 
 
 @dataclass(frozen=True)
 class StatusRule:
     """When an estimate is reported valid (NMEA ``A``, binary ``FLAG_VALID``).
 
-    Valid means: a full window (``n_frames >= full_window``) and tokens that agree
-    (``spread <= max_spread_deg``). A partial window happens at start-up and after heading
-    gaps; a large spread means the crops disagree (clouds, night, an untrained model).
+    Valid means: a full window (``n_frames >= full_window``), tokens that agree
+    (``spread <= max_spread_deg``) and a sun no higher than ``max_elevation_deg``. A partial
+    window happens at start-up and after heading gaps; a large spread means the crops disagree
+    (an untrained or foreign model).
+
+    ``max_elevation_deg`` catches a model's hedge. Trained with the paper's cosine loss, a model
+    that cannot tell where the sun is answers with the mean of the directions it cannot tell
+    apart, and the mean of directions spread in azimuth is higher than any of them: a sun 56 deg
+    up behind the camera in an empty street comes out 82-90 deg up. An answer above every sun of
+    the training data (plus :data:`ELEVATION_MARGIN_DEG`) is such a compromise, not a sighting.
+    90 turns the check off; :meth:`for_model` takes the limit from a model's contract.
     """
 
     full_window: int = 8
     max_spread_deg: float = 30.0
+    max_elevation_deg: float = 90.0
 
     def __post_init__(self) -> None:
         if self.full_window < 1:
             raise ValidationError(f"StatusRule.full_window: expected >= 1 frames, got {self.full_window}")
         if not 0.0 <= self.max_spread_deg <= 180.0:
             raise ValidationError(f"StatusRule.max_spread_deg: expected within [0, 180] deg, got {self.max_spread_deg}")
+        if not 0.0 <= self.max_elevation_deg <= 90.0:
+            raise ValidationError(
+                f"StatusRule.max_elevation_deg: expected within [0, 90] deg, got {self.max_elevation_deg}")
+
+    @classmethod
+    def for_model(cls, full_window: int, trained_max_elevation_deg: float | None) -> StatusRule:
+        """The rule for a model whose training suns reached ``trained_max_elevation_deg``
+        (None: unknown, e.g. a contract written before training recorded it; no elevation check)."""
+        if trained_max_elevation_deg is None:
+            return cls(full_window=full_window)
+        return cls(full_window=full_window,
+                   max_elevation_deg=min(90.0, trained_max_elevation_deg + ELEVATION_MARGIN_DEG))
 
     def flags(self, est: SunEstimate) -> int:
-        """The status bits of ``est``: FLAG_VALID unless the window is partial or the spread high."""
+        """The status bits of ``est``: FLAG_VALID unless a check below sets a reason not to."""
         flags = FLAG_HAS_UTC if est.utc_ns is not None else 0
         if est.n_frames < self.full_window:
             flags |= FLAG_PARTIAL_WINDOW
         if math.degrees(est.spread_rad) > self.max_spread_deg:
             flags |= FLAG_SPREAD_HIGH
-        if not flags & (FLAG_PARTIAL_WINDOW | FLAG_SPREAD_HIGH):
+        if math.degrees(est.elevation_rad) > self.max_elevation_deg:
+            flags |= FLAG_ABOVE_TRAINED
+        if not flags & _NOT_VALID:
             flags |= FLAG_VALID
         return flags
+
+
+_NOT_VALID = FLAG_PARTIAL_WINDOW | FLAG_SPREAD_HIGH | FLAG_ABOVE_TRAINED
 
 
 DEFAULT_STATUS_RULE = StatusRule()
@@ -392,6 +426,7 @@ def decode_binary(frame: bytes) -> dict[str, Any]:
         "valid": bool(flags & FLAG_VALID),
         "partial_window": bool(flags & FLAG_PARTIAL_WINDOW),
         "spread_high": bool(flags & FLAG_SPREAD_HIGH),
+        "above_trained": bool(flags & FLAG_ABOVE_TRAINED),
         "seq": seq,
         "t_mono_s": t_mono_s,
         "utc_ns": utc_ns if flags & FLAG_HAS_UTC else None,

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from estimator.evaluate import EvalResult, error_summary
+from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_VALID
 
 
 def test_error_summary_numbers():
@@ -26,13 +27,20 @@ def test_error_summary_numbers():
 
 
 def test_pooled_results_add_windows_and_keep_this_ones_logs():
-    a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]}, logs=["d0"],
+    ok, hedge = FLAG_VALID, FLAG_ABOVE_TRAINED
+    a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]},
+                   flags={"transformer": [ok, ok], "mean": [ok, ok]}, logs=["d0"],
                    window_logs=["d0", "d0"], frames=10, frames_bad_exposure=2, windows_skipped_filling=7,
                    windows_failed=1)
-    b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, logs=["d0"], window_logs=["d0"], frames=10,
+    b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, flags={"transformer": [hedge], "mean": [ok]},
+                   logs=["d0"], window_logs=["d0"], frames=10,
                    frames_without_heading=3, frames_bad_exposure=2, windows_skipped_filling=7, windows_without_truth=2)
     a.extend(b)
     s = a.summary()
+    # The status figures pool too: the 40-deg window was flagged, so the controller's worst is 2 deg.
+    assert s["status"]["transformer"] == {"valid_windows": 2, "above_trained": 1, "spread_high": 0,
+                                          "windows_over_30_deg_not_valid": 1, "valid_max_deg": 2.0}
+    assert s["status"]["mean"]["valid_windows"] == 3 and s["status"]["mean"]["valid_max_deg"] == 6.0
     assert s["worst_logs"]["transformer"] == [{"log": "d0", "n_windows": 3, "mean_deg": pytest.approx(43.0 / 3),
                                                "max_deg": 40.0, "windows_over_30_deg": 1}]
     assert s["aggregators"]["transformer"]["n_windows"] == 3
@@ -47,6 +55,7 @@ def test_pooled_results_add_windows_and_keep_this_ones_logs():
 def test_worst_logs_come_first_and_the_list_is_cut():
     errs = {"d0": [3.0, 5.0], "d1": [2.0, 31.0, 45.0], "d2": [1.0], "d3": [9.0], "d4": [8.0], "d5": [7.0]}
     r = EvalResult(errors_deg={"transformer": [e for v in errs.values() for e in v]},
+                   flags={"transformer": [FLAG_VALID for v in errs.values() for _ in v]},
                    window_logs=[name for name, v in errs.items() for _ in v])
     rows = r.by_log("transformer")
     assert [row["log"] for row in rows] == ["d1", "d3", "d4", "d5", "d0", "d2"]

@@ -17,6 +17,7 @@ from rig.geometry import enu_from_az_el
 from rig.protocol import (
     BINARY_FRAME_LEN,
     BINARY_PAYLOAD_LEN,
+    FLAG_ABOVE_TRAINED,
     FLAG_HAS_UTC,
     FLAG_PARTIAL_WINDOW,
     FLAG_SPREAD_HIGH,
@@ -177,6 +178,26 @@ def test_status_rule_flags():
         StatusRule(full_window=0)
     with pytest.raises(ValidationError, match="max_spread_deg"):
         StatusRule(max_spread_deg=-1.0)
+
+
+def test_status_rule_flags_a_sun_above_every_training_sun():
+    # A model trained on suns up to 74.9 deg: its limit is 79.9 (the margin is 5 deg).
+    rule = StatusRule.for_model(8, 74.9)
+    assert rule.max_elevation_deg == pytest.approx(79.9)
+    assert rule.flags(make_estimate(100, 79.8, utc_ns=None)) == FLAG_VALID
+    assert rule.flags(make_estimate(100, 85.0, utc_ns=None)) == FLAG_ABOVE_TRAINED
+    # With the other reasons, each bit says its own.
+    assert rule.flags(make_estimate(100, 85.0, n_frames=3, spread_deg=40.0, utc_ns=None)) == (
+        FLAG_ABOVE_TRAINED | FLAG_PARTIAL_WINDOW | FLAG_SPREAD_HIGH)
+    got = decode_binary(encode_binary(make_estimate(100, 85.0), rule))
+    assert got["above_trained"] and not got["valid"] and not got["spread_high"]
+    assert decode_nmea(encode_nmea(make_estimate(100, 85.0), rule))["valid"] is False
+    # Unknown training suns (an older contract): no elevation check; the limit never passes 90.
+    assert StatusRule.for_model(8, None).max_elevation_deg == 90.0
+    assert StatusRule.for_model(8, 88.0).max_elevation_deg == 90.0
+    assert StatusRule().flags(make_estimate(100, 89.9, utc_ns=None)) == FLAG_VALID
+    with pytest.raises(ValidationError, match="max_elevation_deg"):
+        StatusRule(max_elevation_deg=91.0)
 
 
 # --- NMEA -----------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from rig.errors import ValidationError
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
 
 pytestmark = pytest.mark.torch
@@ -20,6 +21,7 @@ from estimator.train import (  # noqa: E402
     TrainConfig,
     TrainingDataError,
     WindowSampler,
+    data_fingerprint,
     load_drive,
     load_weights,
     train,
@@ -101,6 +103,8 @@ def test_train_checkpoint_resume_export(logs, tmp_path):
     model = OnnxModel.load(out)
     assert model.contract.training["trained"] is True and model.contract.training["steps"] == 3
     assert model.contract.training["data"]["drives"] == 3
+    # The data's sun elevations, for the status rule (every test frame's sun is asin(0.8) up).
+    assert model.contract.trained_sun_elevation_deg == (53.1, 53.1)
     # Resume: a larger step budget continues from step 3, not from scratch. Metric lines written
     # after the checkpoint (steps a kill threw away) and a torn last line do not survive it.
     (out / METRICS).write_text('{"step": 2}\n{"step": 4}\n{"st', encoding="utf-8")
@@ -119,6 +123,24 @@ def test_train_checkpoint_resume_export(logs, tmp_path):
     np.testing.assert_allclose(again.embed(crops), OnnxModel.load(out).embed(crops), atol=1e-6)
 
 
+def test_an_older_checkpoint_takes_its_sun_elevations_from_its_own_logs(logs, tmp_path):
+    from estimator.runtime import OnnxModel
+    from estimator.train import export_checkpoint
+
+    out = tmp_path / "model"
+    train(logs, out, TrainConfig(preset="tiny", max_steps=1, batch_windows=1, warmup_steps=1,
+                                 data={"fingerprint": data_fingerprint(logs)}))
+    # A checkpoint written before training recorded the range (as the shipped model's was).
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    del state["data_counts"]["sun_elevation_deg"]
+    torch.save(state, out / CHECKPOINT)
+    assert OnnxModel.load(export_checkpoint(out, tmp_path / "bare")).contract.trained_sun_elevation_deg is None
+    with pytest.raises(ValidationError, match="not the ones"):
+        export_checkpoint(out, tmp_path / "wrong", log_paths=logs[:2])
+    again = OnnxModel.load(export_checkpoint(out, tmp_path / "again", log_paths=logs))
+    assert again.contract.trained_sun_elevation_deg == (53.1, 53.1)
+
+
 def test_train_refuses_logs_without_truth(tmp_path):
     from replay.native import LogWriter
 
@@ -131,8 +153,6 @@ def test_train_refuses_logs_without_truth(tmp_path):
 
 
 def test_resume_with_another_preset_is_refused(logs, tmp_path):
-    from rig.errors import ValidationError
-
     out = tmp_path / "model"
     train(logs, out, TrainConfig(preset="tiny", max_steps=1, batch_windows=1))
     with pytest.raises(ValidationError, match="preset"):
