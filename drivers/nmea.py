@@ -370,6 +370,10 @@ def _checked_date(name: str, text: str, year: int, month: int, day: int) -> tupl
     return year, month, day
 
 
+# The years a receiver can report: GPS began in 1980, and RMC's two-digit years end in 2079.
+_FIRST_YEAR, _LAST_YEAR = 1980, 2079
+
+
 def _ddmmyy(text: str) -> tuple[int, int, int] | None:
     if not text:
         return None
@@ -482,6 +486,10 @@ def decode_sentence(sentence: Sentence) -> Message | None:
     if day and month and year:
         if not (day.isdigit() and month.isdigit() and re.fullmatch(r"\d{4}", year)):
             raise _bad("ZDA date", f"{day},{month},{year}", "dd,mm,yyyy")
+        if not _FIRST_YEAR <= int(year) <= _LAST_YEAR:
+            # A glitched year would pass as a calendar date and overflow the int64 nanoseconds
+            # that UTC travels in downstream (they end in 2262).
+            raise _bad("ZDA year", year, f"a year in {_FIRST_YEAR}-{_LAST_YEAR}")
         zda_date = _checked_date("ZDA date", f"{day},{month},{year}", int(year), int(month), int(day))
     return Zda(t, _time_of_day_ns(f[0]), zda_date)
 

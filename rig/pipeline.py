@@ -7,7 +7,9 @@
   woken through a one-slot mailbox: if estimating falls behind encoding, older "new frame"
   signals are overwritten (counted as skipped windows) so latency stays bounded.
 - **publish**: every publisher's ``publish`` must return at once (the serial one hands the
-  message to its own writer thread).
+  message to its own writer thread). A publisher that raises (a full disk under the JSONL file)
+  loses that estimate, counted in ``publish_errors`` and logged once per kind of error; the
+  other outputs go on, because one broken output must not silence the controller.
 
 Every stage waits with a timeout and checks one stop event. A stage that raises stops all the
 others, and :meth:`RigPipeline.run` re-raises it as :class:`PipelineError` naming the stage,
@@ -84,6 +86,7 @@ class RigStats:
     windows_skipped: int = 0
     estimates: int = 0
     estimates_failed: int = 0
+    publish_errors: int = 0  # estimates a publisher raised on (each publisher counts apart)
     started_s: float = 0.0
     ended_s: float = 0.0
     latency: _Latency = field(default_factory=_Latency)
@@ -105,7 +108,7 @@ class RigStats:
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
                 f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}) | estimates "
                 f"{self.estimates} at {rate:.1f} Hz, skipped {self.windows_skipped}, failed "
-                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}")
+                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}, errors {self.publish_errors}")
 
 
 class RigPipeline:
@@ -134,6 +137,7 @@ class RigPipeline:
         self._failure: tuple[str, BaseException] | None = None
         self._failure_lock = threading.Lock()
         self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
+        self._publish_error: dict[int, str] = {}  # per publisher (by id): the last error logged
 
     # -- control -----------------------------------------------------------------------------
     def stop(self) -> None:
@@ -240,6 +244,18 @@ class RigPipeline:
             if not self._frames.put((frame, self.clock())):
                 self.stats.frames_dropped_queue += 1
 
+    def _publish(self, est) -> None:
+        for p in self.publishers:
+            try:
+                p.publish(est)
+            except Exception as exc:  # noqa: BLE001 - one broken output must not silence the others
+                self.stats.publish_errors += 1
+                text = f"{type(exc).__name__}: {exc}"
+                if self._publish_error.get(id(p)) != text:  # once per publisher and kind of error
+                    self._publish_error[id(p)] = text
+                    log.warning("%s could not publish seq %d (%s): counted and dropped, the other outputs go on",
+                                type(p).__name__, est.seq, text)
+
     def _log_exposure_change(self, seq: int, reason: str | None) -> None:
         # Once per change, not per frame: a night is one message, not one per frame.
         if reason:
@@ -281,7 +297,6 @@ class RigPipeline:
                 self.stats.estimates_failed += 1
                 log.warning("no estimate for seq %d: %s", feats.frame.seq, exc)
                 continue
-            for p in self.publishers:
-                p.publish(est)
+            self._publish(est)
             self.stats.estimates += 1
             self.stats.latency.add(self.clock() - arrived)

@@ -322,10 +322,11 @@ def test_bad_fields_are_counted_not_raised():
         nmea("GPRMC,256133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D"),  # hour 25
         nmea("GPRMC,204133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,310214,,,D"),  # 31 February
         nmea("GPZDA,204133.000,19,02,14,,"),  # two-digit ZDA year
+        nmea("GPZDA,204133.000,19,02,2300,,"),  # a calendar date, but past int64 nanoseconds (2262)
         nmea("GPHDT,1e2,T"),
         nmea("GPHDT,10.0"),  # too few fields
     )
-    assert out == [] and counts["bad_fields"] == 7
+    assert out == [] and counts["bad_fields"] == 8
     with pytest.raises(ProtocolError):
         decode_sentence(parse_sentence(nmea("GPHDT,abc,T")))
 
