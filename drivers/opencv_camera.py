@@ -322,7 +322,8 @@ class OpenCvCamera:
         self._lock = threading.Condition()
         self._queue: deque[Frame] = deque()
         self._queue_max = 2 if self.live else 8
-        self._stats = dict.fromkeys(("frames", "dropped", "read_failures", "reconnects", "open_failures"), 0)
+        self._stats = dict.fromkeys(("frames", "dropped", "bad_frames", "read_failures", "reconnects",
+                                     "open_failures"), 0)
         self._last_error: str | None = None
         self._failure: BaseException | None = None
         self._ended = False  # the reader will put nothing more (end of file, gave up, or a bug)
@@ -433,7 +434,16 @@ class OpenCvCamera:
                     log.info("camera %s is back after %.1f s", self.target, now - outage_since)
                 outage_since = None
                 backoff = self._backoff[0]
-                self._put(self._make_frame(image, now))
+                try:
+                    frame = self._make_frame(image, now)
+                except (SunrigError, ValueError, cv2.error) as exc:
+                    if self._seq == 0:
+                        raise  # the first frame: a wrong setup (e.g. a calibration for another size) fails at once
+                    # Later, one odd frame (a resolution renegotiated under a fixed calibration, an
+                    # empty or 2-channel image) is dropped and counted, not the end of the camera.
+                    self._bad_frame(exc)
+                    continue
+                self._put(frame)
         except BaseException as exc:  # a bug, or max_outage_s passed: the consumer re-raises it
             with self._lock:
                 self._failure = exc if isinstance(exc, SunrigError) else CameraError(
@@ -534,6 +544,15 @@ class OpenCvCamera:
             self._stats["reconnects"] += 1
         log.info("camera %s reopened", self.target)
         return True
+
+    def _bad_frame(self, exc: BaseException) -> None:
+        message = f"bad frame: {exc}"
+        with self._lock:
+            self._stats["bad_frames"] += 1
+            repeated = message == self._last_error
+            self._last_error = message
+        if not repeated:  # once per kind of bad frame, not once per frame
+            log.warning("camera %s: %s; dropping such frames (counted in bad_frames)", self.target, exc)
 
     def _note_error(self, message: str) -> None:
         with self._lock:

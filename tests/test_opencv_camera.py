@@ -328,6 +328,50 @@ def test_max_outage_turns_a_lost_device_into_an_error():
     cam.close()
 
 
+class OddFramesCapture(DisappearingCapture):
+    """FAKE cv2.VideoCapture: ``frames`` frames, those at the indexes in ``odd`` of another size
+    (a resolution renegotiated under a fixed calibration) or empty, as ``odd`` says."""
+
+    def __init__(self, frames: int, odd: dict[int, str]):
+        super().__init__(frames)
+        self.odd, self.n = odd, 0
+
+    def read(self):
+        ok, image = super().read()
+        kind, self.n = self.odd.get(self.n), self.n + 1
+        if ok and kind == "resized":
+            image = np.full((H // 2, W, 3), 100, np.uint8)
+        elif ok and kind == "empty":
+            image = np.zeros((0, 0, 3), np.uint8)
+        return ok, image
+
+
+def test_odd_frames_after_the_first_are_counted_not_fatal(caplog):
+    intr = Intrinsics(fx=500.0, fy=500.0, cx=W / 2, cy=H / 2, width=W, height=H)
+    odd = {3: "resized", 4: "resized", 6: "empty"}
+    cam = OpenCvCamera(0, intrinsics=intr, capture_factory=lambda _: OddFramesCapture(10, odd), poll_s=0.01,
+                       reconnect=False)
+    with caplog.at_level("WARNING", logger="drivers.opencv_camera"):
+        got = collect(cam)
+    cam.close()
+    stats = cam.stats()
+    # The camera went on after them: 7 good frames (seq 0-6), taken or dropped as a live camera's are.
+    assert stats["bad_frames"] == 3 and stats["frames"] == 7 and len(got) + stats["dropped"] == 7
+    assert got[-1].seq == 6 and all(f.image_bgr.shape == (H, W, 3) for f in got)
+    # One warning per kind of bad frame: the two resized frames say it once.
+    warned = [r.getMessage() for r in caplog.records if "bad_frames" in r.getMessage()]
+    assert len(warned) == 2 and f"gives {W}x{H // 2}" in warned[0]
+
+
+def test_a_first_frame_of_the_wrong_size_is_one_clear_error():
+    intr = Intrinsics(fx=500.0, fy=500.0, cx=W / 2, cy=H / 2, width=W, height=H)
+    cam = OpenCvCamera(0, intrinsics=intr, capture_factory=lambda _: OddFramesCapture(5, {0: "resized"}),
+                       poll_s=0.01, reconnect=False)
+    with pytest.raises(CameraError, match="pass intrinsics for this size"):
+        collect(cam)
+    cam.close()
+
+
 def test_a_live_camera_drops_frames_the_consumer_does_not_take():
     cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=FakeFactory([50]), poll_s=0.01, reconnect=False)
     it = iter(cam)
