@@ -117,6 +117,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         summary += f", {stats.frames_without_heading} frames without heading skipped"
     if stats.frames_bad_exposure:
         summary += f", {stats.frames_bad_exposure} frames too dark, bright or flat to show the sun skipped"
+    if stats.frames_out_of_order:
+        summary += f", {stats.frames_out_of_order} frames older than the one before skipped"
+    if stats.clock_jumps:
+        summary += f", {stats.clock_jumps} clock jumps (windows started again)"
     if stats.windows_failed:
         summary += f", {stats.windows_failed} windows failed"
     if errors:

@@ -27,6 +27,7 @@ class OfflineStats:
     frames_without_heading: int = 0
     frames_bad_exposure: int = 0
     frames_out_of_order: int = 0
+    clock_jumps: int = 0  # frames far older than the one before: windows start again from them
     windows: int = 0
     windows_failed: int = 0
     failures: list[str] = field(default_factory=list)
@@ -52,9 +53,11 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
 
     def flush() -> Iterator[dict[str, SunEstimate]]:
         for feats in estimator.encode_batch(pending):
+            restarts = ring.restarts
             if not ring.push(feats):
                 stats.frames_out_of_order += 1  # as live: windows assume time order
                 continue
+            stats.clock_jumps += ring.restarts - restarts
             window = policy.select(ring.snapshot())
             stats.windows += 1
             try:

@@ -83,6 +83,7 @@ class RigStats:
     frames_bad_exposure: int = 0
     frames_encoded: int = 0
     frames_out_of_order: int = 0
+    clock_jumps: int = 0  # frames far older than the one before: the ring started again from them
     windows_skipped: int = 0
     estimates: int = 0
     estimates_failed: int = 0
@@ -106,7 +107,8 @@ class RigStats:
         lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
         pub_drops = sum(v.get("dropped", 0) for v in self.publishers.values())
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
-                f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}) | estimates "
+                f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}, out of order "
+                f"{self.frames_out_of_order}, clock jumps {self.clock_jumps}) | estimates "
                 f"{self.estimates} at {rate:.1f} Hz, skipped {self.windows_skipped}, failed "
                 f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}, errors {self.publish_errors}")
 
@@ -224,6 +226,11 @@ class RigPipeline:
                 if first_t is None:
                     first_t = frame.t_mono_s
                 delay = start + (frame.t_mono_s - first_t) - self.clock()
+                if abs(delay) > self.config.ring_max_age_s:
+                    # A jump in the log's clock: pace from here rather than sleep through it (or
+                    # rush every later frame); no window spans it anyway.
+                    log.info("seq %d: the source's clock jumped %+.1f s; pacing from here", frame.seq, delay)
+                    first_t, start, delay = frame.t_mono_s, self.clock(), 0.0
                 if delay > 0 and self._stop.wait(delay):
                     return
             self.stats.frames_captured += 1
@@ -275,9 +282,14 @@ class RigPipeline:
             frame, arrived = item
             feats = self.estimator.encode(frame)
             self.stats.frames_encoded += 1
+            restarts = self.ring.restarts
             if not self.ring.push(feats):
                 self.stats.frames_out_of_order += 1
                 continue
+            if self.ring.restarts != restarts:
+                self.stats.clock_jumps += 1
+                log.warning("seq %d is more than %.0f s older than the frame before it: the clock jumped; "
+                            "windows start again from it", frame.seq, self.ring.max_age_s)
             if not self._mailbox.put((feats, arrived)):
                 self.stats.windows_skipped += 1
 

@@ -81,14 +81,23 @@ class FrameRing:
         self.pushed = 0
         self.evicted = 0
         self.out_of_order = 0
+        self.restarts = 0
 
     def push(self, feats: FrameFeatures) -> bool:
         """Add the newest frame; a frame older than the newest held is refused (and counted):
-        windows assume time order, and a late frame adds nothing to a live estimate."""
+        windows assume time order, and a late frame adds nothing to a live estimate.
+
+        A frame more than ``max_age_s`` older than the newest is not late: the clock jumped (one
+        frame stamped far ahead, or a source that restarted its clock). Refusing it would refuse
+        every frame from then on, so the ring starts again from it (counted in ``restarts``)."""
         with self._lock:
             if self._frames and feats.frame.t_mono_s < self._frames[-1].frame.t_mono_s:
-                self.out_of_order += 1
-                return False
+                if self._frames[-1].frame.t_mono_s - feats.frame.t_mono_s <= self.max_age_s:
+                    self.out_of_order += 1
+                    return False
+                self.evicted += len(self._frames)
+                self._frames.clear()
+                self.restarts += 1
             self._frames.append(feats)
             self.pushed += 1
             newest = feats.frame.t_mono_s

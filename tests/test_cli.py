@@ -156,12 +156,12 @@ def test_run_file_camera_to_loop_serial_jsonl_and_record(tmp_path, tiny_model_di
     assert len(list(read_estimates(rec))) == len(rows) >= 1, res.stderr
     # Paced at 10 Hz the live path keeps up with nearly every frame on an idle machine, but how
     # many it drops depends on the load; what must hold is that every frame is accounted for.
-    done = re.search(r"frames (\d+) \(dropped (\d+), no heading (\d+), bad exposure (\d+)\) \| estimates (\d+) at "
-                     r".*skipped (\d+), failed (\d+)", res.stderr)
+    done = re.search(r"frames (\d+) \(dropped (\d+), no heading (\d+), bad exposure (\d+), out of order (\d+), "
+                     r"clock jumps (\d+)\) \| estimates (\d+) at .*skipped (\d+), failed (\d+)", res.stderr)
     assert done, res.stderr
-    frames, dropped, no_heading, bad_exposure, estimates, skipped, failed = map(int, done.groups())
-    assert frames == 40 and estimates == len(rows), res.stderr
-    assert dropped + no_heading + bad_exposure + estimates + skipped + failed == frames, res.stderr
+    frames, dropped, no_heading, bad_exposure, late, jumps, estimates, skipped, failed = map(int, done.groups())
+    assert frames == 40 and estimates == len(rows) and jumps == 0, res.stderr
+    assert dropped + no_heading + bad_exposure + late + estimates + skipped + failed == frames, res.stderr
 
 
 def test_run_errors_are_one_line(tmp_path):

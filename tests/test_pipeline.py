@@ -1,5 +1,6 @@
 """The live pipeline: it ends, it drops instead of lagging, and a failing stage stops it all."""
 
+import dataclasses
 import logging
 import math
 import threading
@@ -130,6 +131,23 @@ def test_a_publisher_that_raises_loses_its_estimates_not_the_others(model, caplo
     warned = [r for r in caplog.records if "could not publish" in r.getMessage()]
     assert len(warned) == 1 and "controller link broke" in warned[0].getMessage()
     assert f"errors {stats.publish_errors}" in stats.status_line(stats.ended_s)
+
+
+def test_one_frame_stamped_an_hour_ahead_costs_a_refill_not_the_run(model):
+    def glitched():
+        for f in frames(60, dt=0.02):
+            yield dataclasses.replace(f, t_mono_s=3600.0) if f.seq == 20 else f
+
+    out = Collect()
+    t0 = time.monotonic()
+    # Paced: without re-anchoring, capture would sleep an hour at the glitch.
+    pipe, stats = run_pipeline(glitched(), SunEstimator(model), [out], realtime=True, ring_max_age_s=4.0)
+    assert time.monotonic() - t0 < 10.0
+    assert stats.clock_jumps == 1 and stats.frames_out_of_order == 0
+    # Estimates go on after it, from a ring that started again at seq 21.
+    after = [e for e in out.estimates if e.seq > 21]
+    assert after and min(e.n_frames for e in after) <= 8 and out.estimates[-1].seq == 59
+    assert "clock jumps 1" in stats.status_line(stats.ended_s)
 
 
 def test_a_source_that_blocks_forever_does_not_hang_the_rig(model):

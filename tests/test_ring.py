@@ -61,6 +61,21 @@ def test_ring_refuses_late_frames():
     assert ring.out_of_order == 1 and len(ring) == 1
 
 
+def test_ring_starts_again_after_a_clock_jump():
+    # One frame stamped an hour ahead: the frames after it are not late, the clock jumped. The
+    # ring starts again from the first of them instead of refusing every frame from then on.
+    ring = FrameRing(capacity=10, max_age_s=4.0)
+    for i in range(3):
+        assert ring.push(feats(i, 0.1 * i))
+    assert ring.push(feats(3, 3600.0))
+    assert [f.frame.seq for f in ring.snapshot()] == [3]  # its age evicted the rest
+    assert ring.push(feats(4, 0.4)) and ring.push(feats(5, 0.5))
+    assert [f.frame.seq for f in ring.snapshot()] == [4, 5]
+    assert ring.restarts == 1 and ring.out_of_order == 0
+    # A frame late by less than max_age_s is still refused, not a restart.
+    assert not ring.push(feats(6, 0.45)) and ring.out_of_order == 1 and ring.restarts == 1
+
+
 def test_bad_sizes():
     with pytest.raises(ValidationError):
         DropOldestQueue(0)
