@@ -38,18 +38,26 @@ def _load_model(model_dir: str | None):
 
 
 def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, rule,
-                record: str | None = None, record_frames: bool = False, nmea_stdout: bool = False) -> list:
-    """The outputs a command asked for. Opened before any work, so a bad port fails at once."""
-    from rig.publishers import JsonlPublisher, SentencePublisher, SerialPublisher
+                record: str | None = None, record_frames: bool = False, nmea_stdout: bool = False,
+                live: bool = False) -> list:
+    """The outputs a command asked for. Opened before any work, so a bad port fails at once.
+
+    ``live``: the stream outputs (JSONL, NMEA on stdout) write in threads of their own, so a
+    reader that stops reading cannot stall the rig; offline they write in the caller's thread,
+    where waiting for a slow reader loses nothing."""
+    from rig.publishers import BackgroundPublisher, JsonlPublisher, SentencePublisher, SerialPublisher
+
+    def stream(p):
+        return BackgroundPublisher(p) if live else p
 
     pubs: list = []
     try:
         if serial:
             pubs.append(SerialPublisher(serial, format=fmt, baudrate=baud, status_rule=rule))
         elif nmea_stdout:
-            pubs.append(SentencePublisher(sys.stdout, status_rule=rule))
+            pubs.append(stream(SentencePublisher(sys.stdout, status_rule=rule)))
         if jsonl:
-            pubs.append(JsonlPublisher(jsonl))
+            pubs.append(stream(JsonlPublisher(jsonl)))
         if record:
             from rig.recorder import RecorderPublisher
 
@@ -195,7 +203,8 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
     out = cfg["output"]
     pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
                        jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
-                       record=out["record"] or None, record_frames=out["record_frames"], nmea_stdout=nmea_stdout)
+                       record=out["record"] or None, record_frames=out["record_frames"], nmea_stdout=nmea_stdout,
+                       live=True)
     recorder = next((p for p in pubs if type(p).__name__ == "RecorderPublisher"), None)
     r = cfg["rig"]
     rig_cfg = RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],

@@ -32,7 +32,7 @@ from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
 from rig.errors import SunrigError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
-from rig.publishers import Publisher
+from rig.publishers import Publisher, publisher_name
 from rig.ring import DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
@@ -211,7 +211,7 @@ class RigPipeline:
     def _collect_publisher_stats(self) -> None:
         for p in self.publishers:
             try:
-                self.stats.publishers[type(p).__name__] = p.stats()
+                self.stats.publishers[publisher_name(p)] = p.stats()
             except Exception:  # noqa: BLE001 - statistics must never stop the rig
                 pass
 
@@ -261,7 +261,7 @@ class RigPipeline:
                 if self._publish_error.get(id(p)) != text:  # once per publisher and kind of error
                     self._publish_error[id(p)] = text
                     log.warning("%s could not publish seq %d (%s): counted and dropped, the other outputs go on",
-                                type(p).__name__, est.seq, text)
+                                publisher_name(p), est.seq, text)
 
     def _log_exposure_change(self, seq: int, reason: str | None) -> None:
         # Once per change, not per frame: a night is one message, not one per frame.

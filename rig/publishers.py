@@ -4,7 +4,9 @@ The I/O shells around ``rig/protocol.py``. ``SerialPublisher`` never blocks its 
 estimator thread): ``publish()`` encodes and drops the message into a one-slot mailbox, newest
 wins, and a writer thread does the I/O with a write timeout, dropping, counting and reopening
 the port as needed. ``JsonlPublisher`` writes one JSON object per line, for scripts and
-evaluation. The drop policy and counters are specified in ``docs/protocol.md``.
+evaluation, in its caller's thread; live, :class:`BackgroundPublisher` moves it (and the NMEA
+text on stdout) to a thread of its own, so a reader that stops reading stalls that output and
+not the rig. The drop policy and counters are specified in ``docs/protocol.md``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import serial
 from rig.errors import PublishError
 from rig.portio import PORT_ERRORS, Backoff, begin_stop, join_worker
 from rig.protocol import DEFAULT_STATUS_RULE, StatusRule, encode_binary, encode_nmea
+from rig.ring import DropOldestQueue
 from rig.types import SunEstimate
 
 log = logging.getLogger(__name__)
@@ -47,6 +50,12 @@ class Publisher(Protocol):
     def close(self) -> None: ...
 
     def stats(self) -> dict[str, Any]: ...
+
+
+def publisher_name(p: Publisher) -> str:
+    """What a publisher is called in statistics and logs: its class, or the class it wraps."""
+    inner = getattr(p, "inner", None)
+    return type(inner if inner is not None else p).__name__
 
 
 def open_serial(url: str, baudrate: int, write_timeout_s: float) -> serial.SerialBase:
@@ -402,3 +411,73 @@ class SentencePublisher:
         if not self._closed:
             self._closed = True
             self._stream.flush()
+
+
+class BackgroundPublisher:
+    """Another publisher, run in a thread of its own: ``publish`` returns at once.
+
+    For the publishers that write in their caller's thread (:class:`JsonlPublisher`,
+    :class:`SentencePublisher`) when the caller is the live rig. A pipe nobody drains or a
+    terminal paused with Ctrl-S blocks their write; here that stalls this output only.
+
+    Drop policy: up to ``max_pending`` estimates wait, and when full the oldest is dropped
+    (``dropped``): a stall shorter than that loses nothing. An estimate the inner publisher
+    raised on is counted in ``errors`` (the error logged once per kind). :meth:`close` waits at
+    most ``join_timeout_s`` for the writer; a writer stuck in a write is left to finish on its own
+    (daemon thread) and the inner publisher is then not closed under it.
+    """
+
+    def __init__(self, inner: Publisher, *, max_pending: int = 256, join_timeout_s: float = 2.0) -> None:
+        self.inner = inner
+        self._queue: DropOldestQueue[SunEstimate] = DropOldestQueue(max_pending)
+        self._join_timeout_s = join_timeout_s
+        self._stop = threading.Event()
+        self._errors = 0
+        self._last_error: str | None = None
+        self._thread = threading.Thread(target=self._run, name=f"sunrig-{type(inner).__name__}", daemon=True)
+        self._thread.start()
+
+    def publish(self, est: SunEstimate) -> None:
+        if self._stop.is_set():
+            raise PublishError(f"publish() on the closed background {type(self.inner).__name__}; make a new one")
+        self._queue.put(est)
+
+    def stats(self) -> dict[str, Any]:
+        return {**self.inner.stats(), "dropped": self._queue.dropped, "pending": len(self._queue),
+                "errors": self._errors, "last_error": self._last_error, "writer_alive": self._thread.is_alive()}
+
+    def close(self) -> None:
+        """Write what is pending (within ``join_timeout_s``), then close the inner publisher."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._queue.close()
+        self._thread.join(self._join_timeout_s)
+        if self._thread.is_alive():
+            log.warning("%s is stuck in a write (a reader that stopped reading?); left behind with %d estimates "
+                        "pending", type(self.inner).__name__, len(self._queue))
+            return
+        self.inner.close()
+
+    def __enter__(self) -> BackgroundPublisher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _run(self) -> None:
+        while True:
+            est = self._queue.get(0.5)
+            if est is None:
+                if self._stop.is_set():
+                    return  # closed, and nothing left: get() returns at once once closed
+                continue
+            try:
+                self.inner.publish(est)
+            except Exception as exc:  # noqa: BLE001 - counted and reported; the next estimate may pass
+                self._errors += 1
+                text = f"{type(exc).__name__}: {exc}"
+                if text != self._last_error:
+                    log.warning("%s could not publish seq %d (%s): counted, and the next ones are tried",
+                                type(self.inner).__name__, est.seq, text)
+                self._last_error = text

@@ -7,6 +7,7 @@ benchmarks): waits poll a condition with a deadline, and ``within()`` guards aga
 
 from __future__ import annotations
 
+import gc
 import io
 import json
 import logging
@@ -37,7 +38,7 @@ from rig.protocol import (
     encode_nmea,
     nmea_fields,
 )
-from rig.publishers import JsonlPublisher, Publisher, SerialPublisher
+from rig.publishers import BackgroundPublisher, JsonlPublisher, Publisher, SerialPublisher
 from tests.test_protocol import F32_DEG, F32_UNIT, make_estimate, random_estimates, worst_case_estimates
 
 HANG_GUARD_S = 10.0  # generous: only a hang fails it, never a slow machine
@@ -500,3 +501,70 @@ def test_jsonl_unwritable_path_says_what_to_do(tmp_path):
 def test_publishers_share_the_protocol(tmp_path: Path):
     with SerialPublisher("loop://") as serial_pub, JsonlPublisher(tmp_path / "x.jsonl") as jsonl_pub:
         assert isinstance(serial_pub, Publisher) and isinstance(jsonl_pub, Publisher)
+
+
+# --- BackgroundPublisher: the stream outputs, live ----------------------------------------------
+
+
+def test_a_pipe_nobody_reads_stalls_its_output_not_the_caller(caplog):
+    # Finalise earlier tests' file objects first: one collected later would close whatever
+    # descriptor reuses its number, perhaps this pipe's.
+    gc.collect()
+    r, w = os.pipe()
+    # Fill the pipe first, as a reader that stopped a while ago leaves it: the first write blocks.
+    os.set_blocking(w, False)
+    filled = 0
+    try:
+        while True:
+            filled += os.write(w, b"x" * 4096)
+    except BlockingIOError:
+        pass
+    os.set_blocking(w, True)
+    stream = os.fdopen(w, "w", encoding="utf-8")
+    bg = BackgroundPublisher(JsonlPublisher(stream), max_pending=16, join_timeout_s=0.2)
+    # The caller (the rig's estimate thread) must not block, though the writer is stuck.
+    within(HANG_GUARD_S, lambda: [bg.publish(make_estimate(10.0, 20.0, seq=i)) for i in range(1000)])
+    wait_until(lambda: bg.stats()["pending"] == 16, f"the writer to stall with a full queue: {bg.stats()}")
+    stats = bg.stats()
+    assert stats["writer_alive"] and stats["written"] == 0
+    # Every estimate is accounted for: handed to the inner publisher (stuck in its write),
+    # dropped oldest-first, or waiting.
+    assert stats["published"] == 1 and stats["dropped"] == 1000 - 1 - 16
+    with caplog.at_level(logging.WARNING, logger="rig.publishers"):
+        within(HANG_GUARD_S, bg.close)  # bounded, though the writer is stuck
+    assert any("stuck in a write" in rec.getMessage() for rec in caplog.records)
+    # Once someone reads, the writer writes what was pending and ends: whole lines, the newest last.
+    os.set_blocking(r, False)
+    got = bytearray()
+
+    def drained() -> bool:
+        try:
+            while chunk := os.read(r, 65536):
+                got.extend(chunk)
+        except BlockingIOError:
+            pass
+        return not bg.stats()["writer_alive"]
+
+    wait_until(drained, "the writer to finish once the pipe is read")
+    stream.close()
+    drained()
+    os.close(r)
+    lines = got[filled:].decode().splitlines()
+    seqs = [json.loads(line)["seq"] for line in lines]
+    # The one that was in the write (whichever was oldest when the writer first ran), then the newest 16.
+    assert len(seqs) == 17 and seqs[0] < 1000 - 16 and seqs[1:] == list(range(1000 - 16, 1000))
+
+
+def test_a_background_publisher_counts_what_its_publisher_raises_on(tmp_path, caplog):
+    inner = JsonlPublisher(tmp_path / "out.jsonl")
+    inner.close()  # every publish now raises
+    bg = BackgroundPublisher(inner)
+    with caplog.at_level(logging.WARNING, logger="rig.publishers"):
+        for i in range(5):
+            bg.publish(make_estimate(10.0, 20.0, seq=i))
+        wait_until(lambda: bg.stats()["errors"] == 5, "five errors")
+    assert "closed JSONL publisher" in bg.stats()["last_error"]
+    assert sum("could not publish" in rec.getMessage() for rec in caplog.records) == 1  # once per kind
+    bg.close()
+    with pytest.raises(PublishError, match="closed background"):
+        bg.publish(make_estimate(10.0, 20.0))
