@@ -7,8 +7,11 @@ else is a bug: one line and exit 1, with the traceback only under ``--debug``.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
+import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -18,6 +21,8 @@ from rig.progress import Progress
 
 EXIT_USER_ERROR = 2
 EXIT_BUG = 1
+# A full disk (or quota, or file size limit) while writing: the user's to fix, not a bug.
+_DISK_FULL = (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
 
 
 def _positive_int(text: str) -> int:
@@ -28,6 +33,51 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return value
+
+
+def _nonneg_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    """A finite number > 0: nan and inf are typos here, never meant (a nan budget never ends)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def _int_in(lo: int, hi: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = lo - 1
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"expected an integer from {lo} to {hi}, got {text!r}")
+        return value
+    return parse
+
+
+def _float_in(lo: float, hi: float):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not lo < value <= hi:
+            raise argparse.ArgumentTypeError(f"expected a number in ({lo:g}, {hi:g}], got {text!r}")
+        return value
+    return parse
 
 
 def _load_model(model_dir: str | None):
@@ -99,6 +149,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     log_path = args.log or str(DEMO_LOG)
     # The log is checked before the model is loaded: a wrong path should fail in milliseconds.
     source = open_frames(log_path, utc_offset_h=args.utc_offset)
+    _refuse_overwriting([Path(log_path)], jsonl=args.jsonl)
     model = _load_model(args.model)
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
@@ -182,6 +233,39 @@ def _source_options(cfg: dict):
     return SourceOptions(**fields)
 
 
+def _spec_files(*specs: str | None) -> list[Path]:
+    """The local files that source specs read (``file:LOG``, ``opencv:VIDEO``, ``nmea:CAPTURE``)."""
+    files = []
+    for spec in specs:
+        kind, _, rest = (spec or "").partition(":")
+        if kind in ("file", "opencv", "nmea") and rest and Path(rest).is_file():
+            files.append(Path(rest))
+    return files
+
+
+def _refuse_overwriting(inputs: list[Path], **outputs: str | None) -> None:
+    """An output that is one of the inputs would be truncated before a frame of it is read."""
+    for flag, out in outputs.items():
+        if not out or out == "-" or not Path(out).exists():
+            continue
+        for src in inputs:
+            if src.exists() and os.path.samefile(out, src):
+                raise SunrigError(f"--{flag.replace('_', '-')} {out} is the input being read; writing it would "
+                                  "destroy it: pass another path")
+
+
+def _check_writable(flag: str, path: str | None, suffixes: tuple[str, ...] = ()) -> None:
+    """Fail before minutes of work, not after, when an output cannot be written there."""
+    if not path or path == "-":
+        return
+    out = Path(path)
+    if suffixes and out.suffix.lower() not in suffixes:
+        raise SunrigError(f"{flag} {path}: expected a {' or '.join(suffixes)} file name")
+    folder = out.parent
+    if out.is_dir() or not folder.is_dir() or not os.access(folder, os.W_OK):
+        raise SunrigError(f"{flag} {path}: cannot write there; check the folder exists and is writable")
+
+
 def _open_camera(spec: str, heading: str, options=None):
     """A live source from ``--camera`` and ``--heading`` (drivers.sources; docs/drivers.md)."""
     from drivers.sources import open_source
@@ -190,8 +274,6 @@ def _open_camera(spec: str, heading: str, options=None):
 
 
 def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
-    import math
-
     from estimator.estimator import SunEstimator
     from rig.pipeline import RigConfig, RigPipeline
     from rig.window import SpreadWindowPolicy
@@ -200,16 +282,19 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
     estimator = SunEstimator(model, aggregator=cfg["estimator"]["aggregator"], seed=cfg["estimator"]["seed"])
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=cfg["window"]["span_s"],
                                 yaw_scale_rad=math.radians(cfg["window"]["yaw_scale_deg"]))
+    # Checked before the outputs open: opening truncates an existing JSONL file or recording.
+    r = cfg["rig"]
+    rig_cfg = RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
+                        ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
+                        realtime=r["realtime"])
     out = cfg["output"]
+    _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]),
+                        jsonl=out["jsonl"], record=out["record"])
     pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
                        jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
                        record=out["record"] or None, record_frames=out["record_frames"], nmea_stdout=nmea_stdout,
                        live=True)
     recorder = next((p for p in pubs if type(p).__name__ == "RecorderPublisher"), None)
-    r = cfg["rig"]
-    rig_cfg = RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
-                        ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
-                        realtime=r["realtime"])
 
     live_line = sys.stderr.isatty()
 
@@ -235,7 +320,23 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
         if live_line:
             sys.stderr.write("\n")
         print(f"sunrig: done: {stats.status_line(stats.ended_s)}", file=sys.stderr)
-    return 0
+    return _report_output_losses(stats)
+
+
+def _report_output_losses(stats) -> int:
+    """One line per output that failed to write estimates; exit 2 if one wrote none at all (a
+    full disk, a dead link): the run went on for the other outputs, but its user must know."""
+    code = 0
+    for name, st in stats.publishers.items():
+        failed = int(st.get("errors") or 0) + int(st.get("write_errors") or 0)
+        if not failed:
+            continue
+        written = int(st.get("written") or 0)
+        print(f"sunrig: {name}: {failed} estimates failed to write, {written} written "
+              f"(last error: {st.get('last_error') or 'see the log above'})", file=sys.stderr)
+        if written == 0:
+            code = EXIT_USER_ERROR
+    return code
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -258,11 +359,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     from replay.native import LogWriter
 
-    if args.seconds is not None and not args.seconds > 0:
-        raise SunrigError(f"--seconds: expected a duration > 0, got {args.seconds}")
-    if args.frames is not None and args.frames < 1:
-        raise SunrigError(f"--frames: expected at least 1, got {args.frames}")
     cfg = _effective_config(args)
+    _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=args.out)
     # The sources first: a wrong camera or port fails before the output file is created.
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     state = {"writing": False, "stop": False}
@@ -279,6 +377,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     start = time.monotonic()
     next_status = start + 5.0
     interrupted = False
+    disk_full: OSError | None = None
     previous = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
     # A backstop for --seconds: a camera that stops sending frames must not keep the recording open.
     deadline = threading.Timer(args.seconds + 2.0, source.stop) if args.seconds is not None else None
@@ -312,9 +411,18 @@ def cmd_record(args: argparse.Namespace) -> int:
                     break
         except KeyboardInterrupt:
             interrupted = True  # Ctrl-C is how a live recording ends
+        except OSError as exc:
+            if exc.errno not in _DISK_FULL:
+                raise
+            disk_full = exc
         finally:
             state["writing"] = True  # a Ctrl-C now must not cut the summary short
-            writer.close()
+            try:
+                writer.close()
+            except OSError as exc:
+                if exc.errno not in _DISK_FULL:
+                    raise
+                disk_full = disk_full or exc
             state["writing"] = False
     finally:
         if deadline is not None:
@@ -322,6 +430,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
         source.close()
+    if disk_full is not None:
+        raise SunrigError(f"record: {args.out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
+                          f"chunks still replay (sunrig replay {args.out}); free space or pass another --out")
     if not quiet:
         if live_line:
             sys.stderr.write("\n")
@@ -392,6 +503,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from replay.sources import open_frames
     from rig.window import SpreadWindowPolicy
 
+    _check_writable("--json", args.json)
+    _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
     paths = _expand_logs(args.logs)
     sources = [(str(p), open_frames(p, utc_offset_h=args.utc_offset)) for p in paths]  # all checked before any work
     model = _load_model(args.model)
@@ -619,7 +732,7 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--hfov-deg", type=float, metavar="DEG", help="or the camera's horizontal field of view")
     g.add_argument("--width", type=int, help="requested frame width (opencv device, oak)")
     g.add_argument("--height", type=int, help="requested frame height (opencv device, oak)")
-    g.add_argument("--fps", type=float, help="requested frame rate (opencv device, oak)")
+    g.add_argument("--fps", type=_positive_float, help="requested frame rate (opencv device, oak)")
     g.add_argument("--source-baud", type=int, metavar="BAUD", help="baud rate of an nmea: port (default 115200)")
     g.add_argument("--max-gap-s", type=float, metavar="S",
                    help="nmea: no heading interpolated across a longer gap between samples (default 1.5)")
@@ -652,7 +765,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jsonl", metavar="PATH|-", help="write one JSON object per estimate here (- for stdout)")
     p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregator", default="transformer", choices=["transformer", "mean", "meanshift", "single"])
-    p.add_argument("--seed", type=int, default=0, help="crop sampling seed (default 0)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=float, default=4.0, metavar="S",
                    help="choose each window's frames from the last S seconds (default 4)")
     _output_flags(p)
@@ -678,9 +791,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("record", help="record live sources (frames, heading, GNSS, intrinsics) to a native log")
     _source_flags(p)
     p.add_argument("--out", required=True, metavar="OUT.mcap", help="the native log to write (replaced if it exists)")
-    p.add_argument("--seconds", type=float, metavar="N", help="stop after N seconds (default: Ctrl-C or the end)")
-    p.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
-    p.add_argument("--jpeg-quality", type=int, default=90, metavar="Q", help="JPEG quality of the images (default 90)")
+    p.add_argument("--seconds", type=_positive_float, metavar="N",
+                   help="stop after N seconds (default: Ctrl-C or the end)")
+    p.add_argument("--frames", type=_positive_int, metavar="N", help="stop after N frames")
+    p.add_argument("--jpeg-quality", type=_int_in(1, 100), default=90, metavar="Q",
+                   help="JPEG quality of the images, 1-100 (default 90)")
     p.add_argument("--config", metavar="FILE.toml", help="configuration file ([source] camera, heading)")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_record)
@@ -704,7 +819,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", metavar="OUT.png", help="cumulative error curves (and OUT-tokens.png)")
     p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregators", metavar="A,B", help="comma-separated subset (default: all)")
-    p.add_argument("--seed", type=int, default=0, help="crop sampling seed (default 0)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=float, default=4.0, metavar="S")
     p.add_argument("--utc-offset", type=float, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
@@ -718,19 +833,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model folder; holds checkpoint.pt, and a run resumes from it")
     p.add_argument("--preset", default="fast",
                    help="network preset: fast (default, the 90-minute CPU recipe), light, paper (ResNet18 at 224 px)")
-    p.add_argument("--minutes", type=float, default=80.0, help="training time budget (default 80)")
-    p.add_argument("--steps", type=int, default=0, help="stop after this many steps instead")
-    p.add_argument("--batch", type=int, default=6, help="windows per step (default 6)")
+    p.add_argument("--minutes", type=_positive_float, default=80.0, help="training time budget (default 80)")
+    p.add_argument("--steps", type=_nonneg_int, default=0, help="stop after this many steps instead")
+    p.add_argument("--batch", type=_positive_int, default=6, help="windows per step (default 6)")
     p.add_argument("--crops", type=_positive_int, metavar="N",
                    help="crops per frame, recorded in the contract and used at run time (default 4, the paper's; "
                         "a resume keeps its run's). With --export-only: the run-time count of the exported model")
-    p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
+    p.add_argument("--lr", type=_positive_float, default=5e-4, help="peak learning rate (default 5e-4)")
     p.add_argument("--hard-share", type=float, default=0.5,
                    help="share of windows drawn from drives in proportion to their running error (default 0.5)")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
+    p.add_argument("--seed", type=_nonneg_int, default=0)
+    p.add_argument("--threads", type=_nonneg_int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
     p.add_argument("--utc-offset", type=float, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
@@ -747,10 +862,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", help="output folder (drives already there are kept: a run resumes)")
     p.add_argument("--drives", type=int, default=10)
     p.add_argument("--frames", type=int, default=40, help="frames per drive (default 40)")
-    p.add_argument("--seed", type=int, default=0, help="drive i of seed S is always the same drive")
-    p.add_argument("--fps", type=float, default=10.0, help="frame rate of the drives (default 10)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="drive i of seed S is always the same drive")
+    p.add_argument("--fps", type=_positive_float, default=10.0, help="frame rate of the drives (default 10)")
     p.add_argument("--jobs", type=int, default=1, help="drives rendered in parallel (default 1)")
-    p.add_argument("--render-scale", type=float, default=0.5,
+    p.add_argument("--render-scale", type=_float_in(0.0, 1.0), default=0.5,
                    help="internal render size relative to the output (default 0.5, upsampled)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_synth)
@@ -781,8 +896,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _debug_anywhere(parser: argparse.ArgumentParser) -> None:
+    """Accept --debug after the subcommand too (``sunrig replay X --debug``), where people add it
+    when an error says "rerun with --debug"; SUPPRESS keeps a subcommand from resetting it."""
+    for action in parser._subparsers._group_actions:  # noqa: SLF001 - argparse has no public walk
+        for sub in action.choices.values():
+            sub.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    _debug_anywhere(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.WARNING,

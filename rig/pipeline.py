@@ -20,6 +20,7 @@ never waited on without bound.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -30,7 +31,7 @@ import numpy as np
 
 from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
-from rig.errors import SunrigError
+from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.publishers import Publisher, publisher_name
 from rig.ring import DropOldestQueue, FrameRing
@@ -55,6 +56,15 @@ class RigConfig:
     status_every_s: float = 5.0
     realtime: bool = False  # pace a recorded source by its timestamps
     exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE  # None: every frame joins windows
+
+    def __post_init__(self) -> None:
+        for name in ("queue_size", "ring_capacity"):
+            if not getattr(self, name) >= 1:
+                raise ValidationError(f"[rig] {name}: expected >= 1, got {getattr(self, name)}")
+        for name in ("ring_max_age_s", "status_every_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValidationError(f"[rig] {name}: expected a finite number of seconds > 0, got {v}")
 
 
 @dataclass
@@ -105,12 +115,24 @@ class RigStats:
         lat = self.latency.summary_ms()
         rate = self.estimates / max(now_s - self.started_s, 1e-9)
         lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
-        pub_drops = sum(v.get("dropped", 0) for v in self.publishers.values())
+        pub_drops, pub_errors = publisher_losses(self.publishers.values())
+        pub_errors += self.publish_errors
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
                 f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}, out of order "
                 f"{self.frames_out_of_order}, clock jumps {self.clock_jumps}) | estimates "
                 f"{self.estimates} at {rate:.1f} Hz, skipped {self.windows_skipped}, failed "
-                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}, errors {self.publish_errors}")
+                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}, errors {pub_errors}")
+
+
+def publisher_losses(stats: Iterable[dict]) -> tuple[int, int]:
+    """Estimates the publishers dropped (``dropped``, ``dropped_overwritten``, ``dropped_write_timeout``:
+    a slow or stalled link) and failed to write (``write_errors``, ``errors``: a broken one), summed
+    over their ``stats()``: a serial link that goes down must show in the status line."""
+    drops = errors = 0
+    for s in stats:
+        drops += sum(int(v) for k, v in s.items() if k.startswith("dropped") and isinstance(v, int))
+        errors += sum(int(s.get(k) or 0) for k in ("write_errors", "errors"))
+    return drops, errors
 
 
 class RigPipeline:

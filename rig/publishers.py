@@ -361,8 +361,14 @@ class JsonlPublisher:
         if self._closed:
             raise PublishError(f"publish() on the closed JSONL publisher of {self._name}; make a new one")
         self._counts["published"] += 1
-        self._stream.write(json.dumps(est.to_json_dict()) + "\n")
-        self._stream.flush()  # a reader tailing the file, or a crash, sees every line whole
+        try:
+            self._stream.write(json.dumps(est.to_json_dict()) + "\n")
+            self._stream.flush()  # a reader tailing the file, or a crash, sees every line whole
+        except BrokenPipeError:
+            raise  # the reader went away (`| head`): the CLI ends quietly on it
+        except OSError as exc:
+            raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
+                               "free space or pass another --jsonl") from None
         self._counts["written"] += 1
 
     def stats(self) -> dict[str, Any]:

@@ -171,6 +171,67 @@ def test_run_errors_are_one_line(tmp_path):
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, (args, res.stderr)
 
 
+def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
+    import shutil
+
+    from replay.sources import DEMO_LOG
+
+    log = tmp_path / "drive.mcap"
+    shutil.copy(DEMO_LOG, log)
+    before = log.read_bytes()
+    for args in (["replay", str(log), "--jsonl", str(log)],
+                 ["record", "--camera", f"file:{log}", "--heading", "log", "--out", str(log)],
+                 ["run", "--camera", f"file:{log}", "--heading", "log", "--jsonl", str(log)]):
+        res = run_cli(*args)
+        assert res.returncode == 2 and "is the input being read" in res.stderr, (args, res.stderr)
+        assert log.read_bytes() == before, args
+
+
+def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
+    from replay.sources import DEMO_LOG
+
+    keep = tmp_path / "keep.mcap"
+    keep.write_bytes(b"a recording worth keeping")
+    bad_rig = tmp_path / "rig.toml"
+    bad_rig.write_text("[rig]\nqueue_size = 0\n")
+    cases = (
+        ["replay", "--seed", "-1"],
+        ["synth", str(tmp_path / "s"), "--fps", "0"],
+        ["synth", str(tmp_path / "s"), "--render-scale", "nan"],
+        ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--minutes", "nan"],
+        ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--lr", "-1"],
+        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--seconds", "inf"],
+        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--jpeg-quality", "101"],
+        ["run", "--camera", f"file:{DEMO_LOG}", "--config", str(bad_rig), "--record", str(keep)],
+        ["eval", str(DEMO_LOG), "--plot", str(tmp_path / "curves.txt")],
+        ["eval", str(DEMO_LOG), "--json", str(tmp_path / "no" / "such" / "folder" / "out.json")],
+    )
+    for args in cases:
+        res = run_cli(*args)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, (args, res.stderr)
+        assert "error:" in res.stderr.strip().splitlines()[-1], (args, res.stderr)
+        assert keep.read_bytes() == b"a recording worth keeping", args
+    assert not (tmp_path / "m").exists() and not (tmp_path / "s").exists()
+
+
+def test_debug_is_taken_after_the_subcommand_too(tmp_path):
+    # As the errors' advice ("rerun with --debug") is most often followed: at the end of the line.
+    res = run_cli("replay", str(tmp_path / "missing.mcap"), "--debug")
+    assert res.returncode != 0 and "Traceback" in res.stderr and "unrecognized" not in res.stderr
+
+
+@pytest.mark.torch
+def test_an_output_that_writes_nothing_fails_the_run_and_says_so(tiny_model_dir):
+    from replay.sources import DEMO_LOG
+
+    res = run_cli("run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--model", str(tiny_model_dir),
+                  "--jsonl", "/dev/full", "--serial", "loop://")
+    assert res.returncode == 2, res.stderr
+    assert re.search(r"JsonlPublisher: \d+ estimates failed to write, 0 written .*No space left", res.stderr)
+    # The serial output went on: the failing JSONL file did not stop the rig.
+    assert re.search(r"estimates [1-9]\d* at", res.stderr), res.stderr
+
+
 def test_config_print_merges_file_and_flags(tmp_path):
     cfg = tmp_path / "rig.toml"
     cfg.write_text('[output]\nbaud = 9600\n[window]\nspan_s = 6.0\n')

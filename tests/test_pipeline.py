@@ -150,6 +150,19 @@ def test_one_frame_stamped_an_hour_ahead_costs_a_refill_not_the_run(model):
     assert "clock jumps 1" in stats.status_line(stats.ended_s)
 
 
+def test_the_status_line_counts_every_kind_of_publisher_loss():
+    from rig.pipeline import RigStats
+
+    stats = RigStats(publish_errors=1)
+    stats.publishers = {
+        # A serial link that went down: overwritten while waiting, timed out, failed to write.
+        "SerialPublisher": {"published": 20, "written": 11, "dropped_overwritten": 3, "dropped_write_timeout": 2,
+                            "write_errors": 4, "pending": 0, "port": "/dev/ttyUSB0", "last_error": "EIO"},
+        "RecorderPublisher": {"written": 5, "dropped": 1, "errors": 2},
+    }
+    assert stats.status_line(1.0).endswith("publish drops 6, errors 7")
+
+
 def test_a_source_that_blocks_forever_does_not_hang_the_rig(model):
     never = threading.Event()
 
