@@ -364,6 +364,11 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
     if not 0.0 <= cfg.hard_share <= 1.0:
         raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
+    if not cfg.max_steps and not (math.isfinite(cfg.minutes) and cfg.minutes > 0):
+        # A nan budget never ends and a negative one exports random weights as "trained".
+        raise ValidationError(f"minutes: expected a finite budget > 0, got {cfg.minutes}")
+    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
+        raise ValidationError(f"lr: expected a finite learning rate > 0, got {cfg.lr}")
     if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
                               f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
@@ -466,70 +471,77 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(),
         }
 
-    while True:
-        elapsed = time.monotonic() - start
-        if cfg.max_steps and step >= cfg.max_steps:
-            break
-        if not cfg.max_steps and elapsed >= budget_s:
-            break
-        if not cfg.max_steps and step >= 20:
-            est_total = int(step * budget_s / max(elapsed, 1e-9))
-        for g in opt.param_groups:
-            g["lr"] = schedule.lr_at(step, est_total, cfg)
+    try:
+        while True:
+            elapsed = time.monotonic() - start
+            if cfg.max_steps and step >= cfg.max_steps:
+                break
+            if not cfg.max_steps and elapsed >= budget_s:
+                break
+            if not cfg.max_steps and step >= 20:
+                est_total = int(step * budget_s / max(elapsed, 1e-9))
+            for g in opt.param_groups:
+                g["lr"] = schedule.lr_at(step, est_total, cfg)
 
-        batch = sampler.sample(cfg.batch_windows)
-        b, t = batch.mask.shape
-        x = normalise(batch.crops.reshape(b * t, *batch.crops.shape[2:]))
-        mask = torch.from_numpy(batch.mask)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            if bf16:
-                x = x.contiguous(memory_format=torch.channels_last)
-            emb = backbone(x).view(b, t, -1)
-            v_head = aggregator(emb, torch.from_numpy(batch.angles), mask)
-        v_head = v_head.float()
-        v_world = nets.world_from_heading_torch(v_head, torch.from_numpy(batch.yaw).float())
-        truth = torch.from_numpy(batch.truth).float()
-        token_loss = nets.sun_loss(v_world, truth[:, None, :].expand_as(v_world), mask)
-        maskf = mask.float().unsqueeze(-1)
-        mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
-        window_loss = nets.sun_loss(mean, truth)
-        loss = token_loss + window_loss
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        opt.step()
-        step += 1
+            batch = sampler.sample(cfg.batch_windows)
+            b, t = batch.mask.shape
+            x = normalise(batch.crops.reshape(b * t, *batch.crops.shape[2:]))
+            mask = torch.from_numpy(batch.mask)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                if bf16:
+                    x = x.contiguous(memory_format=torch.channels_last)
+                emb = backbone(x).view(b, t, -1)
+                v_head = aggregator(emb, torch.from_numpy(batch.angles), mask)
+            v_head = v_head.float()
+            v_world = nets.world_from_heading_torch(v_head, torch.from_numpy(batch.yaw).float())
+            truth = torch.from_numpy(batch.truth).float()
+            token_loss = nets.sun_loss(v_world, truth[:, None, :].expand_as(v_world), mask)
+            maskf = mask.float().unsqueeze(-1)
+            mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
+            window_loss = nets.sun_loss(mean, truth)
+            loss = token_loss + window_loss
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, 1.0)
+            opt.step()
+            step += 1
 
-        with torch.no_grad():
-            cos = (torch.nn.functional.normalize(mean, dim=-1) * truth).sum(-1).clamp(-1, 1)
-            window_err = torch.rad2deg(torch.acos(cos)).numpy()
-            err_deg = float(window_err.mean())
-            full = batch.mask.all(axis=1)  # a subset window's error says little about its drive
-            sampler.record(batch.drive[full], window_err[full])
-        loss_value = float(loss.detach())
-        ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
-        ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg
-        if step % 50 == 0:
-            with open(out_dir / METRICS, "a", encoding="utf-8") as fh:
-                fh.write(json.dumps({"step": step, "elapsed_s": round(time.monotonic() - start, 1),
-                                     "lr": opt.param_groups[0]["lr"], "loss_ema": round(ema_loss, 4),
-                                     "window_err_deg_ema": round(ema_err, 2)}) + "\n")
-        if progress:
-            progress({"phase": "train", "step": step, "start_step": start_step,
-                      "total": None if est_total == unknown_total else est_total,
-                      "elapsed_s": time.monotonic() - start, "budget_s": None if cfg.max_steps else budget_s,
-                      "loss": ema_loss, "err_deg": ema_err})
-        if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:
-            _save_checkpoint(ckpt_path, state_dict())
-            last_ckpt = time.monotonic()
-            if not warned_busy and not cfg.max_steps:  # a step budget is not shortened by load
-                threads = torch.get_num_threads()
-                extra = other_cpu_load(threads)
-                if extra is not None and extra > BUSY_EXTRA_LOAD:
-                    warned_busy = True  # once: the advice does not change, and the log stays readable
-                    log.warning("other work is using the CPU (load %.1f beyond training's %d threads): this "
-                                "%.0f-minute budget will train fewer steps; leave the machine idle while it trains",
-                                extra, threads, cfg.minutes)
+            with torch.no_grad():
+                cos = (torch.nn.functional.normalize(mean, dim=-1) * truth).sum(-1).clamp(-1, 1)
+                window_err = torch.rad2deg(torch.acos(cos)).numpy()
+                err_deg = float(window_err.mean())
+                full = batch.mask.all(axis=1)  # a subset window's error says little about its drive
+                sampler.record(batch.drive[full], window_err[full])
+            loss_value = float(loss.detach())
+            ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
+            ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg
+            if step % 50 == 0:
+                with open(out_dir / METRICS, "a", encoding="utf-8") as fh:
+                    fh.write(json.dumps({"step": step, "elapsed_s": round(time.monotonic() - start, 1),
+                                         "lr": opt.param_groups[0]["lr"], "loss_ema": round(ema_loss, 4),
+                                         "window_err_deg_ema": round(ema_err, 2)}) + "\n")
+            if progress:
+                progress({"phase": "train", "step": step, "start_step": start_step,
+                          "total": None if est_total == unknown_total else est_total,
+                          "elapsed_s": time.monotonic() - start, "budget_s": None if cfg.max_steps else budget_s,
+                          "loss": ema_loss, "err_deg": ema_err})
+            if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:
+                _save_checkpoint(ckpt_path, state_dict())
+                last_ckpt = time.monotonic()
+                if not warned_busy and not cfg.max_steps:  # a step budget is not shortened by load
+                    threads = torch.get_num_threads()
+                    extra = other_cpu_load(threads)
+                    if extra is not None and extra > BUSY_EXTRA_LOAD:
+                        warned_busy = True  # once: the advice does not change, and the log stays readable
+                        log.warning("other work is using the CPU (load %.1f beyond training's %d threads): this "
+                                    "%.0f-minute budget will train fewer steps; leave the machine idle while it trains",
+                                    extra, threads, cfg.minutes)
+    except KeyboardInterrupt:
+        # Ctrl-C (or a kill by SIGINT) keeps what was trained since the last checkpoint: up to
+        # checkpoint_every_s of steps would otherwise be lost. The same command resumes.
+        _save_checkpoint(ckpt_path, state_dict())
+        log.warning("interrupted at step %d: saved %s; run the same command to resume", step, ckpt_path)
+        raise
 
     # One snapshot for both, so the exported contract's minutes are the checkpoint's to the second
     # (a second snapshot after a slow save reads a later clock).

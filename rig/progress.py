@@ -1,7 +1,8 @@
 """A one-line progress counter for long work (replay, eval, synth, train), on stderr.
 
-Only drawn when the stream is a terminal, so logs and pipes stay clean; the closing summary line
-is always written. Work already done before this run (a resumed ``synth``) counts toward the
+Drawn in place when the stream is a terminal. Elsewhere (a log file, ``nohup``, CI) a plain line
+every ``log_every_s`` (60 s), so a long job in the background still shows it is alive and how
+far it got, and a short one writes nothing but its summary, which is always written. Work already done before this run (a resumed ``synth``) counts toward the
 total but not toward the rate, so the rate and the time left describe this run.
 """
 
@@ -23,10 +24,13 @@ class Progress:
     ``min_interval_s``; ``clock`` is injectable for tests."""
 
     def __init__(self, label: str, *, total: int | None = None, unit: str = "", stream: TextIO = sys.stderr,
-                 enabled: bool | None = None, min_interval_s: float = 0.2, clock=time.monotonic) -> None:
+                 enabled: bool | None = None, min_interval_s: float = 0.2, log_every_s: float = 60.0,
+                 clock=time.monotonic) -> None:
         self.label, self.total, self.unit = label, total, unit
         self.stream = stream
         self.enabled = stream.isatty() if enabled is None else enabled
+        # Not a terminal and not told otherwise: a line now and then instead of redraws.
+        self.log_every_s = log_every_s if enabled is None and not self.enabled else None
         self.min_interval_s = min_interval_s
         self.clock = clock
         self.start = clock()
@@ -48,7 +52,13 @@ class Progress:
         """Set the count to ``done`` (work finished so far, including skipped) and maybe redraw."""
         self.done = done
         now = self.clock()
-        if not self.enabled or now - self.last < self.min_interval_s:
+        if not self.enabled:
+            if self.log_every_s is not None and now - max(self.last, self.start) >= self.log_every_s:
+                self.last = now
+                self.stream.write(f"{self.line(extra)}\n")
+                self.stream.flush()
+            return
+        if now - self.last < self.min_interval_s:
             return
         self.last = now
         self.stream.write(f"\r{self.line(extra)}\033[K")

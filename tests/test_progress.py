@@ -39,3 +39,23 @@ def test_not_a_terminal_gets_only_the_summary_and_redraws_are_throttled():
     assert tty.getvalue().count("\r") == 3  # at 0.05 s, then every 0.2 s: 0.25, 0.45
     q.close()
     assert not tty.getvalue().endswith("\n")  # no summary: the line is only cleared
+
+
+def test_not_a_terminal_gets_a_plain_line_a_minute_on_long_work():
+    # A training run under nohup: no redraws, but a line every log_every_s, so its log shows it
+    # is alive and how far it got.
+    now = [0.0]
+    out = io.StringIO()
+    p = Progress("train", total=100, unit="steps", stream=out, clock=lambda: now[0], log_every_s=60.0)
+    for step in range(1, 101):
+        now[0] += 2.0  # 2 s a step: 200 s in all
+        p.update(step, "err 7.1 deg")
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 3 and "\r" not in out.getvalue()  # at 60, 120 and 180 s
+    assert lines[0] == "train: 30/100 steps (0.5/s, 2:20 left) err 7.1 deg"
+    # Told explicitly (enabled=False: --quiet), nothing but the summary.
+    quiet = io.StringIO()
+    q = Progress("train", stream=quiet, enabled=False, clock=lambda: now[0])
+    now[0] += 1000.0
+    q.update(5)
+    assert quiet.getvalue() == ""

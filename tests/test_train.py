@@ -141,6 +141,31 @@ def test_an_older_checkpoint_takes_its_sun_elevations_from_its_own_logs(logs, tm
     assert again.contract.trained_sun_elevation_deg == (53.1, 53.1)
 
 
+def test_ctrl_c_keeps_the_steps_since_the_last_checkpoint(logs, tmp_path):
+    out = tmp_path / "model"
+
+    def interrupt_at_step_2(p):
+        if p["phase"] == "train" and p["step"] == 2:
+            raise KeyboardInterrupt
+
+    # No checkpoint is due for an hour: without the save on Ctrl-C, both steps would be lost.
+    cfg = TrainConfig(preset="tiny", max_steps=4, batch_windows=1, warmup_steps=1, checkpoint_every_s=3600.0)
+    with pytest.raises(KeyboardInterrupt):
+        train(logs, out, cfg, progress=interrupt_at_step_2)
+    assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 2
+    events = []
+    train(logs, out, cfg, progress=events.append)  # the same command resumes
+    assert [e["step"] for e in events if e["phase"] == "train"] == [3, 4]
+
+
+def test_a_budget_that_never_ends_or_never_starts_is_refused(logs, tmp_path):
+    for minutes in (float("nan"), -1.0, 0.0):
+        with pytest.raises(ValidationError, match="minutes"):
+            train(logs, tmp_path / "m", TrainConfig(preset="tiny", minutes=minutes))
+    with pytest.raises(ValidationError, match="lr"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, lr=float("nan")))
+
+
 def test_train_refuses_logs_without_truth(tmp_path):
     from replay.native import LogWriter
 
