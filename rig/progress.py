@@ -2,8 +2,9 @@
 
 Drawn in place when the stream is a terminal. Elsewhere (a log file, ``nohup``, CI) a plain line
 every ``log_every_s`` (60 s), so a long job in the background still shows it is alive and how
-far it got, and a short one writes nothing but its summary, which is always written. Work already done before this run (a resumed ``synth``) counts toward the
-total but not toward the rate, so the rate and the time left describe this run.
+far it got, and a short one writes nothing but its summary, which is always written. Work
+already done before this run (a resumed ``synth``) counts toward the total but not toward the
+rate, so the rate and the time left describe this run.
 """
 
 from __future__ import annotations
