@@ -21,6 +21,24 @@ METADATA_GRAPH_KEY = "sunrig.graph"
 
 BACKBONE_FILE = "backbone.onnx"
 AGGREGATOR_FILE = "aggregator.onnx"
+# sha256sum's format (``sha256sum -c SHA256SUMS`` checks a folder by hand): a graph damaged in a
+# copy can still parse and run, and would answer wrong without a word.
+CHECKSUMS_FILE = "SHA256SUMS"
+
+
+def format_checksums(digests: dict[str, str]) -> str:
+    return "".join(f"{digest}  {name}\n" for name, digest in sorted(digests.items()))
+
+
+def parse_checksums(text: str) -> dict[str, str]:
+    """File name -> hex digest, from sha256sum's output (``HEX  NAME`` or ``HEX *NAME``)."""
+    out = {}
+    for line in text.splitlines():
+        digest, _, name = line.strip().partition(" ")
+        name = name.strip().lstrip("*")
+        if len(digest) == 64 and name:
+            out[name] = digest.lower()
+    return out
 
 # Graph input and output names, part of the contract.
 BACKBONE_INPUT = "crops"  # [N, 3, S, S] float32, normalised as input_norm says

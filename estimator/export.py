@@ -10,6 +10,7 @@ give the same inputs, outputs, dynamic axes and metadata, and the runtime cannot
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import math
 import os
@@ -28,10 +29,12 @@ from estimator.contract import (
     BACKBONE_FILE,
     BACKBONE_INPUT,
     BACKBONE_OUTPUT,
+    CHECKSUMS_FILE,
     METADATA_CONTRACT_KEY,
     METADATA_GRAPH_KEY,
     PAPER_CROPS_PER_FRAME,
     ModelContract,
+    format_checksums,
 )
 from estimator.nets import TINY, Aggregator, Backbone, NetConfig
 from rig.errors import MissingExtraError, ModelError, ValidationError, require_torch
@@ -114,6 +117,12 @@ def export_model(
                 },
             ),
         }
+        digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in staged.items()}
+        # The sums first: a folder caught between the two steps fails its check loudly rather
+        # than passing with stale graphs.
+        sums = Path(tmp) / CHECKSUMS_FILE
+        sums.write_text(format_checksums(digests), encoding="utf-8")
+        os.replace(sums, out / CHECKSUMS_FILE)
         for name, path in staged.items():
             os.replace(path, out / name)
     return out

@@ -27,11 +27,13 @@ from estimator.contract import (
     BACKBONE_FILE,
     BACKBONE_INPUT,
     BACKBONE_OUTPUT,
+    CHECKSUMS_FILE,
     CONTRACT_VERSION,
     METADATA_CONTRACT_KEY,
     METADATA_GRAPH_KEY,
     ModelContract,
     input_affine,
+    parse_checksums,
 )
 from rig.errors import ContractMismatch, ModelError, ValidationError
 
@@ -133,6 +135,8 @@ class OnnxModel:
             )
         opts = session_options(intra_op_threads)
         blobs = {name: p.read_bytes() for name, p in paths.items()}
+        digests = {name: hashlib.sha256(blob).hexdigest() for name, blob in blobs.items()}
+        _check_checksums(root, digests)
         sessions = {name: _open_session(paths[name], blobs[name], opts) for name in paths}
         contracts = {
             name: _read_contract(paths[name], sessions[name], ROLES[name]) for name in paths
@@ -151,7 +155,7 @@ class OnnxModel:
             check_expected(bb, expect, where=f"model {str(root)!r}")
         digest = hashlib.sha256()
         for name in (BACKBONE_FILE, AGGREGATOR_FILE):
-            digest.update(hashlib.sha256(blobs[name]).digest())
+            digest.update(bytes.fromhex(digests[name]))
         return cls(
             root, bb, digest.hexdigest()[:12], sessions[BACKBONE_FILE], sessions[AGGREGATOR_FILE]
         )
@@ -266,6 +270,21 @@ def _float32(name: str, value: Any) -> np.ndarray:
     if not np.issubdtype(arr.dtype, np.floating):
         raise ValidationError(f"{name}: expected a float array, got dtype {arr.dtype}")
     return arr.astype(np.float32, copy=False)
+
+
+def _check_checksums(root: Path, digests: Mapping[str, str]) -> None:
+    """Compare the graphs with the folder's SHA256SUMS, when it has one (an export writes it)."""
+    path = root / CHECKSUMS_FILE
+    if not path.is_file():
+        return
+    try:
+        expected = parse_checksums(path.read_text(encoding="utf-8", errors="replace"))
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read it ({exc.strerror}); copy the model folder again") from None
+    damaged = [name for name, digest in digests.items() if name in expected and expected[name] != digest]
+    if damaged:
+        raise ModelError(f"model folder {str(root)!r}: {' and '.join(damaged)} do not match {CHECKSUMS_FILE} "
+                         "(damaged in a copy, or changed by hand); copy the model folder again or re-export it")
 
 
 def _open_session(path: Path, blob: bytes, opts: ort.SessionOptions) -> ort.InferenceSession:

@@ -15,6 +15,7 @@ import pytest
 from estimator.contract import (
     AGGREGATOR_FILE,
     BACKBONE_FILE,
+    CHECKSUMS_FILE,
     IMAGENET_MEAN,
     IMAGENET_STD,
     ModelContract,
@@ -228,6 +229,32 @@ def test_refuses_random_bytes(tmp_path):
         (tmp_path / name).write_bytes(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
     message = refusal(ModelError, tmp_path)
     assert "backbone.onnx: not a usable ONNX graph" in message and "re-export" in message
+
+
+@pytest.mark.torch
+def test_a_graph_damaged_in_a_copy_is_refused_by_its_checksum(tiny_model_dir, tmp_path):
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    shutil.copy(tiny_model_dir / CHECKSUMS_FILE, folder / CHECKSUMS_FILE)
+    OnnxModel.load(folder)  # an export writes the sums, and an intact copy passes them
+    # 64 bytes flipped deep inside the aggregator's weights: the graph still parses and runs
+    # (without the sums it loads, and answers wrong), but not past its checksum.
+    blob = bytearray((folder / AGGREGATOR_FILE).read_bytes())
+    mid = len(blob) // 2
+    blob[mid:mid + 64] = bytes(b ^ 0xFF for b in blob[mid:mid + 64])
+    (folder / AGGREGATOR_FILE).write_bytes(bytes(blob))
+    message = refusal(ModelError, folder)
+    assert "aggregator.onnx do not match SHA256SUMS" in message and "copy the model folder again" in message
+    (folder / CHECKSUMS_FILE).unlink()
+    OnnxModel.load(folder)  # a folder without sums (older, or hand-made) is not checked
+
+
+def test_the_shipped_model_passes_its_checksums():
+    from estimator.contract import parse_checksums
+    from estimator.models import DEFAULT_MODEL_DIR
+
+    sums = parse_checksums((DEFAULT_MODEL_DIR / CHECKSUMS_FILE).read_text())
+    assert set(sums) == {BACKBONE_FILE, AGGREGATOR_FILE}
+    OnnxModel.load(DEFAULT_MODEL_DIR)
 
 
 @pytest.mark.torch
