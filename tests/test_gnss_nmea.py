@@ -671,6 +671,16 @@ def test_cli_on_a_missing_path_says_so_in_one_line(tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith("sunrig: error: cannot open GNSS source") and captured.out == ""
 
 
+def test_cli_on_a_file_with_no_nmea_fails_and_says_what_to_check(tmp_path, capsys):
+    from rig.cli import main
+
+    not_nmea = tmp_path / "drive.mcap"
+    not_nmea.write_bytes(bytes(range(256)) * 40)  # e.g. a video or a log passed by mistake
+    assert main(["gnss", str(not_nmea), "--jsonl", "-"]) == 2
+    err = capsys.readouterr().err
+    assert "0 updates from 0 sentences" in err and "no NMEA sentence from" in err and "--baud" in err
+
+
 def test_decoder_types_for_direct_use():
     gga = decode_sentence(parse_sentence(GGA))
     assert isinstance(gga, Gga) and gga.quality == 2 and gga.talker == "GP"
