@@ -742,7 +742,8 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--width", type=int, help="requested frame width (opencv device, oak)")
     g.add_argument("--height", type=int, help="requested frame height (opencv device, oak)")
     g.add_argument("--fps", type=_positive_float, help="requested frame rate (opencv device, oak)")
-    g.add_argument("--source-baud", type=_positive_int, metavar="BAUD", help="baud rate of an nmea: port (default 115200)")
+    g.add_argument("--source-baud", type=_positive_int, metavar="BAUD",
+                   help="baud rate of an nmea: port (default 115200)")
     g.add_argument("--max-gap-s", type=float, metavar="S",
                    help="nmea: no heading interpolated across a longer gap between samples (default 1.5)")
     g.add_argument("--max-age-s", type=float, metavar="S",
@@ -755,7 +756,8 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
 
 def _output_flags(p: argparse.ArgumentParser, defaults: bool = True) -> None:
     p.add_argument("--serial", metavar="PORT", help="serial port or pyserial URL (socket://, loop://, spy://)")
-    p.add_argument("--baud", type=_positive_int, default=115200 if defaults else None, help="baud rate (default 115200)")
+    p.add_argument("--baud", type=_positive_int, default=115200 if defaults else None,
+                   help="baud rate (default 115200)")
     p.add_argument("--format", choices=["nmea", "binary"], default="nmea" if defaults else None,
                    help="serial format (default nmea; see docs/protocol.md)")
     if not defaults:
@@ -897,7 +899,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="serial device, pyserial URL (socket://HOST:PORT) or an NMEA capture file")
     p.add_argument("--jsonl", metavar="PATH|-", default="-",
                    help="one JSON object per sentence that gives a heading, fix or time (default: - stdout)")
-    p.add_argument("--baud", type=_positive_int, default=115200, help="baud rate of a serial device (default 115200)")
+    p.add_argument("--baud", type=_positive_int, default=115200,
+                   help="baud rate of a serial device (default 115200)")
     p.add_argument("--require-checksum", action="store_true",
                    help="drop sentences without *HH instead of accepting them")
     p.add_argument("--quiet", action="store_true", help="no summary on stderr")
