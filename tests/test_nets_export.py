@@ -25,6 +25,7 @@ from estimator.contract import (  # noqa: E402
     BACKBONE_FILE,
     BACKBONE_INPUT,
     BACKBONE_OUTPUT,
+    CHECKSUMS_FILE,
 )
 from estimator.export import build_random_nets, export_model  # noqa: E402
 from estimator.nets import (  # noqa: E402
@@ -193,7 +194,7 @@ def test_legacy_exporter_gives_the_same_graphs(engines, tmp_path):
     backbone.train()  # export must use eval mode and hand the flag back
     out = export_model(backbone, aggregator, engines.model.contract, tmp_path, exporter="legacy")
     assert backbone.training and not aggregator.training
-    assert sorted(p.name for p in out.iterdir()) == [AGGREGATOR_FILE, BACKBONE_FILE]  # no leftovers
+    assert sorted(p.name for p in out.iterdir()) == [CHECKSUMS_FILE, AGGREGATOR_FILE, BACKBONE_FILE]  # no leftovers
     legacy = Engines(out)
     rng = np.random.default_rng(6)
     crops = rng.normal(size=(3, 3, engines.s, engines.s)).astype(np.float32)
