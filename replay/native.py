@@ -779,15 +779,20 @@ class _LogInfo:
     metadata: dict[str, str] = field(default_factory=dict)
 
 
-def _summary_topics(f: IO[bytes], size: int) -> dict[str, str] | None:
-    """Topic -> schema name from a finished log's summary, or None when it has none (truncated)."""
+def _summary(f: IO[bytes], size: int) -> Any:
+    """A finished log's summary (with its channels), or None when it has none (truncated)."""
     try:
         summary = SeekingReader(f, record_size_limit=size).get_summary()
     except (*_DECODE_ERRORS, OSError, KeyError, IndexError):
         return None
     finally:
         f.seek(0)
-    if summary is None or not summary.channels:
+    return summary if summary is not None and summary.channels else None
+
+
+def _summary_topics(summary: Any) -> dict[str, str] | None:
+    """Topic -> schema name from a summary (None: no summary)."""
+    if summary is None:
         return None
     return {
         c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "")
@@ -818,7 +823,7 @@ def _inspect(path: Path) -> _LogInfo:
     with f:
         # A finished log lists its channels at the end: reject a foreign MCAP without decoding
         # its data. A truncated one has no summary; the scan below then decides.
-        topics = _summary_topics(f, size)
+        topics = _summary_topics(_summary(f, size))
         if topics is not None:
             _check_image_channel(name, topics)
         schemas: dict[int, str] = {}
@@ -846,8 +851,9 @@ def _inspect(path: Path) -> _LogInfo:
             raise LogError(
                 f"{name} is an MCAP log cut off before its first complete chunk; it holds no frames"
             )
-        _check_image_channel(name, seen)
-    return info  # pragma: no cover - _check_image_channel raised
+        if topics is None:  # no summary vouched for the channels: the data section must have
+            _check_image_channel(name, seen)
+    return info  # a damaged first chunk: the summary named the channels, the later chunks replay
 
 
 def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> Iterator[Any]:
@@ -915,6 +921,20 @@ def _messages(f: IO[bytes], stats: LogStats, name: str) -> Iterator[tuple[str, M
     """(topic, message) in file order; None where a chunk was lost."""
     topics: dict[int, str] = {}
     ignored: set[int] = set()
+
+    def declare(channel: Channel) -> None:
+        spec = CHANNELS.get(channel.topic)
+        # Only channels with sunrig's encoding; another tool's channels are left alone.
+        if spec is not None and channel.message_encoding == spec.message_encoding:
+            topics[channel.id] = channel.topic
+        else:
+            ignored.add(channel.id)
+
+    # A finished log's summary repeats every channel: with it, a damaged first chunk (where the
+    # data section declares them) loses its own messages only, not every later chunk's.
+    summary = _summary(f, stats.bytes_total)
+    for channel in summary.channels.values() if summary is not None else ():
+        declare(channel)
     for record in _records(f, stats, name):
         if isinstance(record, Message):
             topic = topics.get(record.channel_id)
@@ -923,12 +943,7 @@ def _messages(f: IO[bytes], stats: LogStats, name: str) -> Iterator[tuple[str, M
             elif record.channel_id not in ignored:
                 stats.corrupt_skipped += 1  # its channel record was in a lost chunk
         elif isinstance(record, Channel):
-            spec = CHANNELS.get(record.topic)
-            # Only channels with sunrig's encoding; another tool's channels are left alone.
-            if spec is not None and record.message_encoding == spec.message_encoding:
-                topics[record.id] = record.topic
-            else:
-                ignored.add(record.id)
+            declare(record)
         elif record is None:
             yield None
 
