@@ -107,7 +107,7 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
         elif nmea_stdout:
             pubs.append(stream(SentencePublisher(sys.stdout, status_rule=rule)))
         if jsonl:
-            pubs.append(stream(JsonlPublisher(jsonl)))
+            pubs.append(stream(JsonlPublisher(jsonl, status_rule=rule)))
         if record:
             from rig.recorder import RecorderPublisher
 

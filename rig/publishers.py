@@ -27,7 +27,7 @@ import serial
 
 from rig.errors import PublishError
 from rig.portio import PORT_ERRORS, Backoff, begin_stop, join_worker
-from rig.protocol import DEFAULT_STATUS_RULE, StatusRule, encode_binary, encode_nmea
+from rig.protocol import DEFAULT_STATUS_RULE, FLAG_VALID, StatusRule, encode_binary, encode_nmea, flag_names
 from rig.ring import DropOldestQueue
 from rig.types import SunEstimate
 
@@ -334,10 +334,12 @@ class JsonlPublisher:
 
     ``target``: a path (created or truncated, closed by :meth:`close`), ``"-"`` for stdout, or an
     open text stream (flushed, left open: its owner closes it). This one writes in the caller's
-    thread: it is for files and pipes, where a write does not stall.
+    thread: it is for files and pipes, where a write does not stall. With a ``status_rule``, each
+    line also says what the serial output would: ``valid`` and the ``status`` flag names.
     """
 
-    def __init__(self, target: str | Path | IO[str]) -> None:
+    def __init__(self, target: str | Path | IO[str], *, status_rule: StatusRule | None = None) -> None:
+        self._rule = status_rule
         self._owned = False
         if target == "-":
             self._stream: IO[str] = sys.stdout
@@ -362,7 +364,7 @@ class JsonlPublisher:
             raise PublishError(f"publish() on the closed JSONL publisher of {self._name}; make a new one")
         self._counts["published"] += 1
         try:
-            self._stream.write(json.dumps(est.to_json_dict()) + "\n")
+            self._stream.write(json.dumps(self._row(est)) + "\n")
             self._stream.flush()  # a reader tailing the file, or a crash, sees every line whole
         except BrokenPipeError:
             raise  # the reader went away (`| head`): the CLI ends quietly on it
@@ -370,6 +372,14 @@ class JsonlPublisher:
             raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
                                "free space or pass another --jsonl") from None
         self._counts["written"] += 1
+
+    def _row(self, est: SunEstimate) -> dict[str, Any]:
+        row = est.to_json_dict()
+        if self._rule is not None:  # what the serial output says of it, by the same rule
+            flags = self._rule.flags(est)
+            row["valid"] = bool(flags & FLAG_VALID)
+            row["status"] = flag_names(flags)
+        return row
 
     def stats(self) -> dict[str, Any]:
         return {**self._counts, "target": self._name}

@@ -483,6 +483,21 @@ def test_jsonl_file_one_object_per_line_flushed_per_line(tmp_path):
         pub.publish(estimates[0])
 
 
+def test_jsonl_with_a_status_rule_says_what_the_serial_output_says(tmp_path):
+    from rig.protocol import StatusRule
+
+    rule = StatusRule.for_model(8, 74.9)
+    path = tmp_path / "est.jsonl"
+    with JsonlPublisher(path, status_rule=rule) as pub:
+        pub.publish(make_estimate(100, 30))  # a full window, a sun the model knows
+        pub.publish(make_estimate(100, 85, n_frames=3))  # filling, and above the trained suns
+    rows = [json.loads(line) for line in path.read_text().splitlines()]
+    assert rows[0]["valid"] is True and rows[0]["status"] == ["VALID", "HAS_UTC"]
+    assert rows[1]["valid"] is False and rows[1]["status"] == ["HAS_UTC", "PARTIAL_WINDOW", "ABOVE_TRAINED"]
+    nmea = [decode_nmea(encode_nmea(make_estimate(100, el, n_frames=n), rule)) for el, n in ((30, 8), (85, 3))]
+    assert [r["valid"] for r in rows] == [d["valid"] for d in nmea]
+
+
 def test_jsonl_stream_and_stdout_are_flushed_not_closed(capsys):
     stream = io.StringIO()
     with JsonlPublisher(stream) as pub:
