@@ -126,13 +126,14 @@ def _close_all(pubs: list) -> None:
             logging.getLogger(__name__).warning("closing %s failed: %s", type(p).__name__, exc)
 
 
-def paced(frames, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep):
-    """Yield frames no faster than their timestamps say (``--realtime``)."""
-    start, first = None, None
+def paced(frames, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep, max_jump_s: float = 10.0):
+    """Yield frames no faster than their timestamps say (``--realtime``); a jump of more than
+    ``max_jump_s`` in the recording's clock re-anchors the pace (rig/pacing.Pacer)."""
+    from rig.pacing import Pacer
+
+    pacer = Pacer(max_jump_s, speed)
     for frame in frames:
-        if start is None:
-            start, first = clock(), frame.t_mono_s
-        delay = start + (frame.t_mono_s - first) / speed - clock()
+        delay = pacer.delay_s(frame, clock())
         if delay > 0:
             sleep(delay)
         yield frame

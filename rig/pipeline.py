@@ -33,6 +33,7 @@ from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
 from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
+from rig.pacing import Pacer
 from rig.publishers import Publisher, publisher_name
 from rig.ring import DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
@@ -239,20 +240,13 @@ class RigPipeline:
 
     # -- stages ------------------------------------------------------------------------------
     def _capture(self) -> None:
-        first_t: float | None = None
-        start = self.clock()
+        # A jump longer than the ring holds re-anchors the pace: no window spans it anyway.
+        pacer = Pacer(max_jump_s=self.config.ring_max_age_s) if self.config.realtime else None
         for frame in self.source:
             if self._stop.is_set():
                 return
-            if self.config.realtime:
-                if first_t is None:
-                    first_t = frame.t_mono_s
-                delay = start + (frame.t_mono_s - first_t) - self.clock()
-                if abs(delay) > self.config.ring_max_age_s:
-                    # A jump in the log's clock: pace from here rather than sleep through it (or
-                    # rush every later frame); no window spans it anyway.
-                    log.info("seq %d: the source's clock jumped %+.1f s; pacing from here", frame.seq, delay)
-                    first_t, start, delay = frame.t_mono_s, self.clock(), 0.0
+            if pacer is not None:
+                delay = pacer.delay_s(frame, self.clock())
                 if delay > 0 and self._stop.wait(delay):
                     return
             self.stats.frames_captured += 1
