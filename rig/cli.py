@@ -305,16 +305,10 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
             sys.stderr.write(f"\rsunrig: {line}\033[K" if live_line else f"sunrig: {line}\n")
             sys.stderr.flush()
 
-    from rig.pipeline import PipelineError
-
     pipe = RigPipeline(source, estimator, policy, pubs, config=rig_cfg, on_status=status,
                        on_frame=recorder.record_frame if recorder is not None else None)
     try:
-        stats = pipe.run()
-    except PipelineError as exc:
-        if isinstance(exc.__cause__, BrokenPipeError):
-            return 0  # whoever read our stdout (`| head`) has gone: not an error of ours
-        raise
+        stats = pipe.run()  # ends by itself when every output's reader has gone (`| head`)
     finally:
         _close_all(pubs)
     if not quiet:
@@ -328,8 +322,10 @@ def _report_output_losses(stats) -> int:
     """One line per output that failed to write estimates; exit 2 if one wrote none at all (a
     full disk, a dead link): the run went on for the other outputs, but its user must know."""
     code = 0
+    from rig.publishers import ERROR_KEYS
+
     for name, st in stats.publishers.items():
-        failed = int(st.get("errors") or 0) + int(st.get("write_errors") or 0)
+        failed = sum(int(st.get(k) or 0) for k in ERROR_KEYS)
         if not failed:
             continue
         written = int(st.get("written") or 0)

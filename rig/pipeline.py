@@ -8,8 +8,11 @@
   signals are overwritten (counted as skipped windows) so latency stays bounded.
 - **publish**: every publisher's ``publish`` must return at once (the serial one hands the
   message to its own writer thread). A publisher that raises (a full disk under the JSONL file)
-  loses that estimate, counted in ``publish_errors`` and logged once per kind of error; the
-  other outputs go on, because one broken output must not silence the controller.
+  loses that estimate, counted in ``publish_errors`` (and as ``raised`` in its statistics) and
+  logged once per kind of error; the other outputs go on, because one broken output must not
+  silence the controller. One that raises ``BrokenPipeError`` has ended (its reader, e.g.
+  ``| head``, went away): it gets no more estimates, and when every output has ended the rig
+  stops, as a command whose output is read by ``head`` does.
 
 Every stage waits with a timeout and checks one stop event. A stage that raises stops all the
 others, and :meth:`RigPipeline.run` re-raises it as :class:`PipelineError` naming the stage,
@@ -34,7 +37,7 @@ from estimator.estimator import SunEstimator
 from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.pacing import Pacer
-from rig.publishers import Publisher, publisher_name
+from rig.publishers import ERROR_KEYS, ErrorTally, Publisher, publisher_name
 from rig.ring import DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
@@ -117,7 +120,6 @@ class RigStats:
         rate = self.estimates / max(now_s - self.started_s, 1e-9)
         lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
         pub_drops, pub_errors = publisher_losses(self.publishers.values())
-        pub_errors += self.publish_errors
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
                 f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}, out of order "
                 f"{self.frames_out_of_order}, clock jumps {self.clock_jumps}) | estimates "
@@ -132,7 +134,7 @@ def publisher_losses(stats: Iterable[dict]) -> tuple[int, int]:
     drops = errors = 0
     for s in stats:
         drops += sum(int(v) for k, v in s.items() if k.startswith("dropped") and isinstance(v, int))
-        errors += sum(int(s.get(k) or 0) for k in ("write_errors", "errors"))
+        errors += sum(int(s.get(k) or 0) for k in ERROR_KEYS)
     return drops, errors
 
 
@@ -162,7 +164,15 @@ class RigPipeline:
         self._failure: tuple[str, BaseException] | None = None
         self._failure_lock = threading.Lock()
         self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
-        self._publish_error: dict[int, str] = {}  # per publisher (by id): the last error logged
+        # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
+        # what its publish() raised on, and whether its reader is gone.
+        self._names: list[str] = []
+        for p in self.publishers:
+            name = publisher_name(p)
+            n = sum(1 for other in self._names if other.split("#")[0] == name)
+            self._names.append(f"{name}#{n + 1}" if n else name)
+        self._raised = [ErrorTally(log, name) for name in self._names]
+        self._ended: set[int] = set()
 
     # -- control -----------------------------------------------------------------------------
     def stop(self) -> None:
@@ -232,11 +242,15 @@ class RigPipeline:
         return self.stats
 
     def _collect_publisher_stats(self) -> None:
-        for p in self.publishers:
+        for p, name, raised in zip(self.publishers, self._names, self._raised, strict=True):
             try:
-                self.stats.publishers[publisher_name(p)] = p.stats()
+                st = dict(p.stats())
             except Exception:  # noqa: BLE001 - statistics must never stop the rig
-                pass
+                continue
+            if raised.count:
+                st["raised"] = raised.count
+                st["last_error"] = st.get("last_error") or raised.last
+            self.stats.publishers[name] = st
 
     # -- stages ------------------------------------------------------------------------------
     def _capture(self) -> None:
@@ -268,16 +282,19 @@ class RigPipeline:
                 self.stats.frames_dropped_queue += 1
 
     def _publish(self, est) -> None:
-        for p in self.publishers:
+        for i, p in enumerate(self.publishers):
+            if i in self._ended:
+                continue
             try:
                 p.publish(est)
+            except BrokenPipeError:
+                self._ended.add(i)
+                log.info("%s: its reader went away; the other outputs go on", self._names[i])
+                if len(self._ended) == len(self.publishers):
+                    self._stop.set()  # nobody reads any output: done, as `cmd | head` is
             except Exception as exc:  # noqa: BLE001 - one broken output must not silence the others
                 self.stats.publish_errors += 1
-                text = f"{type(exc).__name__}: {exc}"
-                if self._publish_error.get(id(p)) != text:  # once per publisher and kind of error
-                    self._publish_error[id(p)] = text
-                    log.warning("%s could not publish seq %d (%s): counted and dropped, the other outputs go on",
-                                publisher_name(p), est.seq, text)
+                self._raised[i].add(exc, est.seq)
 
     def _log_exposure_change(self, seq: int, reason: str | None) -> None:
         # Once per change, not per frame: a night is one message, not one per frame.

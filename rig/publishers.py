@@ -52,6 +52,30 @@ class Publisher(Protocol):
     def stats(self) -> dict[str, Any]: ...
 
 
+# The stats() keys that count estimates an output failed to write (a broken output, not a slow
+# one): the serial writer's, a background writer's or the recorder's, and the pipeline's count of
+# those a publish() call raised on ("raised").
+ERROR_KEYS = ("write_errors", "errors", "raised")
+
+
+class ErrorTally:
+    """Counts an output's failures and logs the first of each kind (same type and text): an
+    output that fails the same way on every estimate is one warning, not one per estimate."""
+
+    def __init__(self, logger: logging.Logger, what: str) -> None:
+        self._log, self._what = logger, what
+        self.count = 0
+        self.last: str | None = None
+
+    def add(self, exc: BaseException, seq: int) -> None:
+        self.count += 1
+        text = f"{type(exc).__name__}: {exc}"
+        if text != self.last:
+            self._log.warning("%s could not write seq %d (%s): counted, and the next ones are tried",
+                              self._what, seq, text)
+        self.last = text
+
+
 def publisher_name(p: Publisher) -> str:
     """What a publisher is called in statistics and logs: its class, or the class it wraps."""
     inner = getattr(p, "inner", None)
@@ -367,7 +391,7 @@ class JsonlPublisher:
             self._stream.write(json.dumps(self._row(est)) + "\n")
             self._stream.flush()  # a reader tailing the file, or a crash, sees every line whole
         except BrokenPipeError:
-            raise  # the reader went away (`| head`): the CLI ends quietly on it
+            raise  # the reader went away (`| head`): the output has ended (see RigPipeline._publish)
         except OSError as exc:
             raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
                                "free space or pass another --jsonl") from None
@@ -448,19 +472,24 @@ class BackgroundPublisher:
         self._queue: DropOldestQueue[SunEstimate] = DropOldestQueue(max_pending)
         self._join_timeout_s = join_timeout_s
         self._stop = threading.Event()
-        self._errors = 0
-        self._last_error: str | None = None
+        self._gone = threading.Event()  # the reader went away (broken pipe): nothing more to write
+        self._errors = ErrorTally(log, type(inner).__name__)
         self._thread = threading.Thread(target=self._run, name=f"sunrig-{type(inner).__name__}", daemon=True)
         self._thread.start()
 
     def publish(self, est: SunEstimate) -> None:
         if self._stop.is_set():
             raise PublishError(f"publish() on the closed background {type(self.inner).__name__}; make a new one")
+        if self._gone.is_set():
+            # As the inner publisher would raise in the caller's thread: the caller (the pipeline)
+            # takes a broken pipe as "this output has ended", not as an error.
+            raise BrokenPipeError(f"the reader of {type(self.inner).__name__}'s stream went away")
         self._queue.put(est)
 
     def stats(self) -> dict[str, Any]:
         return {**self.inner.stats(), "dropped": self._queue.dropped, "pending": len(self._queue),
-                "errors": self._errors, "last_error": self._last_error, "writer_alive": self._thread.is_alive()}
+                "errors": self._errors.count, "last_error": self._errors.last,
+                "writer_alive": self._thread.is_alive()}
 
     def close(self) -> None:
         """Write what is pending (within ``join_timeout_s``), then close the inner publisher."""
@@ -490,10 +519,8 @@ class BackgroundPublisher:
                 continue
             try:
                 self.inner.publish(est)
+            except BrokenPipeError:
+                self._gone.set()  # `| head` has read enough: no error, and nothing left to write
+                return
             except Exception as exc:  # noqa: BLE001 - counted and reported; the next estimate may pass
-                self._errors += 1
-                text = f"{type(exc).__name__}: {exc}"
-                if text != self._last_error:
-                    log.warning("%s could not publish seq %d (%s): counted, and the next ones are tried",
-                                type(self.inner).__name__, est.seq, text)
-                self._last_error = text
+                self._errors.add(exc, est.seq)

@@ -10,6 +10,7 @@ import logging
 import threading
 from pathlib import Path
 
+from rig.publishers import ErrorTally
 from rig.ring import DropOldestQueue
 from rig.types import Frame, SunEstimate
 
@@ -29,7 +30,7 @@ class RecorderPublisher:
         self._stop = threading.Event()
         self._closed = False
         self.written = 0
-        self.errors = 0
+        self._errors = ErrorTally(log, f"recorder {self.path}")
         self._thread = threading.Thread(target=self._run, name="sunrig-recorder", daemon=True)
         self._thread.start()
 
@@ -55,12 +56,11 @@ class RecorderPublisher:
                     self._writer.write_estimate(item)
                 self.written += 1
             except Exception as exc:  # noqa: BLE001 - a full disk must not stop the rig
-                self.errors += 1
-                if self.errors == 1:
-                    log.warning("recorder %s: write failed (%s); dropping what cannot be written", self.path, exc)
+                self._errors.add(exc, item.seq)
 
     def stats(self) -> dict:
-        return {"written": self.written, "dropped": self._queue.dropped, "errors": self.errors}
+        return {"written": self.written, "dropped": self._queue.dropped, "errors": self._errors.count,
+                "last_error": self._errors.last}
 
     def close(self) -> None:
         if self._closed:

@@ -144,6 +144,21 @@ def test_demo_prints_valid_nmea_and_a_status(tiny_model_dir):
 
 
 @pytest.mark.torch
+def test_demo_piped_into_head_ends_quietly(tiny_model_dir):
+    # `sunrig demo | head -2`: once head has gone, the rig has no reader left and stops.
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "demo", "--model", str(tiny_model_dir)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    lines = [proc.stdout.readline() for _ in range(2)]
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=60)
+    assert all(line.startswith("$PSRGS") for line in lines)
+    assert proc.returncode == 0 and "Traceback" not in err and "failed to write" not in err, err
+    frames = int(re.search(r"done: frames (\d+)", err).group(1))
+    assert frames < 40, err  # it stopped before the end of the 4-s drive (paced at 10 Hz)
+
+
+@pytest.mark.torch
 def test_run_file_camera_to_loop_serial_jsonl_and_record(tmp_path, tiny_model_dir):
     from replay.native import read_estimates
     from replay.sources import DEMO_LOG

@@ -128,9 +128,12 @@ def test_a_publisher_that_raises_loses_its_estimates_not_the_others(model, caplo
     assert len(healthy.estimates) == stats.estimates >= 5  # the controller heard every estimate
     assert len(broken.estimates) == 2 and stats.publish_errors == stats.estimates - 2
     # One warning for a publisher that fails the same way every time, not one per estimate.
-    warned = [r for r in caplog.records if "could not publish" in r.getMessage()]
+    warned = [r for r in caplog.records if "could not write" in r.getMessage()]
     assert len(warned) == 1 and "controller link broke" in warned[0].getMessage()
     assert f"errors {stats.publish_errors}" in stats.status_line(stats.ended_s)
+    # Named apart (two of one class), so the exit report can say which output failed.
+    assert stats.publishers["Collect"]["raised"] == stats.publish_errors
+    assert "raised" not in stats.publishers["Collect#2"]
 
 
 def test_one_frame_stamped_an_hour_ahead_costs_a_refill_not_the_run(model):
@@ -156,14 +159,34 @@ def test_one_frame_stamped_an_hour_ahead_costs_a_refill_not_the_run(model):
 def test_the_status_line_counts_every_kind_of_publisher_loss():
     from rig.pipeline import RigStats
 
-    stats = RigStats(publish_errors=1)
+    stats = RigStats()
     stats.publishers = {
-        # A serial link that went down: overwritten while waiting, timed out, failed to write.
+        # A serial link that went down: overwritten while waiting, timed out, failed to write,
+        # and one estimate its publish() raised on (the pipeline's count).
         "SerialPublisher": {"published": 20, "written": 11, "dropped_overwritten": 3, "dropped_write_timeout": 2,
-                            "write_errors": 4, "pending": 0, "port": "/dev/ttyUSB0", "last_error": "EIO"},
+                            "write_errors": 4, "pending": 0, "port": "/dev/ttyUSB0", "last_error": "EIO",
+                            "raised": 1},
         "RecorderPublisher": {"written": 5, "dropped": 1, "errors": 2},
     }
     assert stats.status_line(1.0).endswith("publish drops 6, errors 7")
+
+
+def test_outputs_whose_readers_went_away_end_the_run_quietly(model, caplog):
+    class Head(Collect):
+        """As stdout piped into `head -3`: after 3 lines, every write is a broken pipe."""
+
+        def publish(self, est):
+            if len(self.estimates) >= 3:
+                raise BrokenPipeError(32, "Broken pipe")
+            super().publish(est)
+
+    first, second = Head(), Head()
+    with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
+        pipe, stats = run_pipeline(frames(10_000, dt=0.0), SunEstimator(model), [first, second])
+    # Both readers gone: the rig stopped long before the 10 000 frames, with no error counted.
+    assert len(first.estimates) == len(second.estimates) == 3
+    assert stats.frames_captured < 10_000 and stats.publish_errors == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
 
 
 def test_a_source_that_blocks_forever_does_not_hang_the_rig(model):
