@@ -281,7 +281,12 @@ def _check_checksums(root: Path, digests: Mapping[str, str]) -> None:
         expected = parse_checksums(path.read_text(encoding="utf-8", errors="replace"))
     except OSError as exc:
         raise ModelError(f"{path}: cannot read it ({exc.strerror}); copy the model folder again") from None
-    damaged = [name for name, digest in digests.items() if name in expected and expected[name] != digest]
+    unlisted = [name for name in digests if name not in expected]
+    if unlisted:
+        # An empty or garbled sums file must not pass for a checked folder.
+        raise ModelError(f"{path}: no checksum for {' and '.join(unlisted)} (the file is damaged); copy the model "
+                         f"folder again, re-export it, or delete {CHECKSUMS_FILE} to load it unchecked")
+    damaged = [name for name, digest in digests.items() if expected[name] != digest]
     if damaged:
         raise ModelError(f"model folder {str(root)!r}: {' and '.join(damaged)} do not match {CHECKSUMS_FILE} "
                          "(damaged in a copy, or changed by hand); copy the model folder again or re-export it")

@@ -244,6 +244,8 @@ def test_a_graph_damaged_in_a_copy_is_refused_by_its_checksum(tiny_model_dir, tm
     (folder / AGGREGATOR_FILE).write_bytes(bytes(blob))
     message = refusal(ModelError, folder)
     assert "aggregator.onnx do not match SHA256SUMS" in message and "copy the model folder again" in message
+    (folder / CHECKSUMS_FILE).write_text("")  # a sums file cut short checks nothing: refused too
+    assert "no checksum for backbone.onnx and aggregator.onnx" in refusal(ModelError, folder)
     (folder / CHECKSUMS_FILE).unlink()
     OnnxModel.load(folder)  # a folder without sums (older, or hand-made) is not checked
 
