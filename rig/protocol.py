@@ -39,7 +39,7 @@ FLAG_ABOVE_TRAINED = 0x10  # the sun is higher than max_elevation_deg: the model
 # flagged: the scatter of answers for the highest suns. For the shipped model's suns within 5 deg
 # of its highest, answers lie up to 6.2 deg (validation drives) and 9.9 deg (held-out drives) above
 # the truth at the 99th percentile (benchmarks/bench_accuracy.py JSON, ``elevation``): a 5-deg
-# margin flags some high suns whose answers are only 5-10 deg off, and catches the hedges.
+# margin flags some high suns whose answers are only 5-11 deg off, and catches the hedges.
 ELEVATION_MARGIN_DEG = 5.0
 
 
