@@ -84,6 +84,7 @@ class EvalResult:
     windows_skipped_filling: int = 0
     windows_failed: int = 0
     windows_without_truth: int = 0
+    interrupted: bool = False  # Ctrl-C: the figures are of the windows evaluated until then
 
     # The counters above: pooled by addition and reported as they are, in this order.
     COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "windows_skipped_filling",
@@ -101,6 +102,15 @@ class EvalResult:
         self.window_logs.extend(other.window_logs)
         for name in self.COUNTS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
+
+    def trim_to_whole_windows(self) -> None:
+        """After an interruption: drop what a window cut short left in some lists but not others
+        (``window_logs`` is appended last, so its length is the number of whole windows)."""
+        n = len(self.window_logs)
+        for per_agg in (self.errors_deg, self.flags, self.elevation_deg):
+            for values in per_agg.values():
+                del values[n:]
+        del self.truth_elevation_deg[n:]
 
     def by_log(self, aggregator: str) -> list[dict[str, float | int | str]]:
         """One aggregator's windows log by log (pooled evaluations of a log count together):
@@ -122,49 +132,66 @@ class EvalResult:
             "worst_logs": {name: self.by_log(name)[:WORST_LOGS] for name in self.errors_deg},
             "logs": self.logs,
             **{name: getattr(self, name) for name in self.COUNTS},
+            **({"interrupted": True} if self.interrupted else {}),
         }
 
 
 def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstimator, policy: SpreadWindowPolicy,
              aggregators: Sequence[str] = AGGREGATORS, n_samples: int = 6,
-             progress: Callable[[int], None] | None = None, status_rule: StatusRule | None = None) -> EvalResult:
+             progress: Callable[[int, int], None] | None = None,
+             status_rule: StatusRule | None = None) -> EvalResult:
     """Every full window of every source, estimated by each aggregator on the same crops.
 
+    ``progress(windows_done, logs_done)`` is called after each window and each log.
     ``status_rule``: what decides each window's status flags (default: the estimator's model's,
-    as the rig's outputs use)."""
+    as the rig's outputs use). A Ctrl-C ends the evaluation early, not the result: it comes back
+    with ``interrupted`` set and the windows evaluated until then, so minutes of work are kept."""
     rule = status_rule or estimator.status_rule()
     result = EvalResult(errors_deg={a: [] for a in aggregators}, flags={a: [] for a in aggregators},
                         elevation_deg={a: [] for a in aggregators})
-    n_done = 0
-    for name, frames in sources:
-        result.logs.append(name)
-        stats = OfflineStats()
-        sampled_this_log = False
-        for estimates in estimate_stream(frames, estimator, policy, aggregators=aggregators, stats=stats):
-            first = next(iter(estimates.values()))
-            if first.n_frames < policy.n_frames:
-                result.windows_skipped_filling += 1
-                continue
-            if first.truth_enu is None:
-                result.windows_without_truth += 1
-                continue
-            for agg, est in estimates.items():
-                result.errors_deg[agg].append(math.degrees(est.error_rad))
-                result.flags[agg].append(rule.flags(est))
-                result.elevation_deg[agg].append(math.degrees(est.elevation_rad))
-            result.truth_elevation_deg.append(math.degrees(math.asin(max(-1.0, min(1.0, float(first.truth_enu[2]))))))
-            result.window_logs.append(name)
-            # The first full window of each of the first logs, for the scatter figure: each log
-            # has its own sun, so the figure shows different skies.
-            if len(result.samples) < n_samples and not sampled_this_log:
-                result.samples.append(estimates)
-                sampled_this_log = True
-            n_done += 1
+    try:
+        for n_logs, (name, frames) in enumerate(sources, 1):
+            result.logs.append(name)
+            stats = OfflineStats()
+            try:
+                _evaluate_log(result, name, frames, estimator, policy, aggregators, n_samples, rule, stats, progress,
+                              n_logs - 1)
+            finally:  # an interrupted log's frames count too
+                for key in EvalResult.STREAM_COUNTS:
+                    setattr(result, key, getattr(result, key) + getattr(stats, key))
             if progress:
-                progress(n_done)
-        for name in EvalResult.STREAM_COUNTS:
-            setattr(result, name, getattr(result, name) + getattr(stats, name))
+                progress(len(result.window_logs), n_logs)
+    except KeyboardInterrupt:
+        result.interrupted = True
+        result.trim_to_whole_windows()
     return result
+
+
+def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estimator: SunEstimator,
+                  policy: SpreadWindowPolicy, aggregators: Sequence[str], n_samples: int, rule: StatusRule,
+                  stats: OfflineStats, progress: Callable[[int, int], None] | None, logs_done: int) -> None:
+    sampled = False
+    for estimates in estimate_stream(frames, estimator, policy, aggregators=aggregators, stats=stats):
+        first = next(iter(estimates.values()))
+        if first.n_frames < policy.n_frames:
+            result.windows_skipped_filling += 1
+            continue
+        if first.truth_enu is None:
+            result.windows_without_truth += 1
+            continue
+        for agg, est in estimates.items():
+            result.errors_deg[agg].append(math.degrees(est.error_rad))
+            result.flags[agg].append(rule.flags(est))
+            result.elevation_deg[agg].append(math.degrees(est.elevation_rad))
+        result.truth_elevation_deg.append(math.degrees(math.asin(max(-1.0, min(1.0, float(first.truth_enu[2]))))))
+        result.window_logs.append(name)  # last: it is what makes the window count (trim_to_whole_windows)
+        # The first full window of each of the first logs, for the scatter figure: each log has its
+        # own sun, so the figure shows different skies.
+        if len(result.samples) < n_samples and not sampled:
+            result.samples.append(estimates)
+            sampled = True
+        if progress:
+            progress(len(result.window_logs), logs_done)
 
 
 def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:

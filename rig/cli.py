@@ -508,9 +508,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     estimator = SunEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
     aggregators = args.aggregators.split(",") if args.aggregators else list(AGGREGATORS)
-    progress = Progress("eval", enabled=None if not args.quiet else False)
+    # Logs are the unit with a known total (windows per log are known only once read): rate and time left.
+    progress = Progress("eval", total=len(sources), unit="logs", enabled=None if not args.quiet else False)
     result = evaluate(sources, estimator, policy, aggregators=aggregators,
-                      progress=lambda n: progress.update(n, "windows"))
+                      progress=lambda windows, logs: progress.update(logs, f"{windows} windows"))
     summary = result.summary()
     summary["model"] = {"dir": str(model.model_dir), "id": model.model_id}
     text = json.dumps(summary, indent=2)
@@ -523,8 +524,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     lines = [f"{name}: mean {s['mean_deg']:.2f} deg, median {s['median_deg']:.2f}, max {s['max_deg']:.1f}, "
              f"{s[TAIL_KEY]} of {s['n_windows']} windows over {TAIL_DEG:g} deg"
              for name, s in summary["aggregators"].items() if s["n_windows"]]
+    if result.interrupted:
+        lines.insert(0, f"interrupted after {len(result.window_logs)} windows of {len(result.logs)} logs "
+                        "(the JSON and figures hold those)")
     if not args.quiet:
         progress.close("; ".join(lines) if lines else "no full window with ground truth in these logs")
+    if result.interrupted:
+        return 130  # as for any Ctrl-C, but with the work so far written
     if not lines:
         return EXIT_USER_ERROR
     return 0

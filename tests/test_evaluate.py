@@ -105,3 +105,47 @@ def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
     assert sorted(row["log"] for row in worst) == sorted(str(p) for p in logs)
     assert worst[0]["max_deg"] == aggs["transformer"]["max_deg"] and sum(r["n_windows"] for r in worst) == 8
     assert png.stat().st_size > 10_000 and (tmp_path / "eval-tokens.png").stat().st_size > 10_000
+
+
+@pytest.mark.torch
+def test_ctrl_c_keeps_the_windows_evaluated_so_far(tiny_model_dir):
+    from estimator.estimator import SunEstimator
+    from estimator.evaluate import evaluate
+    from estimator.runtime import OnnxModel
+    from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+    from rig.window import SpreadWindowPolicy
+
+    k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(1)
+
+    def drive(n, ctrl_c_after=None):
+        for i in range(n):
+            if i == ctrl_c_after:
+                raise KeyboardInterrupt  # as Ctrl-C arrives: anywhere in the second log
+            yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8),
+                        intrinsics=k, attitude=Attitude(math.radians(7.0 * i), HeadingRef.TRUE),
+                        sun_enu_truth=[0.0, 0.8, 0.6])
+
+    estimator = SunEstimator(OnnxModel.load(tiny_model_dir))
+    seen = []
+    result = evaluate([("d0", drive(12)), ("d1", drive(12, ctrl_c_after=10)), ("d2", drive(12))], estimator,
+                      SpreadWindowPolicy(8, 4.0), progress=lambda w, logs: seen.append((w, logs)))
+    assert result.interrupted and result.logs == ["d0", "d1"]  # d2 never started
+    # 5 whole windows of d0; of d1 the one of its first batch of 8 frames (offline encodes in
+    # batches of 8, and the Ctrl-C came while frames 8 and 9 waited for theirs). Every list alike.
+    assert len(result.window_logs) == 6 and result.window_logs.count("d1") == 1
+    assert all(len(v) == 6 for d in (result.errors_deg, result.flags, result.elevation_deg) for v in d.values())
+    assert len(result.truth_elevation_deg) == 6 and result.frames == 22  # d1's 10 frames counted too
+    s = result.summary()
+    assert s["interrupted"] is True and s["aggregators"]["transformer"]["n_windows"] == 6
+    assert seen[-1] == (6, 1) and (5, 1) in seen  # windows and logs done, as the CLI's progress shows them
+
+
+def test_a_window_cut_short_is_trimmed_from_every_list():
+    # Ctrl-C between two appends of one window: window_logs (appended last) says what is whole.
+    r = EvalResult(errors_deg={"transformer": [1.0, 2.0, 3.0], "mean": [1.0, 2.0]},
+                   flags={"transformer": [1, 1, 1], "mean": [1, 1]}, elevation_deg={"transformer": [5.0, 6.0, 7.0]},
+                   truth_elevation_deg=[5.0, 6.0], window_logs=["d0", "d0"])
+    r.trim_to_whole_windows()
+    assert r.errors_deg == {"transformer": [1.0, 2.0], "mean": [1.0, 2.0]}
+    assert r.flags["transformer"] == [1, 1] and r.elevation_deg["transformer"] == [5.0, 6.0]
