@@ -111,7 +111,10 @@ def merge(cfg: dict[str, dict[str, Any]], raw: Mapping[str, Any], where: str = "
                 raise ConfigError(
                     f"{where}: unknown option [{section}] {key}; known: {', '.join(DEFAULTS[section])}"
                 )
-            cfg[section][key] = _check(section, key, value)
+            try:
+                cfg[section][key] = _check(section, key, value)
+            except ConfigError as exc:
+                raise ConfigError(f"{where}: {exc}") from None  # which file (or the command line)
     return cfg
 
 

@@ -59,6 +59,7 @@ def test_mistakes_are_named(tmp_path, text, message):
     with pytest.raises(ConfigError) as info:
         load_config(path)
     assert message in str(info.value)
+    assert str(path) in str(info.value)  # which file: a rig may read several
 
 
 def test_missing_file():
