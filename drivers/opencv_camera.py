@@ -310,7 +310,8 @@ class OpenCvCamera:
         self._factory = capture_factory or (lambda t: open_capture(t, width, height, fps))
 
         if self.target.kind == "file" and capture_factory is None and not Path(str(self.target.value)).is_file():
-            raise CameraError(f"video file {self.target.value} does not exist; pass an existing file, "
+            what = "is a folder, not a video file" if Path(str(self.target.value)).is_dir() else "does not exist"
+            raise CameraError(f"video file {self.target.value} {what}; pass an existing file, "
                               "a device index (opencv:0) or an rtsp:// URL")
         cap = self._factory(self.target)
         if not cap.isOpened():

@@ -219,6 +219,11 @@ def test_stop_and_close_end_a_file_read_early_and_close_is_idempotent(video):
 # --- what does not exist -------------------------------------------------------------------------
 
 
+def test_a_folder_is_not_called_missing(tmp_path):
+    with pytest.raises(CameraError, match="is a folder, not a video file"):
+        OpenCvCamera(str(tmp_path), hfov_deg=60.0)  # the driver takes what follows opencv:
+
+
 def test_a_missing_file_is_one_clear_error(tmp_path):
     with pytest.raises(CameraError, match="does not exist") as info:
         OpenCvCamera(str(tmp_path / "nope.avi"), hfov_deg=60.0)
