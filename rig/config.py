@@ -8,6 +8,7 @@ config file to start from.
 from __future__ import annotations
 
 import copy
+import json
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
@@ -138,7 +139,7 @@ def dump_toml(cfg: Mapping[str, Mapping[str, Any]]) -> str:
             if isinstance(value, bool):
                 text = "true" if value else "false"
             elif isinstance(value, str):
-                text = '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+                text = json.dumps(value, ensure_ascii=False)  # a TOML basic string, control characters escaped
             else:
                 text = repr(value)
             lines.append(f"{key} = {text}")

@@ -21,6 +21,12 @@ def test_defaults_round_trip_through_toml(tmp_path):
     assert _same(load_config(path), DEFAULTS)
 
 
+def test_strings_with_quotes_backslashes_and_control_characters_round_trip():
+    cfg = load_config()
+    cfg["output"]["jsonl"] = 'C:\\logs\\"sun"\n\tnight é.jsonl'
+    assert tomllib.loads(dump_toml(cfg))["output"]["jsonl"] == cfg["output"]["jsonl"]
+
+
 def test_every_run_flag_has_a_config_option():
     from rig.cli import build_parser
 
