@@ -1,6 +1,7 @@
 """The live pipeline: it ends, it drops instead of lagging, and a failing stage stops it all."""
 
 import dataclasses
+import itertools
 import logging
 import math
 import threading
@@ -180,12 +181,19 @@ def test_outputs_whose_readers_went_away_end_the_run_quietly(model, caplog):
                 raise BrokenPipeError(32, "Broken pipe")
             super().publish(est)
 
+    def endless():  # a live camera: it never ends by itself
+        f = next(frames(1))
+        for i in itertools.count():
+            yield dataclasses.replace(f, t_mono_s=0.02 * i, seq=i)
+
     first, second = Head(), Head()
+    t0 = time.monotonic()
     with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
-        pipe, stats = run_pipeline(frames(10_000, dt=0.0), SunEstimator(model), [first, second])
-    # Both readers gone: the rig stopped long before the 10 000 frames, with no error counted.
-    assert len(first.estimates) == len(second.estimates) == 3
-    assert stats.frames_captured < 10_000 and stats.publish_errors == 0
+        # Paced at 50 Hz; without the stop, only run()'s 30-s timeout would end it.
+        pipe, stats = run_pipeline(endless(), SunEstimator(model), [first, second], realtime=True)
+    assert time.monotonic() - t0 < 20.0
+    # Both readers gone: the rig stopped by itself, with no error counted.
+    assert len(first.estimates) == len(second.estimates) == 3 and stats.publish_errors == 0
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
 
 
