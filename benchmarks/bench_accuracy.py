@@ -98,6 +98,8 @@ def main() -> None:
             pooled = result
         else:
             pooled.extend(result)
+        if result.interrupted:
+            break  # Ctrl-C: report what was done (marked interrupted), not go on with the next seed
     Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
     plot_eval(pooled, Path(args.plot))
     summary = pooled.summary()

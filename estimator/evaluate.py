@@ -100,6 +100,7 @@ class EvalResult:
                 getattr(self, per_agg).setdefault(name, []).extend(values)
         self.truth_elevation_deg.extend(other.truth_elevation_deg)
         self.window_logs.extend(other.window_logs)
+        self.interrupted |= other.interrupted  # pooled with a cut-short run: so is the pool
         for name in self.COUNTS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
 
