@@ -35,7 +35,7 @@ def parse_checksums(text: str) -> dict[str, str]:
     out = {}
     for line in text.splitlines():
         digest, _, name = line.strip().partition(" ")
-        name = name.strip().lstrip("*")
+        name = name.strip().lstrip("*").removeprefix("./")  # `sha256sum ./*.onnx` writes ./NAME
         if len(digest) == 64 and name:
             out[name] = digest.lower()
     return out

@@ -281,6 +281,9 @@ def _check_checksums(root: Path, digests: Mapping[str, str]) -> None:
         expected = parse_checksums(path.read_text(encoding="utf-8", errors="replace"))
     except OSError as exc:
         raise ModelError(f"{path}: cannot read it ({exc.strerror}); copy the model folder again") from None
+    if not expected:
+        raise ModelError(f"{path}: no line in sha256sum's format (HEX  NAME); copy the model folder again, "
+                         f"re-export it, or delete {CHECKSUMS_FILE} to load it unchecked")
     unlisted = [name for name in digests if name not in expected]
     if unlisted:
         # An empty or garbled sums file must not pass for a checked folder.

@@ -244,10 +244,19 @@ def test_a_graph_damaged_in_a_copy_is_refused_by_its_checksum(tiny_model_dir, tm
     (folder / AGGREGATOR_FILE).write_bytes(bytes(blob))
     message = refusal(ModelError, folder)
     assert "aggregator.onnx do not match SHA256SUMS" in message and "copy the model folder again" in message
-    (folder / CHECKSUMS_FILE).write_text("")  # a sums file cut short checks nothing: refused too
-    assert "no checksum for backbone.onnx and aggregator.onnx" in refusal(ModelError, folder)
+    # A sums file that checks nothing is refused too: empty, or cut short before a graph's line.
+    sums = (tiny_model_dir / CHECKSUMS_FILE).read_text()
+    (folder / CHECKSUMS_FILE).write_text("")
+    assert "no line in sha256sum's format" in refusal(ModelError, folder)
+    (folder / CHECKSUMS_FILE).write_text("".join(line + "\n" for line in sums.splitlines() if "backbone" in line))
+    assert "no checksum for aggregator.onnx" in refusal(ModelError, folder)
     (folder / CHECKSUMS_FILE).unlink()
     OnnxModel.load(folder)  # a folder without sums (older, or hand-made) is not checked
+    # sha256sum's own ways of naming the files (`sha256sum ./*.onnx`, binary mode) are read.
+    intact = copy_model(tiny_model_dir, tmp_path / "intact")
+    renamed = sums.replace("  backbone", "  ./backbone").replace("  aggregator", " *aggregator")
+    (intact / CHECKSUMS_FILE).write_text(renamed)
+    OnnxModel.load(intact)
 
 
 def test_the_shipped_model_passes_its_checksums():
