@@ -139,7 +139,8 @@ def dump_toml(cfg: Mapping[str, Mapping[str, Any]]) -> str:
             if isinstance(value, bool):
                 text = "true" if value else "false"
             elif isinstance(value, str):
-                text = json.dumps(value, ensure_ascii=False)  # a TOML basic string, control characters escaped
+                # JSON's escapes are TOML's; TOML also wants DEL escaped, which JSON leaves raw.
+                text = json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")
             else:
                 text = repr(value)
             lines.append(f"{key} = {text}")

@@ -23,7 +23,7 @@ def test_defaults_round_trip_through_toml(tmp_path):
 
 def test_strings_with_quotes_backslashes_and_control_characters_round_trip():
     cfg = load_config()
-    cfg["output"]["jsonl"] = 'C:\\logs\\"sun"\n\tnight é.jsonl'
+    cfg["output"]["jsonl"] = 'C:\\logs\\"sun"\n\tnight é\x7f.jsonl'
     assert tomllib.loads(dump_toml(cfg))["output"]["jsonl"] == cfg["output"]["jsonl"]
 
 
