@@ -31,21 +31,27 @@ class Pacer:
         self.reanchors = 0
         self._start_s: float | None = None
         self._first_t_s = 0.0
+        self._last_t_s = 0.0
 
     def delay_s(self, frame: Frame, now_s: float) -> float:
         """Seconds to wait before ``frame`` (0 when it is due or late)."""
+        t, last = frame.t_mono_s, self._last_t_s
+        self._last_t_s = t
         if self._start_s is None:
-            self._start_s, self._first_t_s = now_s, frame.t_mono_s
+            self._start_s, self._first_t_s = now_s, t
             return 0.0
-        delay = self._start_s + (frame.t_mono_s - self._first_t_s) / self.speed - now_s
+        delay = self._start_s + (t - self._first_t_s) / self.speed - now_s
         if abs(delay) <= self.max_jump_s:
             return max(delay, 0.0)
-        if delay > 0:
-            log.info("seq %d is stamped %.1f s past its schedule (the recording's clock jumped): pacing from it",
-                     frame.seq, delay)
+        # Off schedule: the recording's own clock jumped between two frames (either way), or the
+        # replay fell behind a recording that did not.
+        step = t - last
+        if abs(step) > self.max_jump_s:
+            log.info("seq %d is stamped %+.1f s from the frame before it (the recording's clock jumped): "
+                     "pacing from it", frame.seq, step)
         else:
-            log.info("the replay is %.1f s behind the recording at seq %d: pacing from here, not rushing",
-                     -delay, frame.seq)
+            log.info("the replay is %.1f s off the recording's schedule at seq %d (it fell behind): "
+                     "pacing from here, not rushing", -delay, frame.seq)
         self.reanchors += 1
-        self._start_s, self._first_t_s = now_s, frame.t_mono_s
+        self._start_s, self._first_t_s = now_s, t
         return 0.0

@@ -34,7 +34,17 @@ def test_a_jump_either_way_re_anchors_instead_of_sleeping_or_rushing(caplog):
         assert p.delay_s(frame(5, 3600.4), now_s=30.0) == pytest.approx(0.1)  # no rush after it
     assert p.reanchors == 2
     messages = [r.getMessage() for r in caplog.records]
-    assert "clock jumped" in messages[0] and "behind the recording" in messages[1]
+    assert "+3600.0 s from the frame before it" in messages[0] and "fell behind" in messages[1]
+
+
+def test_one_glitched_stamp_is_two_jumps_of_the_recording_not_a_replay_behind(caplog):
+    p = Pacer(max_jump_s=10.0)
+    with caplog.at_level("INFO", logger="rig.pacing"):
+        for seq, (t, now) in enumerate([(0.0, 0.0), (0.1, 0.1), (3600.0, 0.2), (0.3, 0.3), (0.4, 0.4)]):
+            p.delay_s(frame(seq, t), now_s=now)
+    messages = [r.getMessage() for r in caplog.records]
+    assert p.reanchors == 2 and all("the recording's clock jumped" in m for m in messages)
+    assert "-3599.7 s" in messages[1]
 
 
 def test_replay_realtime_does_not_sleep_through_a_glitched_stamp():
