@@ -246,7 +246,7 @@ class RigPipeline:
             try:
                 st = dict(p.stats())
             except Exception:  # noqa: BLE001 - statistics must never stop the rig
-                continue
+                st = {}  # its own counters are lost this time; the pipeline's count of its errors is not
             if raised.count:
                 st["raised"] = raised.count
                 st["last_error"] = st.get("last_error") or raised.last

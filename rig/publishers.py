@@ -464,7 +464,10 @@ class BackgroundPublisher:
     (``dropped``): a stall shorter than that loses nothing. An estimate the inner publisher
     raised on is counted in ``errors`` (the error logged once per kind). :meth:`close` waits at
     most ``join_timeout_s`` for the writer; a writer stuck in a write is left to finish on its own
-    (daemon thread) and the inner publisher is then not closed under it.
+    (daemon thread) and the inner publisher is then not closed under it. A broken pipe (the
+    reader went away, ``| head``) ends the writer: later ``publish()`` calls raise
+    ``BrokenPipeError``, as the inner publisher would in the caller's thread, and the pipeline
+    then stops feeding this output.
     """
 
     def __init__(self, inner: Publisher, *, max_pending: int = 256, join_timeout_s: float = 2.0) -> None:
