@@ -525,8 +525,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
              f"{s[TAIL_KEY]} of {s['n_windows']} windows over {TAIL_DEG:g} deg"
              for name, s in summary["aggregators"].items() if s["n_windows"]]
     if result.interrupted:
-        lines.insert(0, f"interrupted after {len(result.window_logs)} windows ({len(result.logs)} logs begun) "
-                        "(the JSON and figures hold those)")
+        lines.insert(0, f"interrupted after {len(result.window_logs)} windows in {len(result.logs)} logs begun; "
+                        "the JSON and figures hold those")
     if not args.quiet:
         progress.close("; ".join(lines) if lines else "no full window with ground truth in these logs")
     if result.interrupted:
