@@ -24,8 +24,11 @@ machine without it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import os
+import sys
 import threading
 import time
 from collections import deque
@@ -83,12 +86,28 @@ CAMERA_COUNTS = (
 def _dai():
     """depthai, imported on first use, with an error that says what to install."""
     try:
-        import depthai as dai
+        with _stdout_to_stderr():
+            import depthai as dai
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise OakError("the OAK driver needs DepthAI v3: pip install 'depthai>=3'") from exc
     if not hasattr(dai.node, "Camera") or not hasattr(dai.node, "ThreadedHostNode"):  # pragma: no cover
         raise OakError(f"the OAK driver needs DepthAI v3, found depthai {dai.__version__}: pip install 'depthai>=3'")
     return dai
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr() -> Iterator[None]:
+    """File descriptor 1 goes to 2 for the block. depthai's C++ logger prints its import-time
+    warnings (e.g. "USB protocol not available") on stdout, where `sunrig run --jsonl -` writes
+    estimates: a JSON reader would choke on the first line."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,6 +10,8 @@ Host-only pipelines (``dai.Pipeline(False)``) with a ``dai.node.ThreadedHostNode
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import threading
 import time
 import traceback
@@ -508,3 +510,12 @@ def test_real_oak_heading_against_a_compass():
     got = math.degrees(frames[-1].attitude.heading_rad)
     assert abs((got - float(want) + 180) % 360 - 180) < 15, got
 
+
+
+def test_importing_depthai_leaves_stdout_to_the_estimates():
+    # depthai's C++ logger prints import-time warnings (here: "USB protocol not available", as in
+    # any container without /dev/bus/usb) on stdout, where `sunrig run --jsonl -` writes JSON.
+    code = "from drivers.oak import _dai; _dai(); print('{}')"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout == "{}\n"  # only what the program itself printed
