@@ -25,59 +25,43 @@ EXIT_BUG = 1
 _DISK_FULL = (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+def _int_in(lo: int, hi: int | None = None):
+    """An argparse type: an integer from ``lo`` (to ``hi``)."""
+    if hi is not None:
+        what = f"an integer from {lo} to {hi}"
+    else:
+        what = "a positive integer" if lo == 1 else f"an integer >= {lo}"
 
-
-def _nonneg_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    """A finite number > 0: nan and inf are typos here, never meant (a nan budget never ends)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
-
-
-def _int_in(lo: int, hi: int):
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            value = lo - 1
-        if not lo <= value <= hi:
-            raise argparse.ArgumentTypeError(f"expected an integer from {lo} to {hi}, got {text!r}")
+            value = None
+        if value is None or value < lo or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
         return value
     return parse
 
 
-def _float_in(lo: float, hi: float):
+def _float_in(lo: float, hi: float = math.inf):
+    """An argparse type: a finite number in (``lo``, ``hi``]. nan and inf are typos here, never
+    meant (a nan budget never ends)."""
+    what = f"a finite number > {lo:g}" if hi == math.inf else f"a number in ({lo:g}, {hi:g}]"
+
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not lo < value <= hi:
-            raise argparse.ArgumentTypeError(f"expected a number in ({lo:g}, {hi:g}], got {text!r}")
+        if not (math.isfinite(value) and lo < value <= hi):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
         return value
     return parse
+
+
+_positive_int = _int_in(1)
+_nonneg_int = _int_in(0)
+_positive_float = _float_in(0.0)
 
 
 def _load_model(model_dir: str | None):
