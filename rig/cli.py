@@ -305,11 +305,11 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
 def _report_output_losses(stats) -> int:
     """One line per output that failed to write estimates; exit 2 if one wrote none at all (a
     full disk, a dead link): the run went on for the other outputs, but its user must know."""
-    code = 0
-    from rig.publishers import ERROR_KEYS
+    from rig.publishers import failed_writes
 
+    code = 0
     for name, st in stats.publishers.items():
-        failed = sum(int(st.get(k) or 0) for k in ERROR_KEYS)
+        failed = failed_writes(st)
         if not failed:
             continue
         written = int(st.get("written") or 0)

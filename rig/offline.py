@@ -49,15 +49,15 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
     # The live rig's ring, bounded by the policy's span (older frames can never be chosen again)
     # rather than by count: offline, nothing may be dropped for lack of room.
     ring = FrameRing(capacity=1_000_000, max_age_s=policy.span_s)
+    jumps_before = stats.clock_jumps  # the ring counts this stream's; stats may pool several streams
     pending: list[Frame] = []
 
     def flush() -> Iterator[dict[str, SunEstimate]]:
         for feats in estimator.encode_batch(pending):
-            restarts = ring.restarts
             if not ring.push(feats):
                 stats.frames_out_of_order += 1  # as live: windows assume time order
                 continue
-            stats.clock_jumps += ring.restarts - restarts
+            stats.clock_jumps = jumps_before + ring.restarts
             window = policy.select(ring.snapshot())
             stats.windows += 1
             try:

@@ -37,7 +37,7 @@ from estimator.estimator import SunEstimator
 from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.pacing import Pacer
-from rig.publishers import ERROR_KEYS, ErrorTally, Publisher, publisher_name
+from rig.publishers import ErrorTally, Publisher, failed_writes, publisher_name
 from rig.ring import DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
@@ -101,7 +101,7 @@ class RigStats:
     windows_skipped: int = 0
     estimates: int = 0
     estimates_failed: int = 0
-    publish_errors: int = 0  # estimates a publisher raised on (each publisher counts apart)
+    publish_errors: int = 0  # estimates a publisher raised on, all outputs (each counts its own)
     started_s: float = 0.0
     ended_s: float = 0.0
     latency: _Latency = field(default_factory=_Latency)
@@ -134,7 +134,7 @@ def publisher_losses(stats: Iterable[dict]) -> tuple[int, int]:
     drops = errors = 0
     for s in stats:
         drops += sum(int(v) for k, v in s.items() if k.startswith("dropped") and isinstance(v, int))
-        errors += sum(int(s.get(k) or 0) for k in ERROR_KEYS)
+        errors += failed_writes(s)
     return drops, errors
 
 
@@ -242,6 +242,7 @@ class RigPipeline:
         return self.stats
 
     def _collect_publisher_stats(self) -> None:
+        self.stats.publish_errors = sum(raised.count for raised in self._raised)
         for p, name, raised in zip(self.publishers, self._names, self._raised, strict=True):
             try:
                 st = dict(p.stats())
@@ -293,7 +294,6 @@ class RigPipeline:
                 if len(self._ended) == len(self.publishers):
                     self._stop.set()  # nobody reads any output: done, as `cmd | head` is
             except Exception as exc:  # noqa: BLE001 - one broken output must not silence the others
-                self.stats.publish_errors += 1
                 self._raised[i].add(exc, est.seq)
 
     def _log_exposure_change(self, seq: int, reason: str | None) -> None:
@@ -315,12 +315,11 @@ class RigPipeline:
             frame, arrived = item
             feats = self.estimator.encode(frame)
             self.stats.frames_encoded += 1
-            restarts = self.ring.restarts
             if not self.ring.push(feats):
                 self.stats.frames_out_of_order += 1
                 continue
-            if self.ring.restarts != restarts:
-                self.stats.clock_jumps += 1
+            if self.ring.restarts != self.stats.clock_jumps:  # the ring counts them; this one says so
+                self.stats.clock_jumps = self.ring.restarts
                 log.warning("seq %d is more than %.0f s older than the frame before it: the clock jumped; "
                             "windows start again from it", frame.seq, self.ring.max_age_s)
             if not self._mailbox.put((feats, arrived)):

@@ -58,6 +58,11 @@ class Publisher(Protocol):
 ERROR_KEYS = ("write_errors", "errors", "raised")
 
 
+def failed_writes(stats: dict[str, Any]) -> int:
+    """Estimates an output failed to write, from its statistics (:data:`ERROR_KEYS`)."""
+    return sum(int(stats.get(k) or 0) for k in ERROR_KEYS)
+
+
 class ErrorTally:
     """Counts an output's failures and logs the first of each kind (same type and text): an
     output that fails the same way on every estimate is one warning, not one per estimate."""

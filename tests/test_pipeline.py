@@ -197,6 +197,21 @@ def test_outputs_whose_readers_went_away_end_the_run_quietly(model, caplog):
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
 
 
+def test_offline_counts_clock_jumps_per_stream_and_pools_them(model):
+    from rig.offline import OfflineStats, estimate_stream
+
+    def glitched():
+        for f in frames(30, dt=0.1):
+            yield dataclasses.replace(f, t_mono_s=3600.0) if f.seq == 10 else f
+
+    stats = OfflineStats()
+    for _ in range(2):  # one stats object over two replays: the counts add up, as the others do
+        out = [r["transformer"] for r in estimate_stream(glitched(), SunEstimator(model), SpreadWindowPolicy(8, 4.0),
+                                                           stats=stats)]
+        assert [e.n_frames for e in out if e.seq == 11] == [1]  # the window started again after the jump
+    assert stats.clock_jumps == 2 and stats.frames_out_of_order == 0
+
+
 def test_a_source_that_blocks_forever_does_not_hang_the_rig(model):
     never = threading.Event()
 
