@@ -389,6 +389,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             progress({"phase": "load", "done": done, "total": total})
     drives = load_drives(sorted(Path(p) for p in log_paths), net_cfg.crop_size, fov, progress=on_load)
     n_frames = sum(len(d.images) for d in drives)
+    sun_range_deg = sun_elevation_range_deg(d.sun_enu for d in drives)  # once: state_dict() runs at every checkpoint
     log.info("loaded %d drives, %d frames in %.0f s", len(drives), n_frames, time.monotonic() - t_load)
 
     backbone, aggregator = net_cfg.build(seed=cfg.seed)
@@ -465,8 +466,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "backbone": backbone.state_dict(), "aggregator": aggregator.state_dict(),
             "optimizer": opt.state_dict(), "step": step, "elapsed_s": time.monotonic() - start,
             "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "config": asdict(cfg),
-            "data_counts": {"drives": len(drives), "frames": n_frames,
-                            "sun_elevation_deg": sun_elevation_range_deg(d.sun_enu for d in drives)},
+            "data_counts": {"drives": len(drives), "frames": n_frames, "sun_elevation_deg": sun_range_deg},
             "err_deg_ema": None if ema_err is None else round(ema_err, 2),
             "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(),
         }
