@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine  # noqa: E402
+from benchmarks.common import add_drive_args, drives_and_model, machine  # noqa: E402
 
 HELD_OUT_SEED = 2000
 
@@ -60,13 +60,9 @@ def elevation_excess(result, trained_max_deg: float | None, band_deg: float = 5.
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", help="model folder (default: the shipped model)")
-    ap.add_argument("--data", default="data/heldout", help="where the held-out drives are (made if missing)")
-    ap.add_argument("--drives", type=int, default=100)
-    ap.add_argument("--frames", type=int, default=24)
-    ap.add_argument("--drive-seed", type=int, default=HELD_OUT_SEED,
-                    help=f"seed of the drives (default {HELD_OUT_SEED}; the validation set is 2500; "
-                         "training used 1000, whose drives say nothing about held-out accuracy)")
+    add_drive_args(ap, data="data/heldout", drives=100, drive_seed=HELD_OUT_SEED,
+                   drive_seed_help=f"seed of the drives (default {HELD_OUT_SEED}; the validation set is 2500; "
+                                   "training used 1000, whose drives say nothing about held-out accuracy)")
     ap.add_argument("--plot", default="data/heldout-eval.png")
     ap.add_argument("--seeds", type=_seeds, default=[0, 1, 2],
                     help="crop seeds; every window is estimated once per seed (default 0,1,2)")
@@ -76,15 +72,10 @@ def main() -> None:
 
     from estimator.estimator import SunEstimator
     from estimator.evaluate import WORST_LOGS, error_summary, evaluate, plot_eval
-    from estimator.models import resolve_model_dir
-    from estimator.runtime import OnnxModel
     from replay.sources import open_frames
-    from replay.synthetic import write_synthetic_logs
     from rig.window import SpreadWindowPolicy
 
-    paths = write_synthetic_logs(args.data, drives=args.drives, frames=args.frames, seed=args.drive_seed,
-                                 progress=sys.stderr.isatty(), jobs=2)
-    model = OnnxModel.load(resolve_model_dir(args.model))
+    paths, model = drives_and_model(args)
     pooled, per_seed = None, {}
     for seed in args.seeds:
         estimator = SunEstimator(model, seed=seed, crop_layout=args.crop_layout)

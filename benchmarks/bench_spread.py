@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine  # noqa: E402
+from benchmarks.common import add_drive_args, drives_and_model, machine  # noqa: E402
 
 TAIL_DEG = 30.0
 BLANK_IMAGES = {
@@ -36,26 +36,18 @@ BLANK_IMAGES = {
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", help="model folder (default: the shipped model)")
-    ap.add_argument("--data", default="data/val", help="where the drives are (made if missing)")
-    ap.add_argument("--drives", type=int, default=300)
-    ap.add_argument("--frames", type=int, default=24)
-    ap.add_argument("--drive-seed", type=int, default=2500, help="seed of the drives (default 2500: validation)")
+    add_drive_args(ap, data="data/val", drives=300, drive_seed=2500,
+                   drive_seed_help="seed of the drives (default 2500: validation)")
     ap.add_argument("--seed", type=int, default=0, help="crop seed (default 0)")
     args = ap.parse_args()
 
     from estimator.estimator import SunEstimator
-    from estimator.models import resolve_model_dir
-    from estimator.runtime import OnnxModel
     from replay.sources import open_frames
-    from replay.synthetic import write_synthetic_logs
     from rig.exposure import luminance_stats
     from rig.offline import estimate_stream
     from rig.window import SpreadWindowPolicy
 
-    paths = write_synthetic_logs(args.data, drives=args.drives, frames=args.frames, seed=args.drive_seed,
-                                 progress=sys.stderr.isatty(), jobs=2)
-    model = OnnxModel.load(resolve_model_dir(args.model))
+    paths, model = drives_and_model(args)
     estimator = SunEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
 

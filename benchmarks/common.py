@@ -6,12 +6,15 @@ warm-up, and the machine and library versions it ran on.
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from importlib import metadata
+from pathlib import Path
 
 
 def machine() -> dict:
@@ -44,3 +47,24 @@ def time_ms(fn: Callable[[], object], repeats: int = 20, warmup: int = 3) -> dic
     q = statistics.quantiles(samples, n=10) if len(samples) >= 2 else samples * 9
     return {"median_ms": statistics.median(samples), "p10_ms": q[0], "p90_ms": q[-1], "min_ms": samples[0],
             "repeats": repeats}
+
+
+def add_drive_args(ap: argparse.ArgumentParser, *, data: str, drives: int, drive_seed: int,
+                   drive_seed_help: str) -> None:
+    """The options of a benchmark over synthetic drives: the model, and which drives (made if missing)."""
+    ap.add_argument("--model", help="model folder (default: the shipped model)")
+    ap.add_argument("--data", default=data, help="where the drives are (made if missing)")
+    ap.add_argument("--drives", type=int, default=drives)
+    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--drive-seed", type=int, default=drive_seed, help=drive_seed_help)
+
+
+def drives_and_model(args: argparse.Namespace) -> tuple[list[Path], object]:
+    """The drives :func:`add_drive_args` names (written first if they are not there) and the model."""
+    from estimator.models import resolve_model_dir
+    from estimator.runtime import OnnxModel
+    from replay.synthetic import write_synthetic_logs
+
+    paths = write_synthetic_logs(args.data, drives=args.drives, frames=args.frames, seed=args.drive_seed,
+                                 progress=sys.stderr.isatty(), jobs=2)
+    return paths, OnnxModel.load(resolve_model_dir(args.model))
