@@ -757,8 +757,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    # --debug after the subcommand too (`sunrig replay X --debug`), where people add it when an
+    # error says "rerun with --debug"; SUPPRESS keeps a subcommand from resetting the main flag.
+    debug = argparse.ArgumentParser(add_help=False)
+    debug.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
-    p = sub.add_parser("replay", help="run a recorded log through the estimator")
+    p = sub.add_parser("replay", parents=[debug], help="run a recorded log through the estimator")
     p.add_argument("log", nargs="?", help="a native sunrig log (.mcap); default: the bundled demo drive")
     p.add_argument("--jsonl", metavar="PATH|-", help="write one JSON object per estimate here (- for stdout)")
     p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
@@ -774,7 +778,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_replay)
 
-    p = sub.add_parser("run", help="the live rig: camera and heading in, sun direction out")
+    p = sub.add_parser("run", parents=[debug], help="the live rig: camera and heading in, sun direction out")
     _source_flags(p)
     p.add_argument("--config", metavar="FILE.toml", help="configuration file; flags override it")
     p.add_argument("--model", metavar="DIR")
@@ -786,7 +790,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no status lines on stderr")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("record", help="record live sources (frames, heading, GNSS, intrinsics) to a native log")
+    p = sub.add_parser("record", parents=[debug],
+                       help="record live sources (frames, heading, GNSS, intrinsics) to a native log")
     _source_flags(p)
     p.add_argument("--out", required=True, metavar="OUT.mcap", help="the native log to write (replaced if it exists)")
     p.add_argument("--seconds", type=_positive_float, metavar="N",
@@ -798,7 +803,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("demo", help="the bundled drive through the live rig, in real time")
+    p = sub.add_parser("demo", parents=[debug], help="the bundled drive through the live rig, in real time")
     p.add_argument("--config", metavar="FILE.toml")
     p.add_argument("--model", metavar="DIR")
     _output_flags(p, defaults=False)
@@ -806,12 +811,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("config", help="show the effective configuration")
+    p = sub.add_parser("config", parents=[debug], help="show the effective configuration")
     p.add_argument("--print", action="store_true", required=True, help="print it as TOML")
     p.add_argument("--config", metavar="FILE.toml")
     p.set_defaults(func=cmd_config)
 
-    p = sub.add_parser("eval", help="angular error of every aggregator over logs with ground truth")
+    p = sub.add_parser("eval", parents=[debug], help="angular error of every aggregator over logs with ground truth")
     p.add_argument("logs", nargs="+", help="native logs, or folders of them")
     p.add_argument("--json", metavar="OUT", help="write the summary here (default: stdout)")
     p.add_argument("--plot", metavar="OUT.png", help="cumulative error curves (and OUT-tokens.png)")
@@ -825,7 +830,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("train", help="train a model on logs with ground truth (needs sunrig[train])")
+    p = sub.add_parser("train", parents=[debug], help="train a model on logs with ground truth (needs sunrig[train])")
     p.add_argument("logs", nargs="*", help="native logs, or folders of them")
     p.add_argument("--out", required=True, metavar="MODEL_DIR",
                    help="model folder; holds checkpoint.pt, and a run resumes from it")
@@ -856,7 +861,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("synth", help="write procedural street drives with the true sun as native logs")
+    p = sub.add_parser("synth", parents=[debug], help="write procedural street drives with the true sun as native logs")
     p.add_argument("out", help="output folder (drives already there are kept: a run resumes)")
     p.add_argument("--drives", type=int, default=10)
     p.add_argument("--frames", type=int, default=40, help="frames per drive (default 40)")
@@ -868,7 +873,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_synth)
 
-    p = sub.add_parser("sun", help="the sun's position for a time and place (NREL SPA), as JSON")
+    p = sub.add_parser("sun", parents=[debug], help="the sun's position for a time and place (NREL SPA), as JSON")
     p.add_argument("--time", metavar="ISO8601", help="UTC time, e.g. 2011-09-26T11:02:26Z (no offset: UTC)")
     p.add_argument("--lat", type=float, metavar="DEG", help="latitude, north positive")
     p.add_argument("--lon", type=float, metavar="DEG", help="longitude, east positive")
@@ -881,7 +886,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="TT - UT1 in seconds (default: the Espenak & Meeus approximation, 67 s for 2011)")
     p.set_defaults(func=cmd_sun)
 
-    p = sub.add_parser("gnss", help="read a GNSS compass / INS (NMEA 0183) and print what it decodes")
+    p = sub.add_parser("gnss", parents=[debug], help="read a GNSS compass / INS (NMEA 0183) and print what it decodes")
     p.add_argument("source", metavar="PORT_OR_FILE",
                    help="serial device, pyserial URL (socket://HOST:PORT) or an NMEA capture file")
     p.add_argument("--jsonl", metavar="PATH|-", default="-",
@@ -895,17 +900,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _debug_anywhere(parser: argparse.ArgumentParser) -> None:
-    """Accept --debug after the subcommand too (``sunrig replay X --debug``), where people add it
-    when an error says "rerun with --debug"; SUPPRESS keeps a subcommand from resetting it."""
-    for action in parser._subparsers._group_actions:  # noqa: SLF001 - argparse has no public walk
-        for sub in action.choices.values():
-            sub.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    _debug_anywhere(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.WARNING,
