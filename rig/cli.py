@@ -14,6 +14,7 @@ import math
 import os
 import sys
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 
 from rig.errors import SunrigError
@@ -191,6 +192,7 @@ def _effective_config(args: argparse.Namespace) -> dict:
         "output.jsonl": getattr(args, "jsonl", None),
         "output.record": getattr(args, "record", None),
         "output.record_frames": True if getattr(args, "record_frames", False) else None,
+        "output.record_overwrite": True if getattr(args, "record_overwrite", False) else None,
         "rig.realtime": False if getattr(args, "fast", False) else None,
         **{f"source.{name}": getattr(args, name, None)
            for name in ("calibration", "hfov_deg", "width", "height", "fps", "max_gap_s", "max_age_s",
@@ -273,11 +275,17 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
                         ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
                         realtime=r["realtime"])
     out = cfg["output"]
+    record = None
+    if out["record"]:
+        from rig.recorder import recording_path
+
+        record = str(recording_path(out["record"], start_utc=datetime.now(UTC), overwrite=out["record_overwrite"],
+                                    flag="--record", overwrite_flag="--record-overwrite"))
     _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]),
-                        jsonl=out["jsonl"], record=out["record"])
+                        jsonl=out["jsonl"], record=record)
     pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
                        jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
-                       record=out["record"] or None, record_frames=out["record_frames"], nmea_stdout=nmea_stdout,
+                       record=record, record_frames=out["record_frames"], nmea_stdout=nmea_stdout,
                        live=True)
     recorder = next((p for p in pubs if type(p).__name__ == "RecorderPublisher"), None)
 
@@ -339,9 +347,11 @@ def cmd_record(args: argparse.Namespace) -> int:
     import threading
 
     from replay.native import LogWriter
+    from rig.recorder import recording_path
 
     cfg = _effective_config(args)
-    _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=args.out)
+    out = recording_path(args.out, start_utc=datetime.now(UTC), overwrite=args.overwrite)
+    _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=str(out))
     # The sources first: a wrong camera or port fails before the output file is created.
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     state = {"writing": False, "stop": False}
@@ -366,7 +376,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         deadline.daemon = True
         deadline.start()
     try:
-        writer = LogWriter(args.out)
+        writer = LogWriter(out)
         try:
             for frame in source:
                 state["writing"] = True
@@ -412,12 +422,12 @@ def cmd_record(args: argparse.Namespace) -> int:
             signal.signal(signal.SIGINT, previous)
         source.close()
     if disk_full is not None:
-        raise SunrigError(f"record: {args.out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
-                          f"chunks still replay (sunrig replay {args.out}); free space or pass another --out")
+        raise SunrigError(f"record: {out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
+                          f"chunks still replay (sunrig replay {out}); free space or pass another --out")
     if not quiet:
         if live_line:
             sys.stderr.write("\n")
-        summary = f"{n} frames ({n_heading} with heading) in {time.monotonic() - start:.1f} s to {args.out}"
+        summary = f"{n} frames ({n_heading} with heading) in {time.monotonic() - start:.1f} s to {out}"
         if interrupted or state["stop"]:
             summary += " (stopped by Ctrl-C; the log is complete)"
         details = _source_summary(source.stats())
@@ -786,6 +796,9 @@ def build_parser() -> argparse.ArgumentParser:
     _output_flags(p, defaults=False)
     p.add_argument("--record", metavar="OUT.mcap", help="record estimates (and frames with --record-frames)")
     p.add_argument("--record-frames", action="store_true")
+    p.add_argument("--record-overwrite", action="store_true",
+                   help="replace an existing --record file (by default it is refused; {start} in its name is "
+                        "the UTC start time, for a new file per run)")
     p.add_argument("--fast", action="store_true", help="do not pace a file: camera by its timestamps")
     p.add_argument("--quiet", action="store_true", help="no status lines on stderr")
     p.set_defaults(func=cmd_run)
@@ -793,7 +806,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("record", parents=[debug],
                        help="record live sources (frames, heading, GNSS, intrinsics) to a native log")
     _source_flags(p)
-    p.add_argument("--out", required=True, metavar="OUT.mcap", help="the native log to write (replaced if it exists)")
+    p.add_argument("--out", required=True, metavar="OUT.mcap",
+                   help="the native log to write; {start} in the name is the UTC start time (20261123T031500Z). "
+                        "An existing file is refused unless --overwrite")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--seconds", type=_positive_float, metavar="N",
                    help="stop after N seconds (default: Ctrl-C or the end)")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="stop after N frames")

@@ -60,6 +60,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "jsonl": "",  # path or - ; empty: none
         "record": "",  # MCAP path; empty: no recording
         "record_frames": False,  # record the frames too, not only the estimates
+        "record_overwrite": False,  # replace an existing recording (by default it is refused)
     },
 }
 

@@ -8,13 +8,36 @@ from __future__ import annotations
 
 import logging
 import threading
+from datetime import datetime
 from pathlib import Path
 
+from rig.errors import SunrigError
 from rig.publishers import ErrorTally
 from rig.ring import DropOldestQueue
 from rig.types import Frame, SunEstimate
 
 log = logging.getLogger(__name__)
+
+START_FIELD = "{start}"
+
+
+def recording_path(template: str | Path, *, start_utc: datetime, overwrite: bool = False,
+                   flag: str = "--out", overwrite_flag: str = "--overwrite") -> Path:
+    """The file a recording goes to, refused if it exists unless ``overwrite``.
+
+    A drive cannot be recorded again, so an existing recording is never replaced by accident
+    (rosbag2 refuses an existing output the same way). ``{start}`` in the name becomes the UTC
+    start time (``20261123T031500Z``), so a rig that starts recording at every boot with the same
+    configuration writes a new file each time instead of failing. ``flag`` and ``overwrite_flag``
+    name the options in the error, as the command spells them.
+    """
+    name = str(template)
+    path = Path(name.replace(START_FIELD, start_utc.strftime("%Y%m%dT%H%M%SZ")))
+    if path.exists() and not overwrite:
+        hint = f" or put {START_FIELD} in the name for a new file per run" if START_FIELD not in name else ""
+        raise SunrigError(f"{flag} {path} exists: a recording is not replaced by accident; pass another path{hint}, "
+                          f"or {overwrite_flag} to replace it")
+    return path
 
 
 class RecorderPublisher:

@@ -195,11 +195,40 @@ def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
     shutil.copy(DEMO_LOG, log)
     before = log.read_bytes()
     for args in (["replay", str(log), "--jsonl", str(log)],
-                 ["record", "--camera", f"file:{log}", "--heading", "log", "--out", str(log)],
+                 ["record", "--camera", f"file:{log}", "--heading", "log", "--out", str(log), "--overwrite"],
                  ["run", "--camera", f"file:{log}", "--heading", "log", "--jsonl", str(log)]):
         res = run_cli(*args)
         assert res.returncode == 2 and "is the input being read" in res.stderr, (args, res.stderr)
         assert log.read_bytes() == before, args
+
+
+def test_an_existing_recording_is_refused_unless_overwrite_is_given(tmp_path):
+    from replay.native import read_estimates
+    from replay.sources import DEMO_LOG, open_frames
+
+    keep = tmp_path / "drive.mcap"
+    keep.write_bytes(b"yesterday's drive")
+    record = ["record", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--frames", "3", "--quiet"]
+    run = ["run", "--camera", f"file:{DEMO_LOG}", "--fast", "--quiet"]
+    for args in ([*record, "--out", str(keep)], [*run, "--record", str(keep)]):
+        res = run_cli(*args)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, (args, res.stderr)
+        assert f"{keep} exists" in res.stderr and "{start}" in res.stderr, res.stderr
+        assert keep.read_bytes() == b"yesterday's drive", args
+
+    res = run_cli(*record, "--out", str(keep), "--overwrite")
+    assert res.returncode == 0, res.stderr
+    assert len(list(open_frames(keep))) == 3
+    res = run_cli(*run, "--record", str(keep), "--record-overwrite")
+    assert res.returncode == 0, res.stderr
+    assert len(list(read_estimates(keep))) >= 1
+
+    # {start}: a new file per run, named by the UTC start time, for a rig that records at every boot.
+    res = run_cli(*record, "--out", str(tmp_path / "drive-{start}.mcap"))
+    assert res.returncode == 0, res.stderr
+    made = sorted(tmp_path.glob("drive-*.mcap"))
+    assert len(made) == 1 and re.fullmatch(r"drive-\d{8}T\d{6}Z\.mcap", made[0].name), made
+    assert len(list(open_frames(made[0]))) == 3
 
 
 def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
@@ -215,9 +244,11 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
         ["synth", str(tmp_path / "s"), "--render-scale", "nan"],
         ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--minutes", "nan"],
         ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--lr", "-1"],
-        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--seconds", "inf"],
-        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--jpeg-quality", "101"],
-        ["run", "--camera", f"file:{DEMO_LOG}", "--config", str(bad_rig), "--record", str(keep)],
+        # --overwrite: even where replacing the recording is allowed, a bad number must not reach it.
+        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--seconds", "inf"],
+        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--jpeg-quality", "101"],
+        ["run", "--camera", f"file:{DEMO_LOG}", "--config", str(bad_rig), "--record", str(keep),
+         "--record-overwrite"],
         ["eval", str(DEMO_LOG), "--plot", str(tmp_path / "curves.txt")],
         ["eval", str(DEMO_LOG), "--json", str(tmp_path / "no" / "such" / "folder" / "out.json")],
     )
