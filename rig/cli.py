@@ -773,7 +773,8 @@ def build_parser() -> argparse.ArgumentParser:
     debug.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
     p = sub.add_parser("replay", parents=[debug], help="run a recorded log through the estimator")
-    p.add_argument("log", nargs="?", help="a native sunrig log (.mcap); default: the bundled demo drive")
+    p.add_argument("log", nargs="?",
+                   help="a native sunrig log (.mcap) or a KITTI raw drive folder; default: the bundled demo drive")
     p.add_argument("--jsonl", metavar="PATH|-", help="write one JSON object per estimate here (- for stdout)")
     p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregator", default="transformer", choices=["transformer", "mean", "meanshift", "single"])
@@ -833,7 +834,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_config)
 
     p = sub.add_parser("eval", parents=[debug], help="angular error of every aggregator over logs with ground truth")
-    p.add_argument("logs", nargs="+", help="native logs, or folders of them")
+    p.add_argument("logs", nargs="+", help="native logs (.mcap), folders of them, or KITTI raw drive folders")
     p.add_argument("--json", metavar="OUT", help="write the summary here (default: stdout)")
     p.add_argument("--plot", metavar="OUT.png", help="cumulative error curves (and OUT-tokens.png)")
     p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
@@ -847,11 +848,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("train", parents=[debug], help="train a model on logs with ground truth (needs sunrig[train])")
-    p.add_argument("logs", nargs="*", help="native logs, or folders of them")
+    p.add_argument("logs", nargs="*", help="native logs (.mcap), folders of them, or KITTI raw drive folders")
     p.add_argument("--out", required=True, metavar="MODEL_DIR",
                    help="model folder; holds checkpoint.pt, and a run resumes from it")
     p.add_argument("--preset", default="fast",
-                   help="network preset: fast (default, the 90-minute CPU recipe), light, paper (ResNet18 at 224 px)")
+                   help="network preset: fast (default, the 2-core CPU recipe of docs/model.md), light, "
+                        "paper (ResNet18 at 224 px), tiny (for tests)")
     p.add_argument("--minutes", type=_positive_float, default=80.0, help="training time budget (default 80)")
     p.add_argument("--steps", type=_nonneg_int, default=0, help="stop after this many steps instead")
     p.add_argument("--batch", type=_positive_int, default=6, help="windows per step (default 6)")
