@@ -307,6 +307,8 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
         if live_line:
             sys.stderr.write("\n")
         print(f"sunrig: done: {stats.status_line(stats.ended_s)}", file=sys.stderr)
+        if record:
+            print(f"sunrig: recorded to {record}", file=sys.stderr)  # {start} made its name
     return _report_output_losses(stats)
 
 
