@@ -54,8 +54,19 @@ def test_mean_is_of_raw_vectors_and_spread_is_rms_angle():
     np.testing.assert_allclose(unit, normalize([1.0, 1.0, 0.0]), atol=EXACT_F64)
     assert spread == pytest.approx(math.pi / 4)
     assert spread_rad(v, np.array([1.0, 0.0, 0.0])) == pytest.approx(math.sqrt((0 + (math.pi / 2) ** 2) / 2))
+    # Equal lengths cannot tell the raw mean from a mean of unit vectors, nor the RMS over every
+    # token from the first token's angle. A token twice as long pulls the mean twice as far:
+    # (2, 1, 0) / sqrt(5), which is atan(1/2) from the first token and atan(2) from the second.
+    unit, spread = mean_direction(np.array([[2.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+    np.testing.assert_allclose(unit, np.array([2.0, 1.0, 0.0]) / math.sqrt(5.0), atol=EXACT_F64)
+    assert spread == pytest.approx(math.sqrt((math.atan(0.5) ** 2 + math.atan(2.0) ** 2) / 2))
 
 
 def test_cancelling_tokens_raise():
     with pytest.raises(EstimationError, match="cancel out"):
         mean_direction(np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]))
+
+
+def test_a_nan_token_raises_instead_of_giving_a_nan_estimate():
+    with pytest.raises(EstimationError):
+        mean_direction(np.array([[np.nan, 0.0, 0.0], [0.0, 1.0, 0.0]]))

@@ -32,6 +32,9 @@ def test_boxes_inside_image_uniform_and_seeded():
     b = sample_crop_boxes(KITTI, 4, 224, frame_rng(7, 12))
     c = sample_crop_boxes(KITTI, 4, 224, frame_rng(7, 13))
     assert (a == b).all() and not (a == c).all()
+    # A crop as large as the image has one valid corner, and every draw uses it.
+    k = Intrinsics(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
+    assert (sample_crop_boxes(k, 4, 100, np.random.default_rng(0))[:, :2] == 0).all()
 
 
 def test_spread_boxes_one_per_stratum_and_each_uniform_within_it():
@@ -65,6 +68,8 @@ def test_spread_boxes_one_per_stratum_and_each_uniform_within_it():
 def test_sample_rejects_bad_sizes():
     with pytest.raises(ValidationError, match="crop side"):
         sample_crop_boxes(KITTI, 4, 400, np.random.default_rng(0))
+    with pytest.raises(ValidationError, match="crop side"):
+        sample_crop_boxes(KITTI, 4, 0, np.random.default_rng(0))
     with pytest.raises(ValidationError, match="crops per frame"):
         sample_crop_boxes(KITTI, 0, 100, np.random.default_rng(0))
     with pytest.raises(ValidationError, match="crop side"):
@@ -81,6 +86,16 @@ def test_crop_angles_centre_zero_edges_half_fov():
     half_h, half_v = k.hfov_rad / 2, k.vfov_rad / 2
     np.testing.assert_allclose(ang[0], [-half_h, half_v])  # top left: left and up
     np.testing.assert_allclose(ang[1], [half_h, -half_v])  # bottom right: right and down
+
+
+def test_crop_side_follows_fx_and_angles_fx_across_fy_up():
+    # Non-square pixels (fx = 400, fy = 200): the crop's side is 2 fx tan(fov / 2) = 200 px for a
+    # fov of 2 atan(1/4); a box centred 40 px right of and 40 px above the principal point is at
+    # atan(40 / fx) across and atan(40 / fy) up.
+    k = Intrinsics(fx=400.0, fy=200.0, cx=320.0, cy=240.0, width=640, height=480)
+    assert crop_side_px(k, 2 * math.atan(0.25)) == 200
+    ang = crop_angles_rad(np.array([[320 + 40 - 50, 240 - 40 - 50, 100, 100]]), k)
+    np.testing.assert_allclose(ang[0], [math.atan(40 / 400), math.atan(40 / 200)])
 
 
 def test_crop_then_reproject_round_trip():

@@ -18,6 +18,10 @@ from rig.window import SpreadWindowPolicy
 INTR = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
 RNG = np.random.default_rng(0)
 TEXTURED = RNG.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
+# Grey bands 8 rows high alternating 100 and 104: the gate's every-8th-row sample sees luma
+# 100, 104, 100, ... with standard deviation 2 (variance 4).
+BANDED = np.empty((80, 128, 3), np.uint8)
+BANDED[:] = np.where(np.arange(80) // 8 % 2, 104, 100)[:, None, None]
 
 
 def test_luminance_uses_bt601_weights_in_bgr_order():
@@ -34,6 +38,7 @@ def test_luminance_uses_bt601_weights_in_bgr_order():
     (np.full((80, 128, 3), 255, np.uint8), "bright"),  # a blinded sensor
     (np.full((80, 128, 3), 128, np.uint8), "flat"),  # a covered lens
     (np.clip(128 + RNG.normal(0, 1, (80, 128, 3)), 0, 255).astype(np.uint8), "flat"),
+    (BANDED, "flat"),  # min_std 3 is a standard deviation: 2 is below it (a variance of 4 is not)
     (TEXTURED, None),
 ])
 def test_gate_names_why_a_frame_cannot_show_the_sun(image, reason):
@@ -41,7 +46,8 @@ def test_gate_names_why_a_frame_cannot_show_the_sun(image, reason):
 
 
 def test_gate_thresholds_are_checked():
-    for bad in ({"min_mean": 200.0, "max_mean": 100.0}, {"max_mean": 300.0}, {"min_std": -1.0}):
+    for bad in ({"min_mean": 200.0, "max_mean": 100.0}, {"min_mean": 100.0, "max_mean": 100.0}, {"max_mean": 300.0},
+                {"min_std": -1.0}):
         with pytest.raises(ValidationError, match="ExposureGate"):
             ExposureGate(**bad)
 

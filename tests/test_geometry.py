@@ -45,6 +45,13 @@ def test_az_el_round_trip_batched_equals_scalar():
         np.testing.assert_allclose(enu_from_az_el(az[i], el[i]), v[i], atol=EXACT_F64)
 
 
+def test_az_el_of_a_vector_that_is_not_unit_length():
+    # (0.3, 0.4, 1.0) is 0.5 along the ground and 1.0 up: elevation atan2(1, 0.5), not asin(1).
+    az, el = az_el_from_enu([0.3, 0.4, 1.0])
+    assert float(az) == pytest.approx(math.atan2(0.3, 0.4), abs=ANGLE_RAD_F64)
+    assert float(el) == pytest.approx(math.atan2(1.0, 0.5), abs=ANGLE_RAD_F64)
+
+
 @pytest.mark.parametrize(
     ("heading_deg", "forward_enu", "right_enu"),
     [
@@ -104,3 +111,10 @@ def test_view_angles_centre_and_edges():
     # KITTI image_02: 81.4 x 29.1 deg edge to edge (docs/conventions.md).
     assert math.degrees(right - left) == pytest.approx(81.4, abs=0.05)
     assert math.degrees(top - bottom) == pytest.approx(29.1, abs=0.05)
+
+
+def test_view_angles_with_non_square_pixels():
+    # fx = 500, fy = 250: 100 px right of centre and 50 px above it are both tan = 0.2.
+    hz, vt = view_angles_rad(300.0 + 100.0, 200.0 - 50.0, 500.0, 250.0, 300.0, 200.0)
+    assert float(hz) == pytest.approx(math.atan(0.2), abs=ANGLE_RAD_F64)
+    assert float(vt) == pytest.approx(math.atan(0.2), abs=ANGLE_RAD_F64)

@@ -173,6 +173,10 @@ def test_lines_over_82_characters():
         assert [u.sentence for u in out] == ["RMC", "GGA", "HDT"]
         assert counts["long_lines"] == 1 and counts["overlong"] == 1
         assert counts["garbage_bytes"] == 0  # the overlong line is counted once, as overlong
+    # Past the limit a line is dropped at once, without waiting for a line end that may never come.
+    framer = NmeaFramer()
+    framer.feed(b"$GPHDT," + b"1" * 200)
+    assert framer.counts["overlong"] == 1
 
 
 def test_binary_noise_between_sentences_loses_no_sentence():
@@ -315,6 +319,17 @@ def test_gga_across_midnight_lands_on_the_right_day():
         "2014-02-19T23:59:59.900000Z", "2014-02-20T00:00:00.100000Z", "2014-02-19T23:59:59.950000Z"]
 
 
+def test_a_gga_only_stream_keeps_its_date_hour_after_hour():
+    # One RMC, then only GGA (time of day, no date) every hour for 26 hours: each GGA is dated
+    # from the one before it, so the day advances at each midnight, also more than half a day
+    # after the RMC (13 h after 08:00 is 21:00 the same day, not 21:00 the day before).
+    rmc = nmea("GPRMC,080000.00,A,4807.038,N,01131.000,E,0.0,0.0,010124,,,A")
+    ggas = [nmea(f"GPGGA,{(8 + k) % 24:02d}0000.00,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,")
+            for k in range(1, 27)]
+    out, _ = updates_of(rmc, *ggas)
+    assert [u.utc_ns - out[0].utc_ns for u in out] == [k * 3600 * 10**9 for k in range(27)]
+
+
 def test_bad_fields_are_counted_not_raised():
     out, counts = updates_of(
         nmea("GPGGA,204133.10,4261.735766,N,08802.039145,W,2,09,0.9,221.871,M,,,4,0138"),  # 61 minutes
@@ -325,8 +340,12 @@ def test_bad_fields_are_counted_not_raised():
         nmea("GPZDA,204133.000,19,02,2300,,"),  # a calendar date, but past int64 nanoseconds (2262)
         nmea("GPHDT,1e2,T"),
         nmea("GPHDT,10.0"),  # too few fields
+        # one field just past its range, the rest of the sentence valid
+        nmea("GPRMC,240000.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D"),  # hour 24
+        nmea("GPGGA,204133.10,4260.000000,N,08802.039145,W,2,09,0.9,221.871,M,,,4,0138"),  # 60 minutes
+        nmea("PASHR,204132.000,010.51,T,+00.39,+95.00,-00.84,0.151,0.075,0.555,1,0"),  # pitch 95 deg
     )
-    assert out == [] and counts["bad_fields"] == 8
+    assert out == [] and counts["bad_fields"] == 11
     with pytest.raises(ProtocolError):
         decode_sentence(parse_sentence(nmea("GPHDT,abc,T")))
 

@@ -84,6 +84,17 @@ def test_source_holds_the_last_fix_and_counts(caplog):
     warnings = [r for r in caplog.records if "magnetic" in r.getMessage()]
     assert len(warnings) == 1  # once per pass, not per frame
     assert len(list(src)) == 7  # re-iterable
+    assert src.truth_stats.frames == 7  # counted afresh each pass, not added to the last
+
+
+def test_a_fix_is_not_held_for_frames_long_before_it():
+    # The held fix's age is a distance in time either way: a frame 61 s before the fix (a
+    # recording whose UTC stepped back) is as far from it as one 61 s after.
+    early = Frame(t_mono_s=0.2, seq=1, image_bgr=np.zeros((40, 64, 3), np.uint8), intrinsics=K,
+                  attitude=Attitude(0.0, HeadingRef.TRUE), utc_ns=T0_NS - 61 * 10**9)
+    src = GroundTruthSource([_frame(0), early])
+    out = list(src)
+    assert out[1].sun_enu_truth is None and src.truth_stats.no_fix == 1
 
 
 def test_wrapper_stands_in_for_the_source(tmp_path):

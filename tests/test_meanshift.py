@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from estimator.meanshift import meanshift_aggregate, meanshift_sphere, remove_outliers
+from estimator.meanshift import DEFAULT_BANDWIDTH_RAD, meanshift_aggregate, meanshift_sphere, remove_outliers
 from rig.geometry import angle_between, enu_from_az_el, normalize
 
 
@@ -35,11 +35,67 @@ def test_two_clusters_picks_the_bigger():
     assert angle_between(meanshift_sphere(units), a) < math.radians(3)
 
 
+def test_clusters_38_deg_apart_are_two_modes_to_the_default_bandwidth():
+    # 40 deg of azimuth at 17 deg elevation is 38 deg on the sphere, two and a half 15 deg
+    # bandwidths: the mode stays on the bigger cluster instead of being pulled between them.
+    rng = np.random.default_rng(7)
+    a, b = enu_from_az_el(0.0, 0.3), enu_from_az_el(math.radians(40.0), 0.3)
+    units = np.concatenate([_cluster(rng, a, 12, 0.02), _cluster(rng, b, 9, 0.02)])
+    assert angle_between(meanshift_sphere(units), a) < math.radians(3)
+
+
+def test_mode_is_a_fixed_point_of_the_kernel_mean():
+    # A skewed cluster, so that one shift does not reach the mode: the iteration must run until
+    # the kernel-weighted mean of the samples around the mode is the mode itself, with the
+    # documented kernel (a vMF of concentration 1 / bandwidth^2).
+    rng = np.random.default_rng(5)
+    u = np.concatenate([_cluster(rng, enu_from_az_el(0.3, 0.5), 12, 0.05),
+                        _cluster(rng, enu_from_az_el(0.55, 0.5), 6, 0.05)])
+    mode = meanshift_sphere(u)
+    kappa = 1.0 / DEFAULT_BANDWIDTH_RAD**2
+    again = normalize(np.exp(kappa * (u @ mode - 1.0)) @ u)
+    assert float(angle_between(again, mode)) < 1e-5
+
+
+def test_a_narrow_bandwidth_does_not_overflow():
+    # kappa = 1 / (1 deg)^2 ~ 3300: exp(kappa * cos) would overflow; the kernel is shifted by -1.
+    u = _cluster(np.random.default_rng(0), enu_from_az_el(1.0, 0.5), 10, 0.01)
+    mode = meanshift_sphere(u, bandwidth_rad=math.radians(1.0))
+    assert np.isfinite(mode).all() and np.linalg.norm(mode) == pytest.approx(1.0)
+
+
+def test_outliers_are_removed_around_the_medoid_before_the_mode():
+    # A tight minority 120 deg away is denser than the wide majority, so mean shift alone would
+    # pick it; it is far from the medoid (inside the majority), so outlier removal drops it first.
+    rng = np.random.default_rng(4)
+    a = enu_from_az_el(0.0, 0.4)
+    b = enu_from_az_el(math.radians(120.0), 0.4)
+    u = np.concatenate([_cluster(rng, a, 12, math.radians(12)), _cluster(rng, b, 8, math.radians(0.5))])
+    mode, inliers = meanshift_aggregate(u)
+    assert not inliers[12:].any()
+    assert math.degrees(float(angle_between(mode, a))) < 6.0
+
+
 def test_identical_samples_are_their_own_mode():
     v = np.tile(normalize([1.0, 2.0, 3.0]), (5, 1))
     mode, inliers = meanshift_aggregate(v)
     np.testing.assert_allclose(mode, v[0], atol=1e-12)
     assert inliers.all()
+
+
+@pytest.mark.parametrize(
+    ("samples", "kept"),
+    [
+        # (deg from the pole, azimuth deg); the pole is the medoid. Distances 0, 10..14, 30, 40:
+        # median 12.5, MAD 2.0, so the limit is 12.5 + 3 * 1.4826 * 2.0 = 21.4 deg.
+        ([(0, 0), (10, 0), (11, 90), (12, 180), (13, 270), (14, 45), (30, 135), (40, 225)], [True] * 6 + [False] * 2),
+        # A tight cluster makes the MAD limit a fraction of a degree: the 15 deg floor keeps 12 deg.
+        ([(0, 0), (0.01, 0), (0.02, 0), (0.03, 0), (0.04, 0), (12, 0)], [True] * 6),
+    ],
+)
+def test_inlier_limit_is_three_scaled_mads_past_the_median_never_below_the_floor(samples, kept):
+    u = np.array([enu_from_az_el(math.radians(az), math.radians(90 - d)) for d, az in samples])
+    assert remove_outliers(u).tolist() == kept
 
 
 def test_remove_outliers_keeps_at_least_the_medoid():

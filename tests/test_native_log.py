@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from mcap.decoder import DecoderFactory as McapDecoderFactory
 from mcap.reader import make_reader
@@ -39,6 +40,7 @@ from replay.native import (
     TOPIC_UTC,
     LogWriter,
     NativeLogSource,
+    encode_calibration,
     estimate_from_dict,
     open_log,
     read_estimates,
@@ -538,6 +540,65 @@ def test_corrupt_heading_drops_only_that_message(tmp_path, monkeypatch):
     assert got[2].attitude is None and got[2].gnss == frames[2].gnss
     assert got[3].attitude is not None
     assert src.stats.corrupt_skipped == 1
+
+
+@pytest.mark.parametrize(
+    ("encoder", "bad", "field"),
+    [
+        ("encode_utc", b'{"utc": {"sec": 1317042145, "nsec": 1000000000}, "seq": 12}', "utc_ns"),  # nsec past 1 s
+        ("encode_sun_truth", b'{"sun_enu": [0.0, 0.6, 0.8, 0.0], "seq": 12}', "sun_enu_truth"),  # 4 numbers
+    ],
+)
+def test_an_out_of_range_utc_or_truth_drops_only_that_message(tmp_path, monkeypatch, encoder, bad, field):
+    frames = make_frames(5)
+    path = tmp_path / "badaux.mcap"
+    with LogWriter(path) as w:
+        for f in frames:
+            if f.seq == 12:
+                monkeypatch.setattr(native, encoder, lambda *a: bad)
+            w.write_frame(f)
+            monkeypatch.undo()
+    src = open_log(path)
+    got = list(src)
+    assert [g.seq for g in got] == [f.seq for f in frames]
+    assert getattr(got[2], field) is None and got[2].attitude is not None
+    assert src.stats.corrupt_skipped == 1
+
+
+def _cut_calibration(intr: Intrinsics, t_ns: int) -> bytes:
+    return b"\x0a\xff\xff"  # a protobuf field whose length runs past the message
+
+
+def _distorted_calibration(intr: Intrinsics, t_ns: int) -> bytes:
+    """A well-formed calibration with lens distortion, which sunrig's rectified frames never have."""
+    msg = CameraCalibration.FromString(encode_calibration(intr, t_ns))
+    msg.D[:] = [0.1, 0.0, 0.0, 0.0, 0.0]
+    return msg.SerializeToString()
+
+
+@pytest.mark.parametrize("bad_calibration", [_cut_calibration, _distorted_calibration], ids=["cut", "distorted"])
+def test_a_refused_calibration_drops_frames_until_the_next_one(tmp_path, monkeypatch, bad_calibration):
+    # The camera's calibration changes at seq 100 and that message is refused: frames 100 and 101
+    # would otherwise be read with the calibration before it (same image size, wrong fx), so they
+    # are dropped until the calibration of seq 200.
+    other = Intrinsics(fx=70.0, fy=70.0, cx=32.0, cy=24.0, width=W, height=H)
+    rng = np.random.default_rng(7)
+    frames = make_frames(3, seed=5, full=False)
+    frames += [Frame(t_mono_s=2000.0 + i, seq=100 + i, image_bgr=make_image(i, rng), intrinsics=other)
+               for i in range(2)]
+    frames.append(Frame(t_mono_s=2010.0, seq=200, image_bgr=make_image(9, rng), intrinsics=INTR))
+    path = tmp_path / "badcalib.mcap"
+    with LogWriter(path) as w:
+        for f in frames:
+            if f.seq == 100:
+                monkeypatch.setattr(native, "encode_calibration", bad_calibration)
+            w.write_frame(f)
+            monkeypatch.undo()
+    src = open_log(path)
+    got = list(src)
+    assert [g.seq for g in got] == [10, 11, 12, 200]
+    assert all(g.intrinsics == INTR for g in got)
+    assert src.stats.corrupt_skipped == 3  # the calibration and the two images after it
 
 
 @pytest.mark.parametrize("which", ["middle", "first"])

@@ -15,6 +15,12 @@ def frame(seq, t):
     return Frame(t_mono_s=t, seq=seq, image_bgr=IMG, intrinsics=INTR)
 
 
+@pytest.mark.parametrize(("max_jump_s", "speed"), [(10.0, 0.0), (10.0, -1.0), (0.0, 1.0)])
+def test_speed_and_jump_limit_must_be_positive(max_jump_s, speed):
+    with pytest.raises(ValueError, match="Pacer"):
+        Pacer(max_jump_s, speed=speed)
+
+
 def test_frames_wait_for_their_time_scaled_by_speed():
     p = Pacer(max_jump_s=10.0, speed=2.0)
     assert p.delay_s(frame(0, 5.0), now_s=100.0) == 0.0  # the first frame anchors the schedule

@@ -174,6 +174,10 @@ def test_status_rule_flags():
     assert rule.flags(make_estimate(100, 30, n_frames=7)) == FLAG_PARTIAL_WINDOW | FLAG_HAS_UTC
     assert rule.flags(make_estimate(100, 30, spread_deg=30.5, utc_ns=None)) == FLAG_SPREAD_HIGH
     assert rule.flags(make_estimate(100, 30, spread_deg=30.0, n_frames=9, utc_ns=None)) == FLAG_VALID
+    # A spread at the limit is still valid. 30 deg comes back from radians() as 29.999999999999996,
+    # so the line above cannot tell; 45 deg comes back exactly 45.
+    wide = StatusRule(full_window=8, max_spread_deg=45.0)
+    assert wide.flags(make_estimate(100, 30, spread_deg=45.0, utc_ns=None)) == FLAG_VALID
     with pytest.raises(ValidationError, match="full_window"):
         StatusRule(full_window=0)
     with pytest.raises(ValidationError, match="max_spread_deg"):
@@ -285,6 +289,7 @@ def _resigned(body: str) -> bytes:
         (_resigned("PSRGS,1,,1,400.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"), "field"),
         (_resigned("PSRGS,1,,1,1e2,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"), "field"),
         (_resigned("PSRGS,1,256199.00,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"), "field"),
+        (_resigned("PSRGS,1,240000.00,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V"), "field"),  # hour 24 alone
         (_resigned("PSRGS,1,,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,X,V"), "field"),
         (_resigned("PSRGS,1,,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,Q"), "field"),
     ],

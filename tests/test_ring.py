@@ -1,6 +1,7 @@
 """Bounded buffers: overflow policy, counters, and waits that always end."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -28,7 +29,11 @@ def test_queue_drops_oldest_and_counts():
 
 def test_queue_get_times_out_and_close_wakes_waiters():
     q = DropOldestQueue(1)
-    assert q.get(0.01) is None
+    # An empty get blocks for its timeout (a lower bound, not a speed check): one that returned
+    # at once would make the consumer spin on an empty queue.
+    t0 = time.monotonic()
+    assert q.get(0.2) is None
+    assert time.monotonic() - t0 >= 0.15
     got = []
     waiter = threading.Thread(target=lambda: got.append(q.get(30.0)))
     waiter.start()
@@ -59,6 +64,9 @@ def test_ring_refuses_late_frames():
     assert ring.push(feats(1, 1.0))
     assert not ring.push(feats(0, 0.5))
     assert ring.out_of_order == 1 and len(ring) == 1
+    # The same time as the newest is not late (two frames on one coarse clock tick).
+    assert ring.push(feats(2, 1.0))
+    assert ring.out_of_order == 1 and len(ring) == 2
 
 
 def test_ring_starts_again_after_a_clock_jump():
@@ -72,6 +80,7 @@ def test_ring_starts_again_after_a_clock_jump():
     assert ring.push(feats(4, 0.4)) and ring.push(feats(5, 0.5))
     assert [f.frame.seq for f in ring.snapshot()] == [4, 5]
     assert ring.restarts == 1 and ring.out_of_order == 0
+    assert ring.evicted == 4  # 3 by age when the jump came, then the one stamped ahead at the restart
     # A frame late by less than max_age_s is still refused, not a restart.
     assert not ring.push(feats(6, 0.45)) and ring.out_of_order == 1 and ring.restarts == 1
 

@@ -19,6 +19,7 @@ from estimator.contract import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     ModelContract,
+    parse_checksums,
 )
 from estimator.runtime import OnnxModel, check_expected
 from rig.errors import ContractMismatch, ModelError, ValidationError
@@ -131,6 +132,53 @@ def test_check_expected_names_nested_fields():
         check_expected(contract, {"input_norm": {"color_order": "BGR"}})
     with pytest.raises(ValidationError, match="not contract fields: crop_size"):
         check_expected(contract, {"crop_size": 64})
+
+
+CONTRACT = ModelContract(crop_size_px=64, embedding_dim=32)
+
+
+@pytest.mark.parametrize(
+    ("changes", "named"),
+    [
+        ({"crop_size_px": 0}, "crop_size_px"),
+        ({"crop_fov_deg": 0.0}, "crop_fov_deg"),
+        ({"crop_fov_deg": 180.0}, "crop_fov_deg"),  # 2 fx tan(90 deg): no crop spans it
+        ({"input_norm": {**CONTRACT.input_norm, "mean": [0.5] * 4}}, "input_norm.mean"),  # one per colour
+        # the encoding interlaces a sin(phi) and a cos(phi) branch per frequency (nets.py): depth is even
+        ({"encoding": {**CONTRACT.encoding, "depth_per_angle": 171}}, "depth_per_angle"),
+    ],
+)
+def test_contract_refuses_values_no_model_can_have(changes, named):
+    with pytest.raises(ContractMismatch, match=named):
+        ModelContract(**{"crop_size_px": 64, "embedding_dim": 32, **changes})
+
+
+def test_trained_sun_elevations_are_read_only_as_a_range():
+    def trained(elevations):
+        data = {"data": {"sun_elevation_deg": elevations}}
+        return ModelContract(crop_size_px=64, embedding_dim=32, training=data).trained_sun_elevation_deg
+
+    assert trained([10.0, 60.0]) == (10.0, 60.0)
+    assert trained([60.0, 10.0]) is None  # lowest above highest: a broken record, not a range
+    assert trained([10.0, 95.0]) is None
+
+
+def test_contract_from_json_refuses_unknown_fields_and_other_versions():
+    # OnnxModel.load checks a graph's contract version before it parses the contract (tests
+    # below); the contract itself checks too, for every other reader of one.
+    good = json.loads(CONTRACT.to_json())
+    assert ModelContract.from_json(json.dumps(good)) == CONTRACT
+    with pytest.raises(ContractMismatch, match="does not know \\(colour_space\\)"):
+        ModelContract.from_json(json.dumps({**good, "colour_space": "linear"}))
+    with pytest.raises(ContractMismatch, match="contract version 1, got 0"):
+        ModelContract.from_json(json.dumps({**good, "version": 0}))
+
+
+def test_checksums_keep_only_sha256_lines():
+    # An md5sum line has the same shape but a 32-digit digest: it checks nothing sunrig trusts.
+    sha = "a" * 64
+    text = f"{sha}  backbone.onnx\nd41d8cd98f00b204e9800998ecf8427e  aggregator.onnx\n"
+    assert parse_checksums(text) == {"backbone.onnx": sha}
 
 
 @pytest.mark.torch
@@ -260,7 +308,6 @@ def test_a_graph_damaged_in_a_copy_is_refused_by_its_checksum(tiny_model_dir, tm
 
 
 def test_the_shipped_model_passes_its_checksums():
-    from estimator.contract import parse_checksums
     from estimator.models import DEFAULT_MODEL_DIR
 
     sums = parse_checksums((DEFAULT_MODEL_DIR / CHECKSUMS_FILE).read_text())

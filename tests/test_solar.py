@@ -165,6 +165,33 @@ def test_scalar_and_batched_agree():
     np.testing.assert_allclose(np.linalg.norm(batch.enu, axis=-1), 1.0, atol=EXACT_F64)
 
 
+def test_azimuth_is_within_0_to_360_deg():
+    # The pvlib comparison above wraps the difference (359.9999 vs 0.0001 is a match), so it would
+    # not notice an azimuth of, say, 400 deg; this checks the range itself (docs/conventions.md).
+    c = _random_cases(200, seed=11)
+    steps = spa_steps(c["sec"].astype("datetime64[s]"), c["lat"], c["lon"], c["elev"], c["pressure"], c["temp"],
+                      c["delta_t"], c["refraction"])
+    assert ((steps["Phi"] >= 0.0) & (steps["Phi"] < 360.0)).all()
+    pos = sun_position(c["sec"].astype("datetime64[s]"), c["lat"], c["lon"], c["elev"], delta_t_s=c["delta_t"])
+    assert ((pos.azimuth_rad >= 0.0) & (pos.azimuth_rad < 2 * math.pi)).all()
+
+
+def test_delta_t_defaults_to_the_approximation_for_the_date():
+    t = np.datetime64("2011-09-26T11:02:25")
+    pos = sun_position(t, 49.0, 8.4)
+    # pvlib's calculate_deltat(2011, 9) is 67.46 s (Espenak & Meeus); not 0, the value of no default.
+    assert float(pos.delta_t_s) == pytest.approx(67.46, abs=0.05)
+    given = sun_position(t, 49.0, 8.4, delta_t_s=float(pos.delta_t_s))
+    assert float(given.azimuth_rad) == float(pos.azimuth_rad)
+
+
+@pytest.mark.parametrize("lat_deg", [90.0, -90.0])
+def test_the_poles_are_valid_places(lat_deg):
+    # The latitude range [-90, 90] is inclusive at both ends (91 is refused, above).
+    pos = sun_position(np.datetime64("2011-06-21T12:00:00"), lat_deg, 0.0)
+    assert np.isfinite(pos.enu).all()
+
+
 def test_time_forms_agree():
     ns = 1_317_034_945_961_661_696  # 2011-09-26T11:02:25.961661696Z
     forms = [

@@ -42,6 +42,21 @@ def test_a_turn_draws_more_frames_than_the_straight():
     assert chosen[0].frame.t_mono_s <= 0.5  # the straight is still represented
 
 
+def test_time_apart_is_counted_in_spans():
+    # The oldest frame is one span back at the same heading (distance 1); the middle one a quarter
+    # span back but turned 90 deg, two yaw scales (distance ~2.02). In seconds the oldest would
+    # look 4 apart and win.
+    ring = [feats(0, 0.0, yaw=0.0), feats(1, 3.0, yaw=np.pi / 2), feats(2, 4.0, yaw=0.0)]
+    assert [f.frame.seq for f in SpreadWindowPolicy(2, 4.0).select(ring)] == [1, 2]
+
+
+def test_headings_apart_wrap_through_north():
+    # 357.1 deg and 2.9 deg are 5.7 deg apart across north: the oldest frame nearly repeats the
+    # newest, and the one turned to 34 deg is the more different view.
+    ring = [feats(0, 2.9, yaw=2 * np.pi - 0.05), feats(1, 3.0, yaw=0.6), feats(2, 4.0, yaw=0.05)]
+    assert [f.frame.seq for f in SpreadWindowPolicy(2, 4.0).select(ring)] == [1, 2]
+
+
 def test_deterministic():
     ring = [feats(i, i * 0.1, yaw=0.05 * (i % 7)) for i in range(60)]
     a = SpreadWindowPolicy().select(ring)
