@@ -450,7 +450,8 @@ class LogWriter:
     process) still leaves a log that replays up to its last finished chunk.
 
     ``target`` is a path or a binary stream with ``write``/``tell``/``flush`` (left open on close).
-    ``chunk_size`` is the uncompressed bytes per chunk: the most a kill can lose.
+    ``chunk_size`` is the uncompressed bytes per chunk: the most a kill can lose. ``exclusive``:
+    a path that exists raises ``FileExistsError`` instead of being replaced.
     """
 
     def __init__(
@@ -459,6 +460,7 @@ class LogWriter:
         *,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         compression: str = "zstd",
+        exclusive: bool = False,
     ) -> None:
         if not isinstance(chunk_size, int) or chunk_size <= 0:
             raise ValidationError(
@@ -473,7 +475,10 @@ class LogWriter:
         self._detach = False
         if self._owns_file:
             try:
-                self._file: IO[bytes] = open(target, "wb")  # noqa: SIM115 - closed in close()
+                # "xb": a file that exists raises FileExistsError, for the caller to decide.
+                self._file: IO[bytes] = open(target, "xb" if exclusive else "wb")  # noqa: SIM115 - closed in close()
+            except FileExistsError:
+                raise
             except OSError as exc:
                 raise LogError(
                     f"cannot create log {_show(target)}: {exc.strerror}; "

@@ -7,6 +7,7 @@ else is a bug: one line and exit 1, with the traceback only under ``--debug``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import json
 import logging
@@ -73,8 +74,8 @@ def _load_model(model_dir: str | None):
 
 
 def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, rule,
-                record: str | None = None, record_frames: bool = False, nmea_stdout: bool = False,
-                live: bool = False) -> list:
+                record: str | None = None, record_overwrite: bool = False, record_frames: bool = False,
+                nmea_stdout: bool = False, live: bool = False) -> list:
     """The outputs a command asked for. Opened before any work, so a bad port fails at once.
 
     ``live``: the stream outputs (JSONL, NMEA on stdout) write in threads of their own, so a
@@ -94,13 +95,35 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
         if jsonl:
             pubs.append(stream(JsonlPublisher(jsonl, status_rule=rule)))
         if record:
-            from rig.recorder import RecorderPublisher
+            from rig.recorder import RecorderPublisher, open_recording
 
-            pubs.append(RecorderPublisher(record, record_frames=record_frames))
+            # Last: an output that fails to open leaves no empty recording behind.
+            writer = open_recording(record, start_utc=datetime.now(UTC), overwrite=record_overwrite)
+            pubs.append(RecorderPublisher(writer, record_frames=record_frames))
     except BaseException:
         _close_all(pubs)
         raise
     return pubs
+
+
+@contextlib.contextmanager
+def _recording_refusals(option: str, replace: str):
+    """A refused recording (rig.recorder.RecordingExists) in the words of the command that asked:
+    ``option`` is where its path came from, ``replace`` how to allow replacing it."""
+    from rig.recorder import START_FIELD, RecordingExists
+
+    try:
+        yield
+    except RecordingExists as exc:
+        if exc.folder:
+            msg = f"{option} {exc.path} is a folder: name a file in it, e.g. {exc.path / (START_FIELD + '.mcap')}"
+        elif exc.named_by_start:
+            msg = (f"{option} {exc.path}: this name and its -1 to -99 variants exist already; "
+                   f"pass a name in another folder")
+        else:
+            msg = (f"{option} {exc.path} exists: a recording is not replaced by accident; pass another path, "
+                   f"put {START_FIELD} in the name for a new file per run, or {replace} to replace it")
+        raise SunrigError(msg) from None
 
 
 def _close_all(pubs: list) -> None:
@@ -260,7 +283,9 @@ def _open_camera(spec: str, heading: str, options=None):
     return open_source(spec, heading, options=options)
 
 
-def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
+def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool, record_flag: bool = False) -> int:
+    """The live rig on ``source``. ``record_flag``: the recording's path came from ``--record``
+    (else from the config file), which its errors name."""
     from estimator.estimator import SunEstimator
     from rig.pipeline import RigConfig, RigPipeline
     from rig.window import SpreadWindowPolicy
@@ -275,18 +300,19 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
                         ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
                         realtime=r["realtime"])
     out = cfg["output"]
-    record = None
-    if out["record"]:
-        from rig.recorder import recording_path
-
-        record = str(recording_path(out["record"], start_utc=datetime.now(UTC), overwrite=out["record_overwrite"],
-                                    flag="--record", overwrite_flag="--record-overwrite"))
     _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]),
-                        jsonl=out["jsonl"], record=record)
-    pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
-                       jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
-                       record=record, record_frames=out["record_frames"], nmea_stdout=nmea_stdout,
-                       live=True)
+                        jsonl=out["jsonl"], record=out["record"])
+    refusals = (_recording_refusals("--record", "--record-overwrite") if record_flag else
+                _recording_refusals("[output] record", "set [output] record_overwrite = true"))
+    with refusals:
+        if out["record"]:
+            from rig.recorder import check_recording_path
+
+            check_recording_path(out["record"], overwrite=out["record_overwrite"])
+        pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
+                           jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
+                           record=out["record"] or None, record_overwrite=out["record_overwrite"],
+                           record_frames=out["record_frames"], nmea_stdout=nmea_stdout, live=True)
     recorder = next((p for p in pubs if type(p).__name__ == "RecorderPublisher"), None)
 
     live_line = sys.stderr.isatty()
@@ -307,8 +333,8 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool) -> int:
         if live_line:
             sys.stderr.write("\n")
         print(f"sunrig: done: {stats.status_line(stats.ended_s)}", file=sys.stderr)
-        if record:
-            print(f"sunrig: recorded to {record}", file=sys.stderr)  # {start} made its name
+        if recorder is not None:
+            print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
     return _report_output_losses(stats)
 
 
@@ -334,7 +360,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     try:
-        return _live(cfg, source, nmea_stdout=False, quiet=args.quiet)
+        return _live(cfg, source, nmea_stdout=False, quiet=args.quiet, record_flag=args.record is not None)
     finally:
         source.close()  # release the devices: the rig only iterates its source
 
@@ -348,12 +374,12 @@ def cmd_record(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from replay.native import LogWriter
-    from rig.recorder import recording_path
+    from rig.recorder import check_recording_path, open_recording
 
     cfg = _effective_config(args)
-    out = recording_path(args.out, start_utc=datetime.now(UTC), overwrite=args.overwrite)
-    _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=str(out))
+    _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=args.out)
+    with _recording_refusals("--out", "--overwrite"):
+        check_recording_path(args.out, overwrite=args.overwrite)
     # The sources first: a wrong camera or port fails before the output file is created.
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     state = {"writing": False, "stop": False}
@@ -378,7 +404,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         deadline.daemon = True
         deadline.start()
     try:
-        writer = LogWriter(out)
+        with _recording_refusals("--out", "--overwrite"):
+            # Made now, after the sources: a wrong camera or port leaves no file.
+            writer = open_recording(args.out, start_utc=datetime.now(UTC), overwrite=args.overwrite)
+        out = writer.path
         try:
             for frame in source:
                 state["writing"] = True

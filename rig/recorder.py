@@ -10,45 +10,86 @@ import logging
 import threading
 from datetime import datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rig.errors import SunrigError
 from rig.publishers import ErrorTally
 from rig.ring import DropOldestQueue
 from rig.types import Frame, SunEstimate
 
+if TYPE_CHECKING:
+    from replay.native import LogWriter
+
 log = logging.getLogger(__name__)
 
 START_FIELD = "{start}"
+_MAX_SAME_START = 100  # NAME, NAME-1 .. NAME-99: more starts in one second than any boot loop makes
 
 
-def recording_path(template: str | Path, *, start_utc: datetime, overwrite: bool = False,
-                   flag: str = "--out", overwrite_flag: str = "--overwrite") -> Path:
-    """The file a recording goes to, refused if it exists unless ``overwrite``.
+class RecordingExists(SunrigError):
+    """The recording's file exists (or is a folder) and may not be replaced. The command that
+    asked for it words the way out, in its own flags (``rig/cli.py``)."""
 
-    A drive cannot be recorded again, so an existing recording is never replaced by accident
-    (rosbag2 refuses an existing output the same way). ``{start}`` in the name becomes the UTC
-    start time (``20261123T031500Z``), so a rig that starts recording at every boot with the same
-    configuration writes a new file each time instead of failing. ``flag`` and ``overwrite_flag``
-    name the options in the error, as the command spells them.
+    def __init__(self, path: Path, *, folder: bool = False, named_by_start: bool = False) -> None:
+        self.path, self.folder, self.named_by_start = path, folder, named_by_start
+        what = "is a folder" if folder else "exists"
+        super().__init__(f"{path} {what}: a recording is not replaced by accident")
+
+
+def check_recording_path(template: str | Path, *, overwrite: bool = False) -> None:
+    """Refuse, before minutes of opening devices, what :func:`open_recording` would refuse later."""
+    name = str(template)
+    if START_FIELD in name:
+        return  # a free name is found when the file is made
+    path = Path(name)
+    if path.is_dir():
+        raise RecordingExists(path, folder=True)
+    if path.exists() and not overwrite:
+        raise RecordingExists(path)
+
+
+def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool = False) -> LogWriter:
+    """The recording's log, its file made now.
+
+    A drive cannot be recorded again, so an existing file is never replaced by accident (rosbag2
+    refuses an existing output the same way): the file is created exclusively, which also keeps a
+    file made since :func:`check_recording_path` looked. ``overwrite`` replaces it instead.
+    ``{start}`` in the name becomes the UTC start time (``20261123T031500Z``), so a rig that
+    records at every boot from one configuration writes a new file each time; a name already taken
+    (a restart within the second, or a board whose clock repeats a boot time before it syncs)
+    gets ``-1``, ``-2``, ... before its suffix rather than stopping the rig.
     """
+    from replay.native import LogWriter
+
     name = str(template)
     path = Path(name.replace(START_FIELD, start_utc.strftime("%Y%m%dT%H%M%SZ")))
-    if path.exists() and not overwrite:
-        hint = f" or put {START_FIELD} in the name for a new file per run" if START_FIELD not in name else ""
-        raise SunrigError(f"{flag} {path} exists: a recording is not replaced by accident; pass another path{hint}, "
-                          f"or {overwrite_flag} to replace it")
-    return path
+    if path.is_dir():
+        raise RecordingExists(path, folder=True)
+    if overwrite:
+        return LogWriter(path)
+    candidates = [path]
+    if START_FIELD in name:
+        candidates += [path.with_name(f"{path.stem}-{k}{path.suffix}") for k in range(1, _MAX_SAME_START)]
+    for candidate in candidates:
+        try:
+            return LogWriter(candidate, exclusive=True)
+        except FileExistsError:
+            continue
+    raise RecordingExists(path, named_by_start=START_FIELD in name)
 
 
 class RecorderPublisher:
-    """Writes what it is given to a native log on a writer thread; ``close`` finishes the file."""
+    """Writes what it is given to a native log on a writer thread; ``close`` finishes the file.
 
-    def __init__(self, path: str | Path, *, record_frames: bool = False, queue_size: int = 64) -> None:
+    ``target``: a path (replaced if it exists) or a log already open (:func:`open_recording`)."""
+
+    def __init__(self, target: str | Path | LogWriter, *, record_frames: bool = False,
+                 queue_size: int = 64) -> None:
         from replay.native import LogWriter
 
-        self.path = Path(path)
+        self._writer = target if isinstance(target, LogWriter) else LogWriter(target)
+        self.path = self._writer.path
         self.record_frames = record_frames
-        self._writer = LogWriter(self.path)
         self._queue: DropOldestQueue[Frame | SunEstimate] = DropOldestQueue(queue_size)
         self._stop = threading.Event()
         self._closed = False
