@@ -234,24 +234,3 @@ def test_status_lines_are_reported(model):
     pipe.run(timeout_s=30)
     assert lines and all(line.startswith("frames ") and "Hz" in line for line in lines)
 
-
-def test_recording_path_names_by_start_time_and_refuses_an_existing_file(tmp_path):
-    from datetime import UTC, datetime
-
-    from rig.errors import SunrigError
-    from rig.recorder import recording_path
-
-    start = datetime(2026, 11, 23, 3, 15, 0, 400_000, tzinfo=UTC)
-    made = recording_path(tmp_path / "rig-{start}.mcap", start_utc=start)
-    assert made == tmp_path / "rig-20261123T031500Z.mcap"
-    assert recording_path(tmp_path / "plain.mcap", start_utc=start) == tmp_path / "plain.mcap"
-
-    made.write_bytes(b"a drive")
-    with pytest.raises(SunrigError, match=r"exists: .*--overwrite to replace it") as err:
-        recording_path(tmp_path / "rig-{start}.mcap", start_utc=start)  # two starts in one second
-    assert "put {start}" not in str(err.value)  # the name has it already
-    (tmp_path / "plain.mcap").write_bytes(b"a drive")
-    with pytest.raises(SunrigError, match=r"plain.mcap exists: .*put \{start\} in the name"):
-        recording_path(tmp_path / "plain.mcap", start_utc=start)
-    assert recording_path(tmp_path / "plain.mcap", start_utc=start, overwrite=True) == tmp_path / "plain.mcap"
-    assert made.read_bytes() == b"a drive"  # deciding the path never touches the file
