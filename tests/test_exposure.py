@@ -9,7 +9,7 @@ import pytest
 from estimator.estimator import SunEstimator
 from replay.sources import DEMO_LOG, open_frames
 from rig.errors import ValidationError
-from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate, luminance_stats
+from rig.exposure import DEFAULT_EXPOSURE_GATE, SAMPLE_STRIDE_PX, ExposureGate, luminance_stats
 from rig.offline import OfflineStats, estimate_stream
 from rig.pipeline import RigConfig, RigPipeline
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
@@ -18,10 +18,10 @@ from rig.window import SpreadWindowPolicy
 INTR = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
 RNG = np.random.default_rng(0)
 TEXTURED = RNG.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
-# Grey bands 8 rows high alternating 100 and 104: the gate's every-8th-row sample sees luma
-# 100, 104, 100, ... with standard deviation 2 (variance 4).
-BANDED = np.empty((80, 128, 3), np.uint8)
-BANDED[:] = np.where(np.arange(80) // 8 % 2, 104, 100)[:, None, None]
+# Grey bands one sample stride high alternating 100 and 104: the gate's sample (every stride-th
+# row) sees luma 100, 104, 100, ... with standard deviation 2 (variance 4), whatever the stride.
+BANDED = np.empty((10 * SAMPLE_STRIDE_PX, 128, 3), np.uint8)
+BANDED[:] = np.where(np.arange(10 * SAMPLE_STRIDE_PX) // SAMPLE_STRIDE_PX % 2, 104, 100)[:, None, None]
 
 
 def test_luminance_uses_bt601_weights_in_bgr_order():
