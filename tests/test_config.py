@@ -1,6 +1,7 @@
 """Configuration: TOML covers every option, flags override, mistakes are named."""
 
 import json
+import math
 import tomllib
 
 import pytest
@@ -57,6 +58,12 @@ def test_file_then_flags(tmp_path):
         ("[output]\nbaud = '9600'\n", "[output] baud: expected int, got '9600'"),
         ("[output]\nformat = 'xml'\n", "[output] format: expected one of nmea, binary"),
         ("[rig]\nrealtime = 1\n", "[rig] realtime: expected bool, got 1"),
+        # TOML booleans are not numbers: `span_s = true` would otherwise become a 1 s window and
+        # `baud = true` a 1 baud port, without a word.
+        ("[window]\nspan_s = true\n", "[window] span_s: expected float, got True"),
+        ("[output]\nbaud = true\n", "[output] baud: expected int, got True"),
+        # A section written as a value (`output = "x"`) is named, not an AttributeError.
+        ("output = 'x'\n", "[output] must be a table of options"),
         ("[output\n", "not valid TOML"),
     ],
 )
@@ -72,3 +79,26 @@ def test_mistakes_are_named(tmp_path, text, message):
 def test_missing_file():
     with pytest.raises(ConfigError, match="does not exist"):
         load_config("/nonexistent/rig.toml")
+
+
+def test_defaults_are_those_of_what_they_configure():
+    # `sunrig run` builds RigConfig, the pairing and the window from this table, so a default
+    # changed in one place but not the other would make the CLI and the library disagree. The
+    # expected values are the library's own defaults, read from it.
+    from drivers.pairing import DEFAULT_MAX_AGE_S, DEFAULT_MAX_GAP_S
+    from rig.pipeline import RigConfig
+    from rig.window import SpreadWindowPolicy
+
+    rig, lib = DEFAULTS["rig"], RigConfig()
+    assert (rig["queue_size"], rig["ring_capacity"], rig["ring_max_age_s"], rig["status_every_s"]) == (
+        lib.queue_size, lib.ring_capacity, lib.ring_max_age_s, lib.status_every_s)
+    assert DEFAULTS["source"]["max_gap_s"] == DEFAULT_MAX_GAP_S
+    assert DEFAULTS["source"]["max_age_s"] == DEFAULT_MAX_AGE_S
+    window = SpreadWindowPolicy()
+    assert DEFAULTS["window"]["span_s"] == window.span_s
+    assert DEFAULTS["window"]["yaw_scale_deg"] == pytest.approx(math.degrees(window.yaw_scale_rad))
+
+
+def test_an_existing_recording_is_refused_by_default():
+    # A drive cannot be recorded again (rig/recorder.py): replacing a recording must be asked for.
+    assert DEFAULTS["output"]["record_overwrite"] is False

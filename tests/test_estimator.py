@@ -1,15 +1,18 @@
 """The estimator end to end on a tiny random model: cache, aggregators, exact yaw invariance."""
 
+import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from estimator.calibration import EstimationError
-from estimator.estimator import AGGREGATORS, SunEstimator
+from estimator.estimator import AGGREGATORS, SunEstimator, window_tokens
 from rig.errors import ValidationError
 from rig.geometry import angle_between, world_from_heading
-from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+from rig.protocol import ELEVATION_MARGIN_DEG
+from rig.types import Attitude, Frame, FrameFeatures, HeadingRef, Intrinsics
 
 pytestmark = pytest.mark.torch
 
@@ -105,3 +108,98 @@ def test_crop_layouts_place_crops_differently_from_the_same_seed(model):
     spread = SunEstimator(model).encode(frame).crop_boxes_px
     uniform = SunEstimator(model, crop_layout="uniform").encode(frame).crop_boxes_px
     assert spread.shape == uniform.shape and not (spread[:, 0] == uniform[:, 0]).all()
+
+
+def test_a_window_mixing_models_is_refused(model):
+    # Embeddings of two backbones live in different spaces: one aggregator run over both is noise.
+    est = SunEstimator(model)
+    window = est.encode_batch(make_frames(2))
+    other = FrameFeatures(window[1].frame, window[1].crop_boxes_px, window[1].crop_angles_rad, window[1].embeddings,
+                          "another-model")
+    with pytest.raises(EstimationError, match="different models"):
+        est.estimate([window[0], other])
+
+
+def test_token_yaw_is_relative_to_the_newest_frame(model):
+    # Frames at headings 0, 20, 40 deg (make_frames): the newest looks at 40, so the first frame's
+    # crops are 40 deg to its left, i.e. -40 (yaw is clockwise, as the heading); the absolute yaw
+    # goes to the calibration unchanged.
+    tokens = window_tokens(SunEstimator(model).encode_batch(make_frames(3)))
+    per_frame = tokens.angles_rad[:, 0].reshape(3, -1)
+    np.testing.assert_allclose(per_frame, np.radians([[-40.0], [-20.0], [0.0]]) * np.ones_like(per_frame), atol=1e-6)
+    np.testing.assert_allclose(tokens.yaw_rad.reshape(3, -1)[:, 0], np.radians([0.0, 20.0, 40.0]))
+
+
+def test_crops_per_frame_overrides_the_contract(model):
+    # --crops (eval) asks for another number of crops than the model was trained with.
+    est = SunEstimator(model, crops_per_frame=2)
+    window = est.encode_batch(make_frames(3))
+    assert [f.n_crops for f in window] == [2, 2, 2]
+    assert est.estimate(window).n_tokens == 6
+
+
+def test_each_frame_draws_its_own_crops(model):
+    # The crop draw is seeded by (seed, seq): frames of one window look at different parts of the
+    # sky, and a frame's crops do not depend on which frames came with it.
+    est = SunEstimator(model)
+    a, b = est.encode_batch(make_frames(2))
+    assert not np.array_equal(a.crop_boxes_px, b.crop_boxes_px)
+    np.testing.assert_array_equal(est.encode(make_frames(2)[1]).crop_boxes_px, b.crop_boxes_px)
+
+
+def test_single_is_the_first_crop_of_the_newest_frame(model):
+    # "single" is one crop of the newest frame; its vector is that crop's independent estimate,
+    # which "mean" lists among its per-token vectors (frames in order: the newest is the last).
+    est = SunEstimator(model)
+    window = est.encode_batch(make_frames(8))
+    r = est.estimate_many(window, ["single", "mean"])
+    first_of_newest = 7 * window[0].n_crops
+    expected = r["mean"].token_enu[first_of_newest]
+    np.testing.assert_allclose(r["single"].sun_enu, expected / np.linalg.norm(expected), atol=1e-9)
+
+
+def test_meanshift_spread_is_over_its_inliers(model):
+    # The spread the status rule reads must describe the tokens the answer was made of, not the
+    # outliers mean shift threw away.
+    from estimator.calibration import spread_rad
+    from estimator.meanshift import meanshift_aggregate
+
+    est = SunEstimator(model, aggregator="meanshift")
+    r = est.estimate(est.encode_batch(make_frames(8)))
+    unit, inliers = meanshift_aggregate(r.token_enu)
+    assert not inliers.all()  # the case this test is about: some tokens were outliers
+    assert r.spread_rad == pytest.approx(spread_rad(r.token_enu[inliers], unit))
+
+
+def test_estimates_carry_the_newest_frames_utc_and_reference(model):
+    # The UTC goes into the NMEA time field and the reference into the status: both are the newest
+    # frame's, as the window's sun is.
+    utc0 = 1_700_000_000 * 10**9
+    frames = [dataclasses.replace(f, utc_ns=utc0 + f.seq * 10**8,
+                                  attitude=Attitude(f.attitude.heading_rad, HeadingRef.RELATIVE))
+              for f in make_frames(3)]
+    est = SunEstimator(model)
+    for r in est.estimate_many(est.encode_batch(frames), AGGREGATORS).values():
+        assert r.utc_ns == utc0 + 2 * 10**8
+        assert r.heading_ref is HeadingRef.RELATIVE
+
+
+def test_estimate_many_refuses_an_unknown_aggregator(model):
+    # A misspelt name in eval's --aggregators must not quietly run another aggregator.
+    est = SunEstimator(model)
+    with pytest.raises(ValidationError, match="aggregator"):
+        est.estimate_many(est.encode_batch(make_frames(2)), ["mean", "median"])
+
+
+def test_status_rule_limit_follows_the_highest_training_sun(model):
+    # Suns above what the model was trained on are flagged: the limit is the training's highest sun
+    # (plus the protocol's margin), not its lowest.
+    contract = dataclasses.replace(model.contract, training={"data": {"sun_elevation_deg": [10.0, 40.0]}})
+    rule = SunEstimator(SimpleNamespace(contract=contract, model_id=model.model_id)).status_rule()
+    assert rule.max_elevation_deg == 40.0 + ELEVATION_MARGIN_DEG
+    assert rule.full_window == model.contract.frames_per_window
+
+
+def test_encoding_no_frames_is_no_features(model):
+    # A replay whose frame count is a multiple of the batch ends with an empty batch to encode.
+    assert SunEstimator(model).encode_batch([]) == []

@@ -1,5 +1,6 @@
 """`sunrig eval`: the summary's numbers and shape, and the figures."""
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from estimator.evaluate import EvalResult, error_summary
-from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_VALID
+from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_SPREAD_HIGH, FLAG_VALID
 
 
 def test_error_summary_numbers():
@@ -139,6 +140,10 @@ def test_ctrl_c_keeps_the_windows_evaluated_so_far(tiny_model_dir):
     s = result.summary()
     assert s["interrupted"] is True and s["aggregators"]["transformer"]["n_windows"] == 6
     assert seen[-1] == (6, 1) and (5, 1) in seen  # windows and logs done, as the CLI's progress shows them
+    # The plot's sample windows: the first full window of each log, so the figure shows each sky once.
+    assert [next(iter(w.values())).seq for w in result.samples] == [7, 7]
+    # The true sun is [0, 0.8, 0.6] (east, north, up): 36.87 deg above the horizon, for every window.
+    assert result.truth_elevation_deg == pytest.approx([math.degrees(math.asin(0.6))] * 6)
 
 
 def test_a_window_cut_short_is_trimmed_from_every_list():
@@ -149,3 +154,58 @@ def test_a_window_cut_short_is_trimmed_from_every_list():
     r.trim_to_whole_windows()
     assert r.errors_deg == {"transformer": [1.0, 2.0], "mean": [1.0, 2.0]}
     assert r.flags["transformer"] == [1, 1] and r.elevation_deg["transformer"] == [5.0, 6.0]
+
+
+def test_a_valid_window_past_the_target_is_not_counted_as_flagged():
+    # windows_over_30_deg_not_valid counts the tail the status flags caught; a window the controller
+    # was told to trust (valid) at 35 deg is the tail they missed, and shows in valid_max_deg instead.
+    r = EvalResult(errors_deg={"transformer": [35.0, 40.0, 2.0, 50.0]},
+                   flags={"transformer": [FLAG_VALID, FLAG_ABOVE_TRAINED, FLAG_VALID, FLAG_SPREAD_HIGH]},
+                   window_logs=["d0"] * 4)
+    status = r.summary()["status"]["transformer"]
+    assert status["windows_over_30_deg_not_valid"] == 2
+    assert status["valid_max_deg"] == 35.0 and status["valid_windows"] == 2
+    assert status["above_trained"] == 1 and status["spread_high"] == 1
+
+
+def test_pooling_an_interrupted_evaluation_marks_the_pool_interrupted():
+    # Seeds pooled with one cut short by Ctrl-C: the pooled figures cover fewer windows than asked,
+    # and the summary must say so.
+    whole, cut = EvalResult(), EvalResult(interrupted=True)
+    whole.extend(cut)
+    assert whole.interrupted and whole.summary()["interrupted"] is True
+    assert "interrupted" not in EvalResult().summary()
+
+
+def test_trimming_also_cuts_the_true_elevations():
+    # The true elevation is appended per window before window_logs: a Ctrl-C between the two
+    # leaves one too many, which the elevation plots would pair with the wrong window.
+    r = EvalResult(errors_deg={"transformer": [1.0, 2.0]}, flags={"transformer": [1, 1]},
+                   elevation_deg={"transformer": [5.0, 6.0]}, truth_elevation_deg=[5.0, 6.0, 7.0],
+                   window_logs=["d0", "d0"])
+    r.trim_to_whole_windows()
+    assert r.truth_elevation_deg == [5.0, 6.0]
+
+
+@pytest.mark.torch
+def test_a_given_status_rule_decides_the_flags(tiny_model_dir):
+    # evaluate(status_rule=...) scores windows by the rule given (e.g. a stricter one being tried),
+    # not by the model's own: with a full window of 99 frames asked, no 8-frame window is valid.
+    from estimator.estimator import SunEstimator
+    from estimator.evaluate import evaluate
+    from estimator.runtime import OnnxModel
+    from rig.protocol import FLAG_PARTIAL_WINDOW, StatusRule
+    from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+    from rig.window import SpreadWindowPolicy
+
+    k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(2)
+    frames = [Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8), intrinsics=k,
+                    attitude=Attitude(math.radians(7.0 * i), HeadingRef.TRUE), sun_enu_truth=[0.0, 0.8, 0.6])
+              for i in range(8)]
+    # A second log without the true sun: its full window is counted, not scored.
+    untrue = [dataclasses.replace(f, sun_enu_truth=None) for f in frames]
+    result = evaluate([("d0", frames), ("d1", untrue)], SunEstimator(OnnxModel.load(tiny_model_dir)),
+                      SpreadWindowPolicy(8, 4.0), aggregators=["mean"], status_rule=StatusRule(full_window=99))
+    assert len(result.flags["mean"]) == 1 and result.windows_without_truth == 1
+    assert result.flags["mean"][0] & FLAG_PARTIAL_WINDOW and not result.flags["mean"][0] & FLAG_VALID

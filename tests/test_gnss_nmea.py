@@ -540,6 +540,56 @@ def test_reader_over_loop_url_with_an_injected_clock():
     reader.close()  # idempotent
 
 
+def test_an_old_fix_or_utc_is_not_handed_out():
+    # A fix or a UTC time from long ago would put a frame at a stale place or time: past its
+    # max_age_s each is None, as a stale heading is. RMC carries both; it arrives at clock 100.0.
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    with GnssReader(port, clock=FakeClock(100.0), events=4, timeout_s=0.05) as reader:
+        port.write(RMC)
+        assert collect(reader, lambda us: len(us) == 1)
+        assert reader.latest_fix(101.0, max_age_s=1.5) is not None
+        assert reader.latest_fix(102.0, max_age_s=1.5) is None  # 2 s old
+        assert reader.latest_fix(99.0) is None  # received after that moment
+        assert reader.utc_at(105.0, max_age_s=10.0) is not None
+        assert reader.utc_at(111.0, max_age_s=10.0) is None  # 11 s old
+        assert reader.utc_at(99.0) is None
+
+
+def test_the_newest_fix_replaces_the_one_before():
+    # A moving rig: each fix replaces the last, so a frame gets where the rig is now (GGA's
+    # position, 0.000181' north of RMC's), not where the first fix put it.
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    clock = FakeClock(100.0)
+    with GnssReader(port, clock=clock, events=4, timeout_s=0.05) as reader:
+        port.write(RMC)
+        assert collect(reader, lambda us: len(us) == 1)
+        clock.now = 101.0
+        port.write(GGA)
+        assert collect(reader, lambda us: len(us) == 1)
+        fix = reader.latest_fix(101.5, max_age_s=1.0)
+        assert fix is not None and fix.lat_deg == pytest.approx(42 + 5.735766 / 60, abs=1e-9)
+
+
+def test_live_events_drop_the_oldest_and_count_it():
+    # A live port never waits for its consumer: with room for 2, five headings leave the newest two
+    # and 3 counted drops; `updates` counts every one decoded (docs/gnss.md's counters). The heading
+    # history is a ring too (3 here): a reader running for days keeps a bounded memory.
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    with GnssReader(port, events=2, history=3, timeout_s=0.05) as reader:
+        port.write(b"".join(nmea(f"HEHDT,{h}.00,T") for h in (10, 20, 30, 40, 50)))
+        assert wait_until(lambda: reader.stats()["updates"] == 5)
+        stats = reader.stats()
+        assert stats["events_dropped"] == 3 and stats["history"] == 3
+        assert [math.degrees(s.heading_rad) for s in reader.heading_history()] == pytest.approx([30.0, 40.0, 50.0])
+        assert headings_deg(reader.get_events(timeout_s=0.01)) == pytest.approx([40.0, 50.0])
+
+
+def test_a_reader_that_keeps_no_headings_is_refused():
+    # history=0 would keep no sample: every frame would go without a heading, silently.
+    with pytest.raises(GnssError, match="history"):
+        GnssReader(serial.serial_for_url("loop://"), history=0)
+
+
 @pytest.fixture
 def pty_pair():
     master, slave = os.openpty()

@@ -361,3 +361,60 @@ def test_training_reads_a_kitti_drive(tmp_path):
     want = list(open_frames(date, utc_offset_h=2.0))
     np.testing.assert_allclose(drive.sun_enu, [f.sun_enu_truth for f in want])
     np.testing.assert_allclose(drive.yaw_rad, [f.heading_rad for f in want])
+
+
+def test_frames_whose_timestamp_does_not_increase_are_skipped(tmp_path):
+    # Downstream the clock must increase: a frame stamped at or before the latest one kept (not only
+    # the one just before it) is skipped and counted. Seconds 0, .1, .4, then .2 (back), .4 (again), .5.
+    date = make_drive(tmp_path, 6)
+    stamps = "".join(f"2011-09-26 13:02:25.{t:09d}\n"
+                     for t in (0, 100_000_000, 400_000_000, 200_000_000, 400_000_000, 500_000_000))
+    (date / DRIVE / "image_02" / "timestamps.txt").write_text(stamps)
+    drive = open_kitti(date, utc_offset_h=2.0)
+    assert [f.seq for f in drive] == [0, 1, 2, 5]
+    assert drive.corrupt_skipped == 2
+
+
+def test_oxts_records_out_of_range_or_not_finite_cost_only_their_frame(tmp_path):
+    # A latitude of 95 deg, a NaN yaw or a pitch of 4 rad (a logger glitch) must not end the replay (a GnssFix of
+    # lat 95 would raise) nor pass for a pose: the frame goes without heading, fix and truth, counted.
+    date = make_drive(tmp_path, 6)
+    rest = " ".join(["0"] * 24)
+    data = date / DRIVE / "oxts" / "data"
+    (data / "0000000002.txt").write_text(f"95.0 8.4343 116.4 0.01 0.005 0.3 {rest}\n")
+    (data / "0000000003.txt").write_text(f"49.015 8.4343 116.4 0.01 0.005 nan {rest}\n")
+    (data / "0000000004.txt").write_text(f"49.015 8.4343 116.4 0.01 4.0 0.3 {rest}\n")  # pitch past pi
+    drive = open_kitti(date, utc_offset_h=2.0)
+    frames = list(drive)
+    assert [f.attitude is None and f.gnss is None and f.sun_enu_truth is None for f in frames] == [
+        False, False, True, True, True, False]
+    assert drive.corrupt_skipped == 3
+
+
+def test_utc_offset_beyond_any_time_zone_is_refused():
+    # Time zones run from -12 to +14 h: anything past 14 is a typo (minutes? a date?), and each hour
+    # moves the sun ~15 deg.
+    assert kitti.utc_offset_ns(5.5) == 19_800 * 10**9
+    for bad in (14.5, -15.0, 20):
+        with pytest.raises(LogError, match="UTC offset"):
+            kitti.utc_offset_ns(bad)
+
+
+def test_intrinsics_scale_each_axis_by_its_own_factor():
+    # A copy resized to another aspect (half the width, a third of the height): x values scale by
+    # 1/2, y values by 1/3, so the view angles of every pixel stay the calibration's.
+    k = kitti.Intrinsics(fx=721.5377, fy=721.5377, cx=609.5593, cy=172.854, width=1242, height=375)
+    s = kitti.scaled_intrinsics(k, 621, 125)
+    assert (s.fx, s.cx) == pytest.approx((721.5377 / 2, 609.5593 / 2))
+    assert (s.fy, s.cy) == pytest.approx((721.5377 / 3, 172.854 / 3))
+    assert math.degrees(s.vfov_rad) == pytest.approx(math.degrees(k.vfov_rad))
+
+
+def test_oxts_records_numbered_unlike_the_images_are_refused(tmp_path):
+    # Record i is frame i's pose: OXTS files numbered otherwise (a gap, a partial re-extract) would
+    # pair images with the wrong poses, so the drive is refused, as when the counts differ.
+    date = make_drive(tmp_path, 5)
+    data = date / DRIVE / "oxts" / "data"
+    (data / "0000000004.txt").rename(data / "0000000009.txt")
+    with pytest.raises(LogError, match="not numbered"):
+        open_kitti(date, utc_offset_h=2.0)

@@ -102,6 +102,18 @@ def test_latency_moves_the_samples_earlier():
     assert deg(interp.at(samples, 10.5)) == pytest.approx(5.0)
 
 
+def test_latency_is_allowed_for_while_waiting_for_the_next_sample():
+    # A live frame after the newest sample waits while the next one can still be close enough to
+    # it. With 0.5 s latency the next sample, arriving now, is dated now - 0.5 s: at now = 11.3 it
+    # would be 0.8 s after the newest (dated 10.0), within max_gap_s = 1.0, so the frame waits
+    # (without the latency it would look 1.3 s away and the frame would be lost as a gap).
+    interp = HeadingInterpolator(max_gap_s=1.0, max_age_s=2.0, latency_s=0.5)
+    samples = [sample(10.5, 0.0)]  # stamped 10.5, measured at 10.0
+    assert interp.lookup(samples, 10.2, now_s=11.3).status == "pending"
+    assert interp.lookup(samples, 10.2, now_s=11.6).status == "gap"  # 1.1 s: too far now
+    assert deg(interp.at(samples + [sample(11.5, 10.0)], 10.2)) == pytest.approx(2.0)
+
+
 def test_counters_count_final_results_only():
     interp = HeadingInterpolator(max_gap_s=1.5, max_age_s=0.5)
     samples = [sample(10.0, 0.0), sample(11.0, 10.0), sample(14.0, 10.0)]

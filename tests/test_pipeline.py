@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from estimator.estimator import SunEstimator
+from rig.errors import ValidationError
 from rig.pipeline import PipelineError, RigConfig, RigPipeline
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
 from rig.window import SpreadWindowPolicy
@@ -172,6 +173,63 @@ def test_the_status_line_counts_every_kind_of_publisher_loss():
     assert stats.status_line(1.0).endswith("publish drops 6, errors 7")
 
 
+def test_live_counts_late_frames_and_failed_windows(model):
+    # Every encoded frame ends as an estimate, a skipped or failed window, or a late frame refused
+    # by the ring (seq 12 is stamped before seq 11). The estimator refuses the window of the last
+    # frame, which is always estimated (the mailbox keeps the newest), so one failure is certain.
+    from estimator.calibration import EstimationError
+
+    class RefusesTheLast(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            if max(f.frame.seq for f in window) == 29:
+                raise EstimationError("no sun in it")
+            return super().estimate(window, aggregator)
+
+    def late():
+        for f in frames(30):
+            yield dataclasses.replace(f, t_mono_s=1.05) if f.seq == 12 else f  # seq 11 is at 1.1 s
+
+    out = Collect()
+    _, stats = run_pipeline(late(), RefusesTheLast(model), [out], queue_size=100)
+    assert stats.frames_encoded == 30 and stats.frames_out_of_order == 1 and stats.estimates_failed == 1
+    assert stats.estimates + stats.windows_skipped + stats.estimates_failed + stats.frames_out_of_order == 30
+    assert len(out.estimates) == stats.estimates and 12 not in [e.seq for e in out.estimates]
+
+
+def test_an_output_whose_reader_went_away_is_not_fed_again(model):
+    # `sunrig run --jsonl - | head -1` next to a serial link: once the pipe is broken that output
+    # has ended; it is not handed (and logged about) every later estimate, while the controller's
+    # output still gets every one.
+    class GoneAfterOne(Collect):
+        def __init__(self):
+            super().__init__()
+            self.calls = 0
+
+        def publish(self, est):
+            self.calls += 1
+            if self.calls > 1:
+                raise BrokenPipeError(32, "Broken pipe")
+            super().publish(est)
+
+    gone, healthy = GoneAfterOne(), Collect()
+    # Paced at 10 Hz, so estimates keep up with the frames (with room on a loaded machine) and
+    # several follow the broken pipe.
+    _, stats = run_pipeline(frames(12, dt=0.1), SunEstimator(model), [gone, healthy], realtime=True)
+    assert stats.estimates >= 3 and len(healthy.estimates) == stats.estimates
+    assert gone.calls == 2 and stats.publish_errors == 0
+
+
+def test_run_summary_rates_are_per_second_of_the_run():
+    # `sunrig run` ends with update_hz: estimates over the run's own duration (50 in 10 s: 5 Hz),
+    # the figure a controller's update rate is checked against. Pure arithmetic on the counters.
+    from rig.pipeline import RigStats
+
+    stats = RigStats(estimates=50, started_s=100.0, ended_s=110.0)
+    d = stats.as_dict()
+    assert d["update_hz"] == pytest.approx(5.0) and d["duration_s"] == pytest.approx(10.0)
+    assert "at 5.0 Hz" in stats.status_line(110.0)
+
+
 def test_outputs_whose_readers_went_away_end_the_run_quietly(model, caplog):
     class Head(Collect):
         """As stdout piped into `head -3`: after 3 lines, every write is a broken pipe."""
@@ -212,6 +270,33 @@ def test_offline_counts_clock_jumps_per_stream_and_pools_them(model):
     assert stats.clock_jumps == 2 and stats.frames_out_of_order == 0
 
 
+def test_offline_accounts_for_every_frame_and_window(model):
+    # `sunrig replay` prints these counts as its summary: every frame is a window, or is counted as
+    # why it is not. Here 20 frames: 2 without heading, 1 stamped before the one it follows, so 17
+    # windows, of which the one ending at seq 5 fails (and is kept with its reason).
+    from estimator.calibration import EstimationError
+    from rig.offline import OfflineStats, estimate_stream
+
+    class FailsAtSeq5(SunEstimator):
+        def estimate_many(self, window, aggregators):
+            if max(f.frame.seq for f in window) == 5:
+                raise EstimationError("no sun in it")
+            return super().estimate_many(window, aggregators)
+
+    def log():
+        for f in frames(20):
+            if f.seq in (3, 7):
+                f = dataclasses.replace(f, attitude=None)
+            yield dataclasses.replace(f, t_mono_s=1.05) if f.seq == 12 else f  # seq 11 is at 1.1 s
+
+    stats = OfflineStats()
+    out = list(estimate_stream(log(), FailsAtSeq5(model), SpreadWindowPolicy(8, 4.0), stats=stats))
+    assert len(out) == 16
+    assert (stats.frames, stats.frames_without_heading, stats.frames_out_of_order) == (20, 2, 1)
+    assert (stats.windows, stats.windows_failed, stats.clock_jumps) == (17, 1, 0)
+    assert stats.failures == ["seq 5: no sun in it"]
+
+
 def test_a_source_that_blocks_forever_does_not_hang_the_rig(model):
     never = threading.Event()
 
@@ -234,3 +319,11 @@ def test_status_lines_are_reported(model):
     pipe.run(timeout_s=30)
     assert lines and all(line.startswith("frames ") and "Hz" in line for line in lines)
 
+
+@pytest.mark.parametrize("kwargs", [{"queue_size": 0}, {"ring_capacity": 0}, {"ring_max_age_s": 0.0},
+                                    {"status_every_s": 0.0}, {"ring_max_age_s": math.inf}])
+def test_rig_config_refuses_sizes_and_times_that_cannot_work(kwargs):
+    # A queue or ring of 0 frames never holds a frame; a ring kept 0 s forms no window; a status
+    # every 0 s is a busy loop. Each comes from a config file, so it is named there, not at run time.
+    with pytest.raises(ValidationError, match=f"\\[rig\\] {next(iter(kwargs))}"):
+        RigConfig(**kwargs)

@@ -38,7 +38,14 @@ from rig.protocol import (
     encode_nmea,
     nmea_fields,
 )
-from rig.publishers import BackgroundPublisher, JsonlPublisher, Publisher, SerialPublisher
+from rig.publishers import (
+    BackgroundPublisher,
+    JsonlPublisher,
+    Publisher,
+    SentencePublisher,
+    SerialPublisher,
+    publisher_name,
+)
 from tests.test_protocol import F32_DEG, F32_UNIT, make_estimate, random_estimates, worst_case_estimates
 
 HANG_GUARD_S = 10.0  # generous: only a hang fails it, never a slow machine
@@ -587,3 +594,92 @@ def test_a_background_publisher_counts_what_its_publisher_raises_on(tmp_path, ca
     bg.close()
     with pytest.raises(PublishError, match="closed background"):
         bg.publish(make_estimate(10.0, 20.0))
+
+
+class ShortWritePort(LoopSerial):
+    """A loop:// port whose first write() returns having written only a few bytes, as a write
+    cut short by ``cancel_write()`` does."""
+
+    def __init__(self) -> None:
+        super().__init__("loop://")
+        self.cut = True
+
+    def write(self, data: bytes) -> int:
+        if self.cut:
+            self.cut = False
+            return super().write(data[:5])
+        return super().write(data)
+
+
+def test_a_write_cut_short_is_a_drop_and_the_next_sentence_starts_on_its_own_line():
+    # The controller holds half a sentence: that message is lost (counted as a timeout drop, not
+    # as written), and the next one starts with a line end so the half line is not glued to it.
+    port = ShortWritePort()
+    first, second = make_estimate(10.0, 20.0, seq=1), make_estimate(30.0, 40.0, seq=2)
+    with SerialPublisher(port, format="nmea", backoff_s=(0.01, 0.1)) as pub:
+        pub.publish(first)
+        wait_until(lambda: pub.stats()["dropped_write_timeout"] == 1 and pub.stats()["reopens"] == 1,
+                   "the cut write counted and the port reopened")
+        port.read(port.in_waiting)  # the half sentence, as far as it got
+        pub.publish(second)
+        wait_until(lambda: pub.stats()["written"] == 1, "the next sentence written")
+        data = port.read(port.in_waiting)
+    assert data == b"\r\n" + encode_nmea(second)
+    assert pub.stats()["written"] == 1 and accounted(pub.stats()) == 2
+
+
+def test_a_background_publisher_is_named_after_what_it_runs():
+    # The status line and the statistics name outputs by what they write ("JsonlPublisher"), not
+    # by the thread they run in.
+    bg = BackgroundPublisher(JsonlPublisher(io.StringIO()))
+    try:
+        assert publisher_name(bg) == "JsonlPublisher"
+        assert publisher_name(JsonlPublisher(io.StringIO())) == "JsonlPublisher"
+    finally:
+        bg.close()
+
+
+class GoneReader(io.StringIO):
+    """A stream whose reader went away (`sunrig replay ... | head`): every write is a broken pipe."""
+
+    def write(self, text: str) -> int:
+        raise BrokenPipeError(32, "Broken pipe")
+
+
+def test_a_broken_pipe_ends_the_jsonl_output_rather_than_failing_it():
+    # The pipeline takes BrokenPipeError as "this output has ended" (and stops when all have), but
+    # a PublishError as a write that failed: `| head` must not turn into counted errors.
+    pub = JsonlPublisher(GoneReader())
+    with pytest.raises(BrokenPipeError):
+        pub.publish(make_estimate(10.0, 20.0))
+
+
+def test_a_background_publisher_whose_reader_went_away_says_so_to_its_caller():
+    # In its own thread the broken pipe cannot reach the caller at once: the next publish() raises
+    # it, as the inner publisher would have, so the pipeline stops feeding this output.
+    bg = BackgroundPublisher(JsonlPublisher(GoneReader()))
+    try:
+        bg.publish(make_estimate(10.0, 20.0, seq=1))
+        wait_until(lambda: not bg.stats()["writer_alive"], "the writer to end on the broken pipe")
+        with pytest.raises(BrokenPipeError):
+            bg.publish(make_estimate(10.0, 20.0, seq=2))
+        assert bg.stats()["errors"] == 0  # a reader that left is not an error
+    finally:
+        bg.close()
+
+
+def test_a_background_publisher_closes_what_it_runs_and_sentences_are_counted():
+    # close() finishes the inner publisher too (a JSONL file gets closed, stdout flushed); and the
+    # NMEA-on-stdout output counts what it wrote, as the exit report shows it.
+    text = io.StringIO()
+    inner = SentencePublisher(text)
+    bg = BackgroundPublisher(inner)
+    for seq in (1, 2):
+        bg.publish(make_estimate(10.0, 20.0, seq=seq))
+    bg.close()
+    assert inner.stats() == {"published": 2, "written": 2}
+    assert len(text.getvalue().splitlines()) == 2
+    with pytest.raises(PublishError, match="closed JSONL"):
+        jsonl = JsonlPublisher(io.StringIO())
+        BackgroundPublisher(jsonl).close()
+        jsonl.publish(make_estimate(10.0, 20.0))

@@ -403,3 +403,17 @@ def test_runtime_does_not_import_torch():
         [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.torch
+def test_aggregate_and_embed_refuse_what_would_be_cast_silently(model):
+    # Integer angles are degrees or indices, never radians; cast to float they would run as
+    # nonsense. A batch of 0 crops per run would loop forever or fail deep in range().
+    emb = np.zeros((1, 4, 64), np.float32)
+    mask = np.ones((1, 4), bool)
+    with pytest.raises(ValidationError, match="angles: expected a float array, got dtype int64"):
+        model.aggregate(emb, np.zeros((1, 4, 3), np.int64), mask)
+    with pytest.raises(ValidationError, match="embeddings: expected a float array"):
+        model.aggregate(np.zeros((1, 4, 64), np.int32), np.zeros((1, 4, 3), np.float32), mask)
+    with pytest.raises(ValidationError, match="batch_size: expected a positive integer, got 0"):
+        model.embed(np.zeros((2, 32, 32, 3), np.uint8), batch_size=0)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rig.errors import ValidationError
-from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
+from rig.types import Attitude, Frame, FrameFeatures, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
 
 INTR = Intrinsics(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
 
@@ -102,3 +102,73 @@ def test_sun_estimate_without_truth_has_no_error_fields():
 
 def test_utc_iso_epoch():
     assert utc_iso(0) == "1970-01-01T00:00:00.000000Z"
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        # A zero focal length divides by zero in every view angle; a zero-pixel image has no crops.
+        ({"fx": 0}, "Intrinsics.fx: expected > 0 pixels, got 0"),
+        ({"fy": 0}, "Intrinsics.fy: expected > 0 pixels, got 0"),
+        ({"width": 0, "cx": 0}, "Intrinsics.width: expected a positive integer, got 0"),
+        ({"height": 0, "cy": 0}, "Intrinsics.height: expected a positive integer, got 0"),
+    ],
+)
+def test_intrinsics_refuse_zero_focal_lengths_and_sizes(kwargs, message):
+    base = dict(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
+    with pytest.raises(ValidationError) as info:
+        Intrinsics(**{**base, **kwargs})
+    assert message in str(info.value)
+
+
+def test_each_field_of_view_uses_its_own_focal_length():
+    # Non-square pixels (fx != fy): the horizontal FOV comes from fx alone, the vertical from fy
+    # alone. Expected: 2 atan(half size / focal length) with the principal point at the centre.
+    k = Intrinsics(fx=100.0, fy=50.0, cx=50.0, cy=25.0, width=100, height=50)
+    assert k.hfov_rad == pytest.approx(2 * math.atan(50 / 100))
+    assert k.vfov_rad == pytest.approx(2 * math.atan(25 / 50))
+
+
+def test_gnss_longitude_below_minus_180_is_refused():
+    # -180..360 covers both conventions (east negative or 0..360); below -180 is a parse error.
+    with pytest.raises(ValidationError, match="lon_deg: expected within"):
+        GnssFix(utc_ns=0, lat_deg=0.0, lon_deg=-180.5)
+    assert GnssFix(utc_ns=0, lat_deg=0.0, lon_deg=-180.0).lon_deg == -180.0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"spread_rad": 3.5}, "SunEstimate.spread_rad: expected within [0, pi] rad, got 3.5"),
+        ({"n_frames": 0}, "expected at least one frame and token, got 0 frames, 2 tokens"),
+        ({"n_tokens": 0, "token_enu": None}, "expected at least one frame and token, got 1 frames, 0 tokens"),
+        # token_enu is one world vector per token: the plots and the spread read it that way.
+        ({"token_enu": np.zeros((3, 3))}, "SunEstimate.token_enu: expected shape (2, 3), got (3, 3)"),
+    ],
+)
+def test_sun_estimate_rejects_with_expected_vs_actual(kwargs, message):
+    base = dict(t_mono_s=0.0, seq=0, sun_enu=[0, 0, 1], heading_rad=0.0, heading_ref="true", spread_rad=0.1,
+                n_frames=1, n_tokens=2, aggregator="mean", token_enu=[[0, 0, 1], [0, 0, 1]])
+    with pytest.raises(ValidationError) as info:
+        SunEstimate(**{**base, **kwargs})
+    assert message in str(info.value)
+
+
+def test_frame_features_want_float32_embeddings():
+    # The aggregator graph takes float32: float64 embeddings (a backbone run elsewhere) are refused
+    # where they are made, not by onnxruntime in the middle of a window.
+    boxes, angles = np.zeros((2, 4)), np.zeros((2, 2))
+    with pytest.raises(ValidationError, match="expected dtype float32, got float64"):
+        FrameFeatures(make_frame(), boxes, angles, np.zeros((2, 8), np.float64), "m")
+    assert FrameFeatures(make_frame(), boxes, angles, np.zeros((2, 8), np.float32), "m").n_crops == 2
+
+
+def test_vectors_are_copied_not_frozen_in_the_callers_hands():
+    # The caller's float64 array is the kind np.asarray would share: it must stay writable, and
+    # writing it must not change the estimate (or the frame's truth) made from it.
+    sun, truth = np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])
+    est = SunEstimate(t_mono_s=0.0, seq=0, sun_enu=sun, heading_rad=0.0, heading_ref="true", spread_rad=0.0,
+                      n_frames=1, n_tokens=1, aggregator="single")
+    f = make_frame(sun_enu_truth=truth)
+    sun[2], truth[1] = 0.5, 0.5
+    assert est.sun_enu.tolist() == [0.0, 0.0, 1.0] and f.sun_enu_truth.tolist() == [0.0, 1.0, 0.0]
