@@ -99,7 +99,13 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
 
             # Last: an output that fails to open leaves no empty recording behind.
             writer = open_recording(record, start_utc=datetime.now(UTC), overwrite=record_overwrite)
-            pubs.append(RecorderPublisher(writer, record_frames=record_frames))
+            try:
+                pubs.append(RecorderPublisher(writer, record_frames=record_frames))
+            except BaseException:
+                writer.close()
+                if not record_overwrite and writer.path is not None:
+                    writer.path.unlink(missing_ok=True)  # made by this run, and holds nothing
+                raise
     except BaseException:
         _close_all(pubs)
         raise
@@ -108,22 +114,23 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
 
 @contextlib.contextmanager
 def _recording_refusals(option: str, replace: str):
-    """A refused recording (rig.recorder.RecordingExists) in the words of the command that asked:
-    ``option`` is where its path came from, ``replace`` how to allow replacing it."""
-    from rig.recorder import START_FIELD, RecordingExists
+    """A refused recording (rig.recorder.RecordingRefused) in the words of the command that
+    asked: ``option`` is where its path came from, ``replace`` how to allow replacing a file."""
+    from rig.recorder import START_FIELD, RecordingRefused
 
     try:
         yield
-    except RecordingExists as exc:
-        if exc.folder:
-            msg = f"{option} {exc.path} is a folder: name a file in it, e.g. {exc.path / (START_FIELD + '.mcap')}"
-        elif exc.named_by_start:
-            msg = (f"{option} {exc.path}: this name and its -1 to -99 variants exist already; "
-                   f"pass a name in another folder")
-        else:
-            msg = (f"{option} {exc.path} exists: a recording is not replaced by accident; pass another path, "
-                   f"put {START_FIELD} in the name for a new file per run, or {replace} to replace it")
-        raise SunrigError(msg) from None
+    except RecordingRefused as exc:
+        path = exc.path
+        msg = {
+            "exists": f"exists: a recording is not replaced by accident; pass another path, put {START_FIELD} "
+                      f"in the name for a new file per run, or {replace} to replace it",
+            "folder": f"is a folder: name a file in it, e.g. {path / (START_FIELD + '.mcap')}",
+            "no folder": f"is in a folder that does not exist ({path.parent}): make it, or pass another path",
+            "stdout": "is stdout, but a recording is a file: pass a file name",
+            "taken": "and its -1 to -99 variants exist already: pass a name in another folder",
+        }[exc.why]
+        raise SunrigError(f"{option} {path} {msg}") from None
 
 
 def _close_all(pubs: list) -> None:
@@ -283,9 +290,11 @@ def _open_camera(spec: str, heading: str, options=None):
     return open_source(spec, heading, options=options)
 
 
-def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool, record_flag: bool = False) -> int:
+def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool, record_flag: bool = False,
+          inputs: list[Path] | None = None) -> int:
     """The live rig on ``source``. ``record_flag``: the recording's path came from ``--record``
-    (else from the config file), which its errors name."""
+    (else from the config file), which its errors name. ``inputs``: files the source reads, if
+    not named by ``[source]`` (the demo's log), which no output may write over."""
     from estimator.estimator import SunEstimator
     from rig.pipeline import RigConfig, RigPipeline
     from rig.window import SpreadWindowPolicy
@@ -300,7 +309,8 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool, record_flag: boo
                         ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
                         realtime=r["realtime"])
     out = cfg["output"]
-    _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]),
+    _refuse_overwriting(inputs if inputs is not None else _spec_files(cfg["source"]["camera"],
+                                                                        cfg["source"]["heading"]),
                         jsonl=out["jsonl"], record=out["record"])
     refusals = (_recording_refusals("--record", "--record-overwrite") if record_flag else
                 _recording_refusals("[output] record", "set [output] record_overwrite = true"))
@@ -497,7 +507,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
     cfg["rig"]["realtime"] = not args.fast
     cfg["rig"]["status_every_s"] = min(cfg["rig"]["status_every_s"], 1.0)
-    return _live(cfg, open_frames(DEMO_LOG), nmea_stdout=not cfg["output"]["serial"], quiet=args.quiet)
+    return _live(cfg, open_frames(DEMO_LOG), nmea_stdout=not cfg["output"]["serial"], quiet=args.quiet,
+                 inputs=[Path(DEMO_LOG)])
 
 
 def cmd_config(args: argparse.Namespace) -> int:

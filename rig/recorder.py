@@ -7,6 +7,7 @@ up, the newest items are refused and counted rather than stalling capture or the
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from datetime import datetime
 from pathlib import Path
@@ -26,26 +27,36 @@ START_FIELD = "{start}"
 _MAX_SAME_START = 100  # NAME, NAME-1 .. NAME-99: more starts in one second than any boot loop makes
 
 
-class RecordingExists(SunrigError):
-    """The recording's file exists (or is a folder) and may not be replaced. The command that
-    asked for it words the way out, in its own flags (``rig/cli.py``)."""
+class RecordingRefused(SunrigError):
+    """A recording may not go where it was asked to. ``why``: ``"exists"`` (and may not be
+    replaced), ``"folder"`` (the path is a folder), ``"no folder"`` (its folder does not exist),
+    ``"stdout"`` (``-``: a log is a file), ``"taken"`` (every ``{start}`` variant exists). The
+    command that asked words the way out in its own options (``rig/cli.py``)."""
 
-    def __init__(self, path: Path, *, folder: bool = False, named_by_start: bool = False) -> None:
-        self.path, self.folder, self.named_by_start = path, folder, named_by_start
-        what = "is a folder" if folder else "exists"
-        super().__init__(f"{path} {what}: a recording is not replaced by accident")
+    def __init__(self, path: Path, why: str) -> None:
+        self.path, self.why = path, why
+        super().__init__(f"{path}: recording refused ({why})")
+
+
+def _stamp(start_utc: datetime) -> str:
+    return start_utc.strftime("%Y%m%dT%H%M%SZ")
 
 
 def check_recording_path(template: str | Path, *, overwrite: bool = False) -> None:
-    """Refuse, before minutes of opening devices, what :func:`open_recording` would refuse later."""
+    """Refuse, before minutes of opening devices (and before other outputs are opened and
+    truncated), what :func:`open_recording` would refuse later."""
     name = str(template)
-    if START_FIELD in name:
-        return  # a free name is found when the file is made
+    if name == "-":
+        raise RecordingRefused(Path(name), "stdout")
     path = Path(name)
+    if START_FIELD not in str(path.parent) and not path.parent.is_dir():
+        raise RecordingRefused(path, "no folder")
+    if START_FIELD in path.name:
+        return  # a free name is found when the file is made
     if path.is_dir():
-        raise RecordingExists(path, folder=True)
-    if path.exists() and not overwrite:
-        raise RecordingExists(path)
+        raise RecordingRefused(path, "folder")
+    if os.path.lexists(path) and not overwrite:  # lexists: a dangling link is taken too
+        raise RecordingRefused(path, "exists")
 
 
 def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool = False) -> LogWriter:
@@ -57,25 +68,27 @@ def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool
     ``{start}`` in the name becomes the UTC start time (``20261123T031500Z``), so a rig that
     records at every boot from one configuration writes a new file each time; a name already taken
     (a restart within the second, or a board whose clock repeats a boot time before it syncs)
-    gets ``-1``, ``-2``, ... before its suffix rather than stopping the rig.
+    gets ``-1``, ``-2``, ... after the time rather than stopping the rig.
     """
     from replay.native import LogWriter
 
+    check_recording_path(template, overwrite=overwrite)
     name = str(template)
-    path = Path(name.replace(START_FIELD, start_utc.strftime("%Y%m%dT%H%M%SZ")))
+    stamp = _stamp(start_utc)
+    path = Path(name.replace(START_FIELD, stamp))
     if path.is_dir():
-        raise RecordingExists(path, folder=True)
+        raise RecordingRefused(path, "folder")
     if overwrite:
         return LogWriter(path)
     candidates = [path]
     if START_FIELD in name:
-        candidates += [path.with_name(f"{path.stem}-{k}{path.suffix}") for k in range(1, _MAX_SAME_START)]
+        candidates += [Path(name.replace(START_FIELD, f"{stamp}-{k}")) for k in range(1, _MAX_SAME_START)]
     for candidate in candidates:
         try:
             return LogWriter(candidate, exclusive=True)
         except FileExistsError:
             continue
-    raise RecordingExists(path, named_by_start=START_FIELD in name)
+    raise RecordingRefused(path, "taken" if START_FIELD in name else "exists")
 
 
 class RecorderPublisher:

@@ -1,13 +1,22 @@
 """Where a recording goes: never over an existing one by accident, a new file per start with {start}."""
 
+import os
+import shutil
 from datetime import UTC, datetime
 
 import pytest
 
-from rig.recorder import RecordingExists, check_recording_path, open_recording
+from rig.recorder import RecordingRefused, check_recording_path, open_recording
 
 START = datetime(2026, 11, 23, 3, 15, 0, 400_000, tzinfo=UTC)
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def refused(why, fn, *args, **kwargs):
+    with pytest.raises(RecordingRefused) as err:
+        fn(*args, **kwargs)
+    assert err.value.why == why, err.value
+    return err.value
 
 
 def test_start_in_the_name_is_the_utc_start_second(tmp_path):
@@ -18,27 +27,50 @@ def test_start_in_the_name_is_the_utc_start_second(tmp_path):
 
 def test_starts_within_one_second_get_files_of_their_own(tmp_path):
     # A restart loop, or a board without a clock that repeats its boot time before it syncs: the
-    # rig must still start and lose nothing, so the second start takes the next free name.
+    # rig must still start and lose nothing, so the next start takes the next free name. The
+    # check before devices open lets it through: which name is free is known only at the open.
     first = tmp_path / "rig-20261123T031500Z.mcap"
     first.write_bytes(b"the first start's drive")
+    check_recording_path(tmp_path / "rig-{start}.mcap")
     names = []
-    for _ in range(2):
-        with open_recording(tmp_path / "rig-{start}.mcap", start_utc=START) as log:
+    for template in ("rig-{start}.mcap", "rig-{start}.mcap", "rig.{start}"):
+        with open_recording(tmp_path / template, start_utc=START) as log:
             names.append(log.path.name)
-    assert names == ["rig-20261123T031500Z-1.mcap", "rig-20261123T031500Z-2.mcap"]
+    # The number follows the time, wherever {start} sits in the name.
+    assert names == ["rig-20261123T031500Z-1.mcap", "rig-20261123T031500Z-2.mcap", "rig.20261123T031500Z"]
     assert first.read_bytes() == b"the first start's drive"
+
+
+def test_a_hundred_starts_in_one_second_are_refused_not_looped_over(tmp_path):
+    stamp = "20261123T031500Z"
+    for name in [stamp, *(f"{stamp}-{k}" for k in range(1, 100))]:
+        (tmp_path / f"{name}.mcap").write_bytes(b"x")
+    refused("taken", open_recording, tmp_path / "{start}.mcap", start_utc=START)
 
 
 def test_an_existing_file_is_refused_and_kept(tmp_path):
     keep = tmp_path / "drive.mcap"
     keep.write_bytes(b"yesterday's drive")
-    with pytest.raises(RecordingExists) as err:
-        check_recording_path(keep)
-    assert err.value.path == keep and not err.value.folder
-    # Made between the check and the open (a camera can take 15 s to start): still not truncated.
-    with pytest.raises(RecordingExists):
-        open_recording(keep, start_utc=START)
+    assert refused("exists", check_recording_path, keep).path == keep
+    assert refused("exists", open_recording, keep, start_utc=START).path == keep
     assert keep.read_bytes() == b"yesterday's drive"
+
+
+def test_a_file_made_after_the_check_is_not_truncated(tmp_path, monkeypatch):
+    # Between the check and the open the sources start (an OAK: up to 15 s); a file made then by
+    # another recorder must survive: the open is exclusive, not a second look.
+    import rig.recorder
+
+    keep = tmp_path / "drive.mcap"
+    monkeypatch.setattr(rig.recorder, "check_recording_path", lambda *a, **k: keep.write_bytes(b"another run's"))
+    refused("exists", open_recording, keep, start_utc=START)
+    assert keep.read_bytes() == b"another run's"
+
+
+def test_a_dangling_link_is_a_taken_name(tmp_path):
+    link = tmp_path / "drive.mcap"
+    os.symlink(tmp_path / "gone.mcap", link)
+    refused("exists", check_recording_path, link)
 
 
 def test_overwrite_replaces_an_existing_file(tmp_path):
@@ -50,16 +82,43 @@ def test_overwrite_replaces_an_existing_file(tmp_path):
     assert old.read_bytes().startswith(MCAP_MAGIC)
 
 
-def test_a_folder_is_refused_even_with_overwrite(tmp_path):
-    for overwrite in (False, True):
-        with pytest.raises(RecordingExists) as err:
-            check_recording_path(tmp_path, overwrite=overwrite)
-        assert err.value.folder
-        with pytest.raises(RecordingExists):
-            open_recording(tmp_path, start_utc=START, overwrite=overwrite)
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_where_no_file_can_be_made_is_refused_before_devices_open(tmp_path, overwrite):
+    refused("folder", check_recording_path, tmp_path, overwrite=overwrite)
+    refused("folder", open_recording, tmp_path, start_utc=START, overwrite=overwrite)
+    refused("no folder", check_recording_path, tmp_path / "nowhere" / "{start}.mcap", overwrite=overwrite)
+    refused("stdout", check_recording_path, "-", overwrite=overwrite)
+    assert list(tmp_path.iterdir()) == []
 
 
-def test_a_name_with_start_is_checked_when_the_file_is_made(tmp_path):
-    (tmp_path / "rig-20261123T031500Z.mcap").write_bytes(b"x")
-    check_recording_path(tmp_path / "rig-{start}.mcap")  # any start may be free: nothing to refuse yet
-    assert not (tmp_path / "rig-{start}.mcap").exists()
+def test_demo_never_writes_over_its_own_log(tmp_path, monkeypatch, capsys):
+    # The demo's input is not named by [source], so it is passed to the overwrite check itself.
+    import replay.sources
+    from rig.cli import main
+
+    log = tmp_path / "demo.mcap"
+    shutil.copy(replay.sources.DEMO_LOG, log)
+    before = log.read_bytes()
+    monkeypatch.setattr(replay.sources, "DEMO_LOG", log)
+    config = tmp_path / "rig.toml"
+    config.write_text(f"[output]\nrecord = {str(log)!r}\nrecord_overwrite = true\n")
+    for args in (["demo", "--fast", "--jsonl", str(log)], ["demo", "--fast", "--config", str(config)]):
+        assert main(args) == 2, args
+        assert "is the input being read" in capsys.readouterr().err, args
+        assert log.read_bytes() == before, args
+
+
+def test_a_recorder_that_fails_to_start_leaves_no_file(tmp_path, monkeypatch):
+    # The file is made just before the recorder's thread starts; if that fails (or Ctrl-C lands
+    # there), the half-made log would sit in the drives folder as if it were a recording.
+    import rig.recorder
+    from rig.cli import _publishers
+
+    def no_thread(*args, **kwargs):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(rig.recorder, "RecorderPublisher", no_thread)
+    with pytest.raises(RuntimeError):
+        _publishers(serial=None, baud=115200, fmt="nmea", jsonl=None, rule=None,
+                    record=str(tmp_path / "{start}.mcap"))
+    assert list(tmp_path.iterdir()) == []
