@@ -105,10 +105,43 @@ def test_a_calibration_is_scaled_to_the_stream():
     ({"camera_matrix": np.eye(3) * 100}, "no image size"),
     ({"camera_matrix": [1, 2, 3], "image_width": 4, "image_height": 4}, "3x3"),
     ({"camera_matrix": -np.eye(3), "image_width": 4, "image_height": 4}, "positive"),
+    ({"camera_matrix": np.diag([100.0, -100.0, 1.0]), "image_width": 4, "image_height": 4}, "positive fx, fy"),
+    ({"camera_matrix": np.eye(3) * 100, "image_width": 4, "image_height": 4, "D": [0.1, float("nan")]}, "finite"),
 ])
 def test_bad_calibrations_say_what_is_missing(values, match):
     with pytest.raises(CameraError, match=match):
         calibration_from_mapping(values)
+
+
+def test_image_size_pair_and_null_entries():
+    # calibration_from_mapping: an ``image_size`` pair is (width, height), and fills in whichever
+    # of image_width / image_height is missing; a key whose value is None (a JSON null) is skipped
+    # for the next name, as its docstring's "first of the common key names" implies.
+    k = [[800.0, 0, 640.0], [0, 800.0, 360.0], [0, 0, 1]]
+    cal = calibration_from_mapping({"camera_matrix": k, "image_size": [1280, 720]})
+    assert (cal.width, cal.height) == (1280, 720)
+    cal = calibration_from_mapping({"camera_matrix": k, "image_width": 1280, "image_size": [1280, 720]})
+    assert (cal.width, cal.height) == (1280, 720)
+    cal = calibration_from_mapping({"camera_matrix": None, "K": k, "width": 1280, "height": None,
+                                    "image_height": 720})
+    assert cal.k[0, 0] == 800.0 and (cal.width, cal.height) == (1280, 720)
+
+
+def test_an_aspect_ratio_off_by_more_than_one_percent_is_refused():
+    # fit_intrinsics allows 1 % between the x and y scales: 1920x1080 -> 1920x1088 (an encoder's
+    # 16-row padding, 0.74 %) is scaled; 1280x720 -> 1280x704 (2.2 %, a crop) is refused.
+    cal = calibration_from_mapping({"K": np.diag([1000.0, 1000.0, 1.0]), "width": 1920, "height": 1080})
+    assert fit_intrinsics(1920, 1088, calibration=cal).fy == pytest.approx(1000.0 * 1088 / 1080)
+    cal = calibration_from_mapping({"K": np.diag([800.0, 800.0, 1.0]), "width": 1280, "height": 720})
+    with pytest.raises(CameraError, match="aspect ratio"):
+        fit_intrinsics(1280, 704, calibration=cal)
+
+
+@pytest.mark.parametrize("hfov_deg", [0.0, -10.0, 180.0, 200.0, float("nan"), float("inf")])
+def test_a_field_of_view_outside_0_to_180_deg_is_refused(hfov_deg):
+    # A pinhole camera's horizontal field of view is strictly below 180 deg (fx = W / 2 / tan(hfov / 2)).
+    with pytest.raises(CameraError, match="between 0 and 180 deg"):
+        fit_intrinsics(64, 48, hfov_rad=math.radians(hfov_deg))
 
 
 def test_no_intrinsics_is_one_clear_error(video):
@@ -125,6 +158,8 @@ def test_as_bgr():
     assert as_bgr(np.zeros((4, 5), np.uint8)).shape == (4, 5, 3)
     assert as_bgr(np.zeros((4, 5, 4), np.uint8)).shape == (4, 5, 3)
     assert as_bgr(np.full((4, 5), 65535, np.uint16)).max() == 255
+    # A 16-bit camera is scaled to 8 bits (x 255 / 65535), not clipped: 25600 -> 99.6 -> 100.
+    assert (as_bgr(np.full((4, 5), 25600, np.uint16)) == 100).all()
 
 
 # --- calibration files written by cv2.FileStorage ------------------------------------------------
@@ -330,6 +365,47 @@ def test_max_outage_turns_a_lost_device_into_an_error():
     with pytest.raises(CameraError, match="lost for more than 0.1 s"):
         collect(cam)
     assert time.monotonic() - t0 < HANG_GUARD_S
+    cam.close()
+
+
+def test_a_zero_backoff_is_refused():
+    # A zero wait between reconnects would spin on a lost device (OpenCvCamera: 0 < min <= max).
+    with pytest.raises(CameraError, match="backoff_s"):
+        OpenCvCamera(0, hfov_deg=60.0, capture_factory=FakeFactory([1]), backoff_s=(0.0, 1.0))
+
+
+def test_live_frames_are_stamped_at_read_time_minus_the_latency_never_below_zero():
+    # A live frame: clock() when read() returns, moved back by latency_s (the module docstring),
+    # and clamped at 0 (Frame times are not negative).
+    for now, want in ((100.0, 99.95), (0.01, 0.0)):
+        cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=FakeFactory([3]), poll_s=0.01, reconnect=False,
+                           latency_s=0.05, clock=lambda now=now: now)
+        got = collect(cam)
+        cam.close()
+        assert got and all(f.t_mono_s == pytest.approx(want, abs=EXACT_F64) for f in got)
+
+
+def test_a_file_without_timestamps_or_frame_rate_is_stamped_at_30_fps():
+    # _file_time: no CAP_PROP_POS_MSEC (the fake's get() says 0) and no CAP_PROP_FPS: index / 30 s.
+    cam = OpenCvCamera(CameraTarget("file", "clip.avi"), hfov_deg=60.0,
+                       capture_factory=lambda _: DisappearingCapture(4), poll_s=0.01)
+    got = collect(cam)
+    cam.close()
+    assert [f.t_mono_s for f in got] == pytest.approx([0.0, 1 / 30, 2 / 30, 3 / 30], abs=EXACT_F64)
+
+
+def test_an_outage_is_timed_from_its_first_failed_read():
+    # max_outage_s counts from the first failed read of an outage, not from the latest retry: a
+    # stream that reopens fine but whose every read fails (a dead RTSP feed) is still an outage.
+    # One frame, then every reopen succeeds and its first read fails.
+    factory = FakeFactory([1] + [0] * 10_000)
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=factory, backoff_s=(0.01, 0.02), poll_s=0.01,
+                       max_outage_s=0.2)
+    t0 = time.monotonic()
+    with pytest.raises(CameraError, match="lost for more than 0.2 s"):
+        collect(cam)
+    assert time.monotonic() - t0 < HANG_GUARD_S
+    assert cam.stats()["read_failures"] >= 2 and cam.stats()["reconnects"] >= 1  # reopened, read failed again
     cam.close()
 
 

@@ -59,3 +59,19 @@ def test_not_a_terminal_gets_a_plain_line_a_minute_on_long_work():
     now[0] += 1000.0
     q.update(5)
     assert quiet.getvalue() == ""
+
+
+def test_time_left_is_rounded_shows_hours_and_stops_at_the_end():
+    # _clock rounds to the second (59.6 s -> 1:00, not 0:59) and shows hours from 1 h on
+    # (3700 s -> 1:01:40); a finished count shows no time left at all.
+    now = [0.0]
+    p = Progress("synth", total=303, stream=_Tty(), clock=lambda: now[0])
+    now[0] = 1.0
+    p.update(5)  # 5/s, 298 left -> 59.6 s
+    assert p.line() == "synth: 5/303 (5.0/s, 1:00 left)"
+    q = Progress("train", total=3701, stream=_Tty(), clock=lambda: now[0])
+    now[0] = 2.0  # 1 s after q started
+    q.update(1)  # 1/s, 3700 left
+    assert q.line() == "train: 1/3701 (1.0/s, 1:01:40 left)"
+    q.update(3701)
+    assert q.line() == "train: 3701/3701 (3701.0/s)"

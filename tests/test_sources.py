@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+import drivers.sources as drivers_sources
 from drivers.sources import (
     CameraSpec,
     HeadingSpec,
@@ -88,10 +89,135 @@ def test_combinations_that_cannot_work(camera, heading, match):
 @pytest.mark.parametrize(("camera", "heading"), [
     ("oak", "oak-imu"), ("oak", "nmea:/dev/ttyUSB0"), ("oak", "visual"), ("opencv:0", "nmea:COM3"),
     ("opencv:rtsp://h/p", "visual"), ("opencv:clip.avi", "visual"), ("file:x.mcap", "log"),
+    # A network stream is live (its frames carry the time they arrive), so a compass pairs with it:
+    # only a video *file* is refused with nmea (parse_target: url and gstreamer are not files).
+    ("opencv:rtsp://h/p", "nmea:/dev/ttyUSB0"), ("opencv:videotestsrc ! appsink", "nmea:COM3"),
     ("file:x.mcap", "visual"), ("file:x.mcap", "none"),
 ])
 def test_combinations_that_work(camera, heading):
     check_pair(parse_camera(camera), parse_heading(heading))
+
+
+# --- LiveSource: closing, stopping, truncation (fake parts: only the bookkeeping is under test) ----
+
+
+class _Part:
+    """A source part that records its close() in ``log``; ``fail`` makes close() raise."""
+
+    def __init__(self, name, log, fail=False, truncated=False):
+        self.name, self.log, self.fail, self.truncated = name, log, fail, truncated
+
+    def close(self):
+        self.log.append(self.name)
+        if self.fail:
+            raise OSError(f"{self.name} would not close")
+
+
+def test_close_releases_every_part_newest_first_once_even_when_one_fails():
+    # LiveSource.close: the camera was opened after the heading port, so it is released first;
+    # a part that fails to close must not keep the others open; a second close does nothing.
+    closed = []
+    src = drivers_sources.LiveSource(parse_camera("opencv:0"), parse_heading("nmea:COM3"), (),
+                                     {"gnss": _Part("gnss", closed), "camera": _Part("camera", closed, fail=True)})
+    src.close()
+    assert closed == ["camera", "gnss"]
+    src.close()
+    assert closed == ["camera", "gnss"]
+
+
+def test_one_truncated_part_makes_the_source_truncated():
+    parts = {"log": _Part("log", [], truncated=True), "visual_odometry": _Part("vo", [])}
+    assert drivers_sources.LiveSource(CameraSpec("file", "x"), HeadingSpec("visual"), (), parts).truncated
+    parts["log"].truncated = False
+    assert not drivers_sources.LiveSource(CameraSpec("file", "x"), HeadingSpec("visual"), (), parts).truncated
+
+
+def test_stop_closes_a_camera_that_has_no_stop():
+    closed = []
+    src = drivers_sources.LiveSource(CameraSpec("file", "x"), HeadingSpec("log"), (), {"camera": _Part("cam", closed)})
+    src.stop()
+    assert closed == ["cam"]
+
+
+def test_a_camera_that_fails_to_open_closes_the_heading_port_opened_before_it(monkeypatch):
+    # open_source opens the nmea port first; when the camera then fails, the port must not be
+    # left open (the except branch closes every part opened so far).
+    closed = []
+    monkeypatch.setattr(drivers_sources, "_open_gnss", lambda head, opts, clock: _Part("gnss", closed))
+    with pytest.raises(SunrigError, match="no camera at index 63"):
+        open_source("opencv:63", "nmea:COM3", options=SourceOptions(hfov_deg=60.0))
+    assert closed == ["gnss"]
+
+
+# --- the OAK's settings, through a stand-in for drivers.oak (no OAK on a test machine) -----------
+
+
+class _FakeOakConfig:
+    width, height = 640, 400  # drivers.oak.OakConfig's defaults, which _open_oak reads
+
+    def __init__(self, **fields):
+        self.fields = fields
+
+
+@pytest.fixture
+def fake_oak(monkeypatch):
+    """Installs a drivers.oak whose OakCamera records the OakConfig fields it was given (its
+    stats()), or raises ``fake.error`` when set."""
+    import types
+
+    module = types.ModuleType("drivers.oak")
+    module.error = None
+
+    class FakeOakCamera:
+        def __init__(self, config):
+            if module.error is not None:
+                raise module.error
+            self.config = config
+
+        def stats(self):
+            return dict(self.config.fields)
+
+    module.OakConfig, module.OakCamera = _FakeOakConfig, FakeOakCamera
+    monkeypatch.setitem(sys.modules, "drivers.oak", module)
+    return module
+
+
+def oak_fields(camera, heading, **options):
+    with open_source(camera, heading, options=SourceOptions(**options)) as src:
+        return src.stats()["camera"]
+
+
+def test_oak_options_reach_its_config(fake_oak):
+    # The OAK's own IMU is read only when it is the heading source; every option given is passed.
+    assert oak_fields("oak:14442C10D13EABCE00", "oak-imu", fps=10.0, declination_deg=3.5) == {
+        "imu_mode": "auto", "device_id": "14442C10D13EABCE00", "fps": 10.0, "declination_deg": 3.5}
+    assert oak_fields("oak", "visual", width=320, height=200) == {"imu_mode": "none", "width": 320, "height": 200}
+
+
+def test_an_oak_calibration_file_is_fitted_to_the_oak_output_size(fake_oak, tmp_path):
+    # A calibration at 1280x800 (fx = fy = 1000, centre 640, 400) scaled to the output size:
+    # the default 640x400 halves it, a requested 320x200 quarters it.
+    path = tmp_path / "oak.yaml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[1000.0, 0, 640.0], [0, 1000.0, 400.0], [0, 0, 1]]))
+    fs.write("image_width", 1280)
+    fs.write("image_height", 800)
+    fs.release()
+    intr = oak_fields("oak", "oak-imu", calibration=str(path))["intrinsics"]
+    assert (intr.width, intr.height, intr.fx, intr.cx, intr.cy) == (640, 400, 500.0, 320.0, 200.0)
+    intr = oak_fields("oak", "oak-imu", calibration=str(path), width=320, height=200)["intrinsics"]
+    assert (intr.width, intr.height, intr.fx) == (320, 200, 250.0)
+
+
+def test_oak_driver_errors_keep_their_message_and_others_become_one_line(fake_oak):
+    from rig.errors import CameraError
+
+    fake_oak.error = CameraError("no OAK with id 1844301")
+    with pytest.raises(CameraError, match="^no OAK with id 1844301$"):
+        open_source("oak", "visual")
+    fake_oak.error = RuntimeError("X_LINK_DEVICE_NOT_FOUND")
+    with pytest.raises(SourceError, match="cannot open the OAK: RuntimeError: X_LINK_DEVICE_NOT_FOUND"):
+        open_source("oak", "visual")
 
 
 # --- opening real sources ------------------------------------------------------------------------

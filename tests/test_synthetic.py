@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from replay.synthetic import Drive, drive_seed, kitti_intrinsics, plan_drive, synth_drive
-from replay.synthetic.camera import CameraEffects
+from replay.synthetic.camera import Camera, CameraEffects
 from replay.synthetic.drive import SUN_ELEVATION_RANGE_DEG
 from replay.synthetic.render import CameraPose, Renderer, project_direction, project_points, world_from_cam
 from replay.synthetic.scene import GroundMap, Material, Scene, SceneObject, box_solid, make_car
-from replay.synthetic.sky import PreethamSky
+from replay.synthetic.sky import SUN_ANGULAR_RADIUS_RAD, PreethamSky, relative_airmass
 from rig.geometry import az_el_from_enu, enu_from_az_el, world_from_heading
 from rig.types import HeadingRef
 
@@ -109,6 +109,75 @@ def test_sky_is_brighter_toward_the_sun():
     # Blue sky: away from the sun the blue channel (BGR index 0) leads.
     rad = sky.radiance(enu_from_az_el(math.radians(280.0), math.radians(60.0)))
     assert rad[0] > rad[2]
+
+
+def test_kasten_young_air_mass():
+    # Kasten & Young (1989): 1 / (sin el + 0.50572 (el + 6.07995 deg)^-1.6364); ~1 at the zenith,
+    # ~38 at the horizon (their table: 38.09 for the refracted horizon; 37.92 by this formula),
+    # and the horizon's value below it (a sun just set must not give an infinite or negative mass).
+    assert relative_airmass(math.radians(90.0)) == pytest.approx(1.0, abs=1e-3)
+    assert relative_airmass(math.radians(30.0)) == pytest.approx(1.0 / (0.5 + 0.50572 * 36.07995**-1.6364))
+    assert relative_airmass(0.0) == pytest.approx(37.92, abs=0.01)
+    assert relative_airmass(math.radians(-5.0)) == relative_airmass(0.0)
+
+
+def test_preetham_sky_refuses_a_set_sun_and_turbidity_outside_its_fit():
+    with pytest.raises(ValueError, match="above the horizon"):
+        PreethamSky(enu_from_az_el(0.0, math.radians(-1.0)))
+    for t in (1.0, 12.0):  # Preetham's coefficients are fitted for turbidity ~2..10
+        with pytest.raises(ValueError, match="turbidity"):
+            PreethamSky(enu_from_az_el(0.0, math.radians(30.0)), t)
+
+
+def test_zenith_luminance_is_preethams_formula():
+    # At the zenith the Perez ratio F(0, theta_s) / F(0, theta_s) is 1, so the luminance there is
+    # Preetham's (appendix A.2) Y_z = (4.0453 T - 4.9710) tan(chi) - 0.2155 T + 2.4192 with
+    # chi = (4/9 - T/120)(pi - 2 theta_s), times sky_scale (0.6); LUMA recovers Y from linear sRGB.
+    for t, el_deg in ((3.0, 40.0), (6.0, 20.0)):
+        sky = PreethamSky(enu_from_az_el(0.3, math.radians(el_deg)), t)
+        theta_s = math.radians(90.0 - el_deg)
+        chi = (4.0 / 9.0 - t / 120.0) * (math.pi - 2.0 * theta_s)
+        want = 0.6 * ((4.0453 * t - 4.9710) * math.tan(chi) - 0.2155 * t + 2.4192)
+        assert float(sky.radiance(np.array([0.0, 0.0, 1.0])) @ LUMA) == pytest.approx(want, rel=1e-3)
+
+
+def test_direct_sun_follows_the_air_mass_and_the_visibility():
+    # Transmittance exp(-tau m): tau = Rayleigh + Angstrom aerosol beta(T) (lambda)^-1.3 with
+    # beta = 0.04608 T - 0.04586 (the module's constants), m the air mass at the sun's elevation.
+    el = math.radians(30.0)
+    sun = enu_from_az_el(1.0, el)
+    tau = np.array([0.19, 0.097, 0.062]) + (0.04608 * 3.0 - 0.04586) * np.array([0.465, 0.55, 0.61]) ** -1.3
+    clear = PreethamSky(sun, 3.0)
+    np.testing.assert_allclose(clear.sun_irradiance_bgr, 128.0 * np.exp(-tau * relative_airmass(el)), rtol=1e-12)
+    # A sun dimmed by cloud scales the beam; the visibility is clipped to [0, 1].
+    np.testing.assert_allclose(PreethamSky(sun, 3.0, sun_visibility=0.5).sun_irradiance_bgr,
+                               0.5 * clear.sun_irradiance_bgr, rtol=1e-12)
+    np.testing.assert_allclose(PreethamSky(sun, 3.0, sun_visibility=2.0).sun_irradiance_bgr,
+                               clear.sun_irradiance_bgr, rtol=1e-12)
+    # The disk's radiance times its solid angle pi r^2 is the beam's irradiance.
+    np.testing.assert_allclose(clear.sun_disk_radiance_bgr() * math.pi * SUN_ANGULAR_RADIUS_RAD**2,
+                               clear.sun_irradiance_bgr, rtol=1e-12)
+
+
+def test_cloud_cover_mixes_in_a_grey_cie_overcast_sky():
+    # radiance = (1 - 0.4 c) clear + 0.4 c grey, grey following the CIE overcast (1 + 2 sin el) / 3:
+    # what is left after removing the clear share has equal channels and is 3x brighter at the
+    # zenith than at the horizon.
+    sun = enu_from_az_el(2.0, math.radians(35.0))
+    dirs = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], np.float32)  # zenith, horizon (east)
+    grey = PreethamSky(sun, 3.0, cloud_cover=0.5).radiance(dirs) - 0.8 * PreethamSky(sun, 3.0).radiance(dirs)
+    np.testing.assert_allclose(grey, grey[:, :1].repeat(3, axis=1), rtol=1e-4)
+    assert grey[0, 0] == pytest.approx(3.0 * grey[1, 0], rel=1e-4)
+
+
+def test_ground_bounce_lights_only_downward_faces():
+    # ambient_irradiance: a face looking up sees only sky; a face looking down sees only the
+    # ground, a Lambertian plane of albedo rho lit by the sky and the sun on it:
+    # E_down = rho (E_sky,up + E_sun,up). A face turned from the sun gets no direct light.
+    sky = PreethamSky(enu_from_az_el(0.5, math.radians(40.0)), 3.0)
+    up, down = sky.ambient_irradiance([[0.0, 0.0, 1.0]])[0], sky.ambient_irradiance([[0.0, 0.0, -1.0]])[0]
+    np.testing.assert_allclose(down, 0.15 * (up + sky.direct_irradiance([[0.0, 0.0, 1.0]])[0]), rtol=1e-9)
+    np.testing.assert_allclose(sky.direct_irradiance([-sky.sun_enu]), 0.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -350,6 +419,63 @@ def test_yaw_varies_along_drives():
 def test_drive_seeds_are_independent_and_stable():
     assert drive_seed(0, 0) == drive_seed(0, 0)
     assert len({drive_seed(0, i) for i in range(50)} | {drive_seed(1, i) for i in range(50)}) == 100
+
+
+# ---------------------------------------------------------------------------------------------
+# The camera's effects (replay/synthetic/camera.py), on flat radiance fields
+
+
+def _srgb8(linear: float) -> int:
+    """The tone curve the camera module documents: 1 - exp(-1.1 x), then the sRGB encoding."""
+    y = 1.0 - math.exp(-1.1 * linear)
+    return round(255.0 * (12.92 * y if y <= 0.0031308 else 1.055 * y ** (1 / 2.4) - 0.055))
+
+
+def _flat(value: float, h: int = 64, w: int = 64) -> np.ndarray:
+    return np.full((h, w, 3), value, np.float32)
+
+
+def test_fixed_exposure_and_the_tone_curve():
+    # Radiance 2 kcd/m^2 times a fixed exposure 0.09 is mid-grey 0.18 (the LUT quantises sqrt(x) to
+    # 1/2048: +-1 level). White balance scales each channel before the curve.
+    cam = Camera(CameraEffects(auto_exposure=False, fixed_exposure=0.09, white_balance_bgr=(1.0, 1.0, 0.5)), 64, 64)
+    img = cam.capture(_flat(2.0))
+    assert abs(int(img[0, 0, 0]) - _srgb8(0.18)) <= 1 and abs(int(img[0, 0, 2]) - _srgb8(0.09)) <= 1
+    assert int(img[0, 0, 0]) > int(img[0, 0, 2])
+
+
+def test_auto_exposure_meters_to_the_key_with_bias_lag_and_clipped_highlights():
+    # exposure = key / meter * 2^bias, meter = mean of the luminance clipped at 4 x its median,
+    # log exposure smoothed: s * previous + (1 - s) * target (camera.py, exposure_for).
+    cam = Camera(CameraEffects(ae_key=0.18, ae_smoothing=0.4), 64, 64)
+    assert cam.exposure_for(_flat(2.0)) == pytest.approx(0.09, rel=1e-5)
+    want = math.exp(0.4 * math.log(0.09) + 0.6 * math.log(0.18 / 8.0))
+    assert cam.exposure_for(_flat(8.0)) == pytest.approx(want, rel=1e-5)
+    biased = Camera(CameraEffects(ae_key=0.18, exposure_bias_stops=1.0), 64, 64)
+    assert biased.exposure_for(_flat(2.0)) == pytest.approx(0.18, rel=1e-5)  # +1 stop: twice the light
+    # A sun-bright 8x8 patch (one cell of the 1/8 meter) counts as 4 x the median, not its 1000.
+    sun = _flat(1.0)
+    sun[:8, :8] = 1000.0
+    fresh = Camera(CameraEffects(ae_key=0.18), 64, 64)
+    assert fresh.exposure_for(sun) == pytest.approx(0.18 / ((63 * 1.0 + 4.0) / 64), rel=1e-5)
+
+
+def test_vignetting_darkens_the_corners_and_blur_softens_edges():
+    effects = CameraEffects(auto_exposure=False, fixed_exposure=0.09, vignette=0.3)
+    img = Camera(effects, 64, 48).capture(_flat(2.0, 48, 64)).astype(int)
+    assert img[0, 0, 1] < img[24, 32, 1] - 10  # 30 % less light at the corner
+    step = _flat(0.0, 48, 64)
+    step[:, 32:] = 2.0
+    sharp = Camera(CameraEffects.ideal(0.09), 64, 48).capture(step)
+    blurred = Camera(CameraEffects(auto_exposure=False, fixed_exposure=0.09, blur_sigma_px=1.5), 64, 48).capture(step)
+    assert len(np.unique(sharp[..., 1])) == 2 and len(np.unique(blurred[..., 1])) > 4
+
+
+def test_noise_needs_an_rng():
+    cam = Camera(CameraEffects(noise_sqrt=0.01), 32, 24)
+    with pytest.raises(ValueError, match="noise needs an rng"):
+        cam.capture(_flat(1.0, 24, 32))
+    assert cam.capture(_flat(1.0, 24, 32), np.random.default_rng(0)).shape == (24, 32, 3)
 
 
 def test_ideal_effects_are_deterministic_without_noise():

@@ -183,6 +183,18 @@ def test_config_is_checked():
         VoConfig(refresh_fraction=1.5)
     with pytest.raises(ValidationError, match="magsac"):
         VoConfig(ransac="guess")
+    # Counts must be >= 1 and refresh_fraction strictly inside (0, 1) (VoConfig.__post_init__):
+    # min_points=0 would "track" with no points, refresh_fraction=1 would make every frame a keyframe.
+    with pytest.raises(ValidationError, match="min_points"):
+        VoConfig(min_points=0)
+    for bad in (0.0, 1.0):
+        with pytest.raises(ValidationError, match="refresh_fraction"):
+            VoConfig(refresh_fraction=bad)
+
+
+def test_heading_rad_is_wrapped_to_0_2pi():
+    # VisualOdometry.heading_rad: "wrapped to [0, 2 pi)", also for a start heading given negative.
+    assert VisualOdometry(start_heading_rad=-0.5).heading_rad == pytest.approx(2 * math.pi - 0.5, abs=EXACT_F64)
 
 
 # --- synthetic drives: a right and a left turn against the truth ---------------------------------
