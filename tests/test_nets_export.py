@@ -27,7 +27,7 @@ from estimator.contract import (  # noqa: E402
     BACKBONE_OUTPUT,
     CHECKSUMS_FILE,
 )
-from estimator.export import build_random_nets, export_model  # noqa: E402
+from estimator.export import build_random_nets, export_model, set_metadata  # noqa: E402
 from estimator.nets import (  # noqa: E402
     LIGHT,
     PAPER,
@@ -391,3 +391,16 @@ def test_paper_preset_export_round_trip(tmp_path):
             torch.from_numpy(emb), torch.from_numpy(ang), torch.from_numpy(mask)
         ).numpy()
     np.testing.assert_allclose(model.aggregate(emb, ang, mask), want, atol=ONNX_VS_TORCH, rtol=0)
+
+
+def test_set_metadata_replaces_keys_it_is_given_and_keeps_the_others():
+    # A re-export (--export-only) sets the contract again on a graph that has one: a second
+    # entry under the same key would leave the runtime reading whichever came first.
+    import onnx
+
+    model = onnx.ModelProto()
+    model.metadata_props.add(key="sunrig.contract", value="old")
+    model.metadata_props.add(key="producer.note", value="kept")
+    set_metadata(model, {"sunrig.contract": "new", "sunrig.graph": "backbone"})
+    assert sorted((p.key, p.value) for p in model.metadata_props) == [
+        ("producer.note", "kept"), ("sunrig.contract", "new"), ("sunrig.graph", "backbone")]

@@ -5,6 +5,7 @@ import threading
 import time
 
 import pytest
+import serial
 
 from rig.errors import PublishError
 from rig.portio import Backoff, begin_stop, join_worker
@@ -36,6 +37,23 @@ def test_backoff_wait_ends_at_stop():
     t0 = time.monotonic()
     b.wait(stop)
     assert time.monotonic() - t0 < 5.0  # not the 30 s backoff
+
+
+@pytest.mark.parametrize("gone", [OSError("port gone"), ValueError("Attempting to use a port that is not open"),
+                                  serial.SerialException("device disconnected")])
+def test_waking_a_worker_on_a_port_that_went_away_is_not_an_error(gone):
+    # pyserial raises ValueError, not OSError, on a port closed under it (unplugged USB): closing
+    # the rig must still join the worker rather than raise out of close().
+    release = threading.Event()
+    t = threading.Thread(target=release.wait, daemon=True)
+    t.start()
+
+    def wake():
+        release.set()
+        raise gone
+
+    join_worker(t, 1.0, wake, logging.getLogger("t"), "worker")
+    assert not t.is_alive()
 
 
 def test_join_worker_wakes_joins_and_leaves_a_stuck_thread(caplog):
