@@ -238,3 +238,89 @@ def test_relative_yaw_tracks_a_synthetic_turn(seed, first, last, turn_deg):
     assert max(abs(e) for e in errors) < DRIVE_TOL_DEG, (errors, vo.stats)
     final = math.degrees(math.remainder(out[-1].attitude.heading_rad, 2 * math.pi))
     assert math.copysign(1.0, final) == math.copysign(1.0, turn_deg)
+
+
+# --- what stats and the fallbacks do ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("step_deg", [3.0, -3.0])
+def test_lost_frames_carry_the_image_shift_turn_with_its_sign(step_deg):
+    # min_points above any feature count: tracking is lost on every frame after the first, so each
+    # one only carries the coarse turn of the image shift (fx * tan(turn), VisualOdometry._lose).
+    # Measured: 5 x 3 deg carries +15.69 / -15.70 deg; allowed 1.5 deg.
+    base = textured()
+    vo = VisualOdometry(VoConfig(min_points=10**6))
+    out = [vo.update(k * 0.1, rotated_view(base, INTR, math.radians(step_deg * k)), INTR) for k in range(6)]
+    assert out[0] is not None and all(s is None for s in out[1:])
+    assert vo.stats["lost"] == 5 and vo.stats["carried"] == 5
+    assert math.degrees(math.remainder(vo.heading_rad, 2 * math.pi)) == pytest.approx(5 * step_deg, abs=1.5)
+
+
+def test_a_fit_that_disagrees_with_the_image_shift_and_the_rotation_only_fit_is_rejected():
+    # With both tolerances of VisualOdometry._plausible at 0 an essential-matrix fit (the drive
+    # moves forward: no rotation-only frame, measured) never equals the coarse or rotation-only yaw,
+    # so every frame after the first is refused, counted in "rejected", and carries the rotation-only turn.
+    frames = drive_frames(3, 0, 3)
+    vo = VisualOdometry(VoConfig(coarse_tol_rad=0.0, coarse_tol_frac=0.0))
+    out = [vo.update(f.t_mono_s, f.image_bgr, f.intrinsics) for f in frames]
+    assert out[0] is not None and all(s is None for s in out[1:])
+    assert vo.stats["rejected"] == 3 and vo.stats["lost"] == 3 and vo.stats["carried"] == 3, vo.stats
+
+
+def test_a_new_keyframe_when_the_features_moved_keyframe_parallax_px():
+    # 2 deg steps move the features fx * tan(2 deg) = 8 px at INTR (fx 228.5): the parallax since the
+    # keyframe reaches keyframe_parallax_px (12 px) every second frame, with nearly all points left.
+    base = textured()
+    vo = VisualOdometry()
+    out = [vo.update(k * 0.1, rotated_view(base, INTR, math.radians(2.0 * k)), INTR) for k in range(5)]
+    assert all(s is not None for s in out)
+    assert vo.stats["keyframes"] == 3  # the first frame, frame 2 and frame 4
+
+
+WIDE = Intrinsics.from_hfov(1280, 960, math.radians(70.0))
+
+
+def test_wide_images_are_downscaled_so_pixel_thresholds_apply_to_the_working_image():
+    # max_width_px 640 halves a 1280 px image: a 1 deg step moves features fx * tan(1 deg) = 16 px
+    # at full size (fx 914) but 8 px in the working image, so only every second frame reaches
+    # keyframe_parallax_px (12 px; VoConfig: "Pixel sizes are in the (possibly downscaled) working image").
+    base = textured(size=(960, 1280))
+    vo = VisualOdometry()
+    out = [vo.update(k * 0.1, rotated_view(base, WIDE, math.radians(1.0 * k)), WIDE) for k in range(4)]
+    assert all(s is not None for s in out)
+    assert vo.stats["keyframes"] == 2  # the first frame and frame 2
+
+
+@pytest.mark.parametrize("step_deg", [3.0, -3.0])
+def test_turning_on_the_spot_with_a_wide_image_gives_the_turn(step_deg):
+    # The downscaled image needs the intrinsics scaled with it (fx, cx, cy); WARP_TOL_DEG as for INTR
+    # (measured: error < 0.01 deg).
+    base = textured(size=(960, 1280))
+    vo = VisualOdometry()
+    headings = []
+    for k in range(4):
+        sample = vo.update(k * 0.1, rotated_view(base, WIDE, math.radians(step_deg * k)), WIDE)
+        assert sample is not None
+        headings.append(math.degrees(math.remainder(sample.heading_rad, 2 * math.pi)))
+    assert headings == pytest.approx([step_deg * k for k in range(4)], abs=WARP_TOL_DEG)
+
+
+def test_a_turn_larger_than_max_step_between_two_frames_gives_no_heading():
+    # VoConfig.max_step_rad: a larger turn between two frames is taken as a failed fit. At 2 deg a
+    # 1 deg turn still gives its heading; the next 3 deg (4 deg since the keyframe) gives none.
+    base = textured()
+    vo = VisualOdometry(VoConfig(max_step_rad=math.radians(2.0)))
+    out = [vo.update(k * 0.1, rotated_view(base, INTR, math.radians(yaw)), INTR) for k, yaw in enumerate([0, 1, 4])]
+    assert out[1] is not None and math.degrees(out[1].heading_rad) == pytest.approx(1.0, abs=WARP_TOL_DEG)
+    assert out[2] is None
+    assert vo.stats["lost"] == 1
+
+
+def test_a_cut_to_an_unrelated_scene_gives_no_heading():
+    # Tracks into an unrelated image do not track back to where they came from: the forward-backward
+    # check (fb_max_px) drops them all and tracking is lost, instead of fitting a turn to garbage
+    # (measured without the check: a 20 deg "turn").
+    vo = VisualOdometry()
+    assert vo.update(0.0, textured(0), INTR) is not None
+    assert vo.update(0.1, textured(7), INTR) is None
+    assert vo.stats["lost"] == 1 and vo.stats["essential"] == 0 and vo.stats["rotation_only"] == 0
