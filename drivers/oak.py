@@ -85,11 +85,15 @@ CAMERA_COUNTS = (
 
 def _dai():
     """depthai, imported on first use, with an error that says what to install."""
-    try:
-        with _stdout_to_stderr():
-            import depthai as dai
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise OakError("the OAK driver needs DepthAI v3: pip install 'depthai>=3'") from exc
+    dai = sys.modules.get("depthai")
+    if dai is None:
+        try:
+            # Only the first import prints. fd 1 is the whole process's: swapping it again at every
+            # session (reconnects while `--jsonl -` streams) would send those estimates to stderr.
+            with _stdout_to_stderr():
+                import depthai as dai
+        except ImportError as exc:  # pragma: no cover - depends on the environment
+            raise OakError("the OAK driver needs DepthAI v3: pip install 'depthai>=3'") from exc
     if not hasattr(dai.node, "Camera") or not hasattr(dai.node, "ThreadedHostNode"):  # pragma: no cover
         raise OakError(f"the OAK driver needs DepthAI v3, found depthai {dai.__version__}: pip install 'depthai>=3'")
     return dai

@@ -511,7 +511,6 @@ def test_real_oak_heading_against_a_compass():
     assert abs((got - float(want) + 180) % 360 - 180) < 15, got
 
 
-
 def test_importing_depthai_leaves_stdout_to_the_estimates():
     # depthai's C++ logger prints import-time warnings (here: "USB protocol not available", as in
     # any container without /dev/bus/usb) on stdout, where `sunrig run --jsonl -` writes JSON.
@@ -519,3 +518,16 @@ def test_importing_depthai_leaves_stdout_to_the_estimates():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout == "{}\n"  # only what the program itself printed
+
+
+def test_stdout_is_swapped_for_the_first_depthai_import_only(monkeypatch):
+    # fd 1 is the whole process's: a reconnect's _dai() while `--jsonl -` streams must not swap it.
+    import contextlib
+
+    import drivers.oak as oak
+
+    oak._dai()
+    swaps = []
+    monkeypatch.setattr(oak, "_stdout_to_stderr", lambda: swaps.append(1) or contextlib.nullcontext())
+    oak._dai()
+    assert swaps == []
