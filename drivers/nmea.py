@@ -362,16 +362,20 @@ def _time_of_day_ns(text: str) -> int | None:
     return ns + (int(frac.ljust(9, "0")) if frac else 0)
 
 
+# The years a receiver can report: GPS began in 1980, and RMC's two-digit years end in 2079.
+_FIRST_YEAR, _LAST_YEAR = 1980, 2079
+
+
 def _checked_date(name: str, text: str, year: int, month: int, day: int) -> tuple[int, int, int]:
+    if not _FIRST_YEAR <= year <= _LAST_YEAR:
+        # A glitched year would pass as a calendar date and overflow the int64 nanoseconds that
+        # UTC travels in downstream (they end in 2262).
+        raise _bad(name, text, f"a date in {_FIRST_YEAR}-{_LAST_YEAR}")
     try:
         date(year, month, day)
     except ValueError:
         raise _bad(name, text, "a calendar date") from None
     return year, month, day
-
-
-# The years a receiver can report: GPS began in 1980, and RMC's two-digit years end in 2079.
-_FIRST_YEAR, _LAST_YEAR = 1980, 2079
 
 
 def _ddmmyy(text: str) -> tuple[int, int, int] | None:
@@ -381,7 +385,7 @@ def _ddmmyy(text: str) -> tuple[int, int, int] | None:
         raise _bad("date", text, "ddmmyy")
     yy = int(text[4:6])
     # Two-digit years: 80-99 are 1980-1999 (GPS began in 1980), 00-79 are 2000-2079.
-    year = 1900 + yy if yy >= 80 else 2000 + yy
+    year = 1900 + yy if yy >= _FIRST_YEAR % 100 else 2000 + yy
     return _checked_date("date", text, year, int(text[2:4]), int(text[0:2]))
 
 
@@ -486,10 +490,6 @@ def decode_sentence(sentence: Sentence) -> Message | None:
     if day and month and year:
         if not (day.isdigit() and month.isdigit() and re.fullmatch(r"\d{4}", year)):
             raise _bad("ZDA date", f"{day},{month},{year}", "dd,mm,yyyy")
-        if not _FIRST_YEAR <= int(year) <= _LAST_YEAR:
-            # A glitched year would pass as a calendar date and overflow the int64 nanoseconds
-            # that UTC travels in downstream (they end in 2262).
-            raise _bad("ZDA year", year, f"a year in {_FIRST_YEAR}-{_LAST_YEAR}")
         zda_date = _checked_date("ZDA date", f"{day},{month},{year}", int(year), int(month), int(day))
     return Zda(t, _time_of_day_ns(f[0]), zda_date)
 

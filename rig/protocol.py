@@ -98,13 +98,13 @@ class StatusRule:
 
 _NOT_VALID = FLAG_PARTIAL_WINDOW | FLAG_SPREAD_HIGH | FLAG_ABOVE_TRAINED
 
-_FLAG_NAMES = {FLAG_VALID: "VALID", FLAG_HAS_UTC: "HAS_UTC", FLAG_PARTIAL_WINDOW: "PARTIAL_WINDOW",
-               FLAG_SPREAD_HIGH: "SPREAD_HIGH", FLAG_ABOVE_TRAINED: "ABOVE_TRAINED"}
+_FLAG_NAMES = sorted({FLAG_VALID: "VALID", FLAG_HAS_UTC: "HAS_UTC", FLAG_PARTIAL_WINDOW: "PARTIAL_WINDOW",
+                      FLAG_SPREAD_HIGH: "SPREAD_HIGH", FLAG_ABOVE_TRAINED: "ABOVE_TRAINED"}.items())
 
 
 def flag_names(flags: int) -> list[str]:
     """The names of the set status bits, lowest first (docs/protocol.md), e.g. for JSONL."""
-    return [name for bit, name in sorted(_FLAG_NAMES.items()) if flags & bit]
+    return [name for bit, name in _FLAG_NAMES if flags & bit]
 
 
 DEFAULT_STATUS_RULE = StatusRule()
