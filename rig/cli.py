@@ -103,7 +103,7 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
                 pubs.append(RecorderPublisher(writer, record_frames=record_frames))
             except BaseException:
                 writer.close()
-                if not record_overwrite and writer.path is not None:
+                if not record_overwrite:
                     writer.path.unlink(missing_ok=True)  # made by this run, and holds nothing
                 raise
     except BaseException:
@@ -116,7 +116,7 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
 def _recording_refusals(option: str, replace: str):
     """A refused recording (rig.recorder.RecordingRefused) in the words of the command that
     asked: ``option`` is where its path came from, ``replace`` how to allow replacing a file."""
-    from rig.recorder import START_FIELD, RecordingRefused
+    from rig.recorder import MAX_SAME_START, START_FIELD, RecordingRefused
 
     try:
         yield
@@ -128,7 +128,7 @@ def _recording_refusals(option: str, replace: str):
             "folder": f"is a folder: name a file in it, e.g. {path / (START_FIELD + '.mcap')}",
             "no folder": f"is in a folder that does not exist ({path.parent}): make it, or pass another path",
             "stdout": "is stdout, but a recording is a file: pass a file name",
-            "taken": "and its -1 to -99 variants exist already: pass a name in another folder",
+            "taken": f"and its -1 to -{MAX_SAME_START - 1} variants exist already: pass a name in another folder",
         }[exc.why]
         raise SunrigError(f"{option} {path} {msg}") from None
 
@@ -155,8 +155,6 @@ def paced(frames, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep, ma
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    import math
-
     from estimator.estimator import SunEstimator
     from replay.sources import DEMO_LOG, open_frames
     from rig.offline import OfflineStats, estimate_stream
@@ -235,7 +233,6 @@ def _effective_config(args: argparse.Namespace) -> dict:
 def _source_options(cfg: dict):
     """The [source] options of the effective configuration as drivers.sources.SourceOptions;
     zero, empty and nan mean "not set" (TOML has no null)."""
-    import math
 
     from drivers.sources import SourceOptions
 
@@ -290,11 +287,28 @@ def _open_camera(spec: str, heading: str, options=None):
     return open_source(spec, heading, options=options)
 
 
-def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool, record_flag: bool = False,
-          inputs: list[Path] | None = None) -> int:
-    """The live rig on ``source``. ``record_flag``: the recording's path came from ``--record``
-    (else from the config file), which its errors name. ``inputs``: files the source reads, if
-    not named by ``[source]`` (the demo's log), which no output may write over."""
+# How a live command's recording errors name its options: the path came from --record, or from
+# the config file ([output] record), which demo reads too.
+_RECORD_FLAG_WORDS = ("--record", "--record-overwrite")
+_RECORD_CONFIG_WORDS = ("[output] record", "set [output] record_overwrite = true")
+
+
+def _check_live_outputs(cfg: dict, inputs: list[Path], record_words: tuple[str, str]) -> None:
+    """Before any device opens or the model loads: no output may write over an input it reads
+    (``inputs``), nor a recording over an existing file."""
+    out = cfg["output"]
+    _refuse_overwriting(inputs, jsonl=out["jsonl"], record=out["record"])
+    if out["record"]:
+        from rig.recorder import check_recording_path
+
+        with _recording_refusals(*record_words):
+            check_recording_path(out["record"], overwrite=out["record_overwrite"])
+
+
+def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
+          record_words: tuple[str, str] = _RECORD_CONFIG_WORDS) -> int:
+    """The live rig on ``source``; its outputs were checked (:func:`_check_live_outputs`).
+    ``record_words``: how errors name the recording's options, as there."""
     from estimator.estimator import SunEstimator
     from rig.pipeline import RigConfig, RigPipeline
     from rig.window import SpreadWindowPolicy
@@ -309,16 +323,7 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool, record_flag: boo
                         ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
                         realtime=r["realtime"])
     out = cfg["output"]
-    _refuse_overwriting(inputs if inputs is not None else _spec_files(cfg["source"]["camera"],
-                                                                        cfg["source"]["heading"]),
-                        jsonl=out["jsonl"], record=out["record"])
-    refusals = (_recording_refusals("--record", "--record-overwrite") if record_flag else
-                _recording_refusals("[output] record", "set [output] record_overwrite = true"))
-    with refusals:
-        if out["record"]:
-            from rig.recorder import check_recording_path
-
-            check_recording_path(out["record"], overwrite=out["record_overwrite"])
+    with _recording_refusals(*record_words):  # the file is made now: one may have appeared since the check
         pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
                            jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
                            record=out["record"] or None, record_overwrite=out["record_overwrite"],
@@ -368,9 +373,11 @@ def _report_output_losses(stats) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
+    words = _RECORD_FLAG_WORDS if args.record is not None else _RECORD_CONFIG_WORDS
+    _check_live_outputs(cfg, _spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), words)
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     try:
-        return _live(cfg, source, nmea_stdout=False, quiet=args.quiet, record_flag=args.record is not None)
+        return _live(cfg, source, nmea_stdout=False, quiet=args.quiet, record_words=words)
     finally:
         source.close()  # release the devices: the rig only iterates its source
 
@@ -507,8 +514,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
     cfg["rig"]["realtime"] = not args.fast
     cfg["rig"]["status_every_s"] = min(cfg["rig"]["status_every_s"], 1.0)
-    return _live(cfg, open_frames(DEMO_LOG), nmea_stdout=not cfg["output"]["serial"], quiet=args.quiet,
-                 inputs=[Path(DEMO_LOG)])
+    _check_live_outputs(cfg, [Path(DEMO_LOG)], _RECORD_CONFIG_WORDS)
+    return _live(cfg, open_frames(DEMO_LOG), nmea_stdout=not cfg["output"]["serial"], quiet=args.quiet)
 
 
 def cmd_config(args: argparse.Namespace) -> int:

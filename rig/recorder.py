@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 START_FIELD = "{start}"
-_MAX_SAME_START = 100  # NAME, NAME-1 .. NAME-99: more starts in one second than any boot loop makes
+MAX_SAME_START = 100  # NAME, NAME-1 .. NAME-99: more starts in one second than any boot loop makes
 
 
 class RecordingRefused(SunrigError):
@@ -82,7 +82,7 @@ def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool
         return LogWriter(path)
     candidates = [path]
     if START_FIELD in name:
-        candidates += [Path(name.replace(START_FIELD, f"{stamp}-{k}")) for k in range(1, _MAX_SAME_START)]
+        candidates += [Path(name.replace(START_FIELD, f"{stamp}-{k}")) for k in range(1, MAX_SAME_START)]
     for candidate in candidates:
         try:
             return LogWriter(candidate, exclusive=True)

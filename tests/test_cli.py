@@ -216,7 +216,10 @@ def test_an_existing_recording_is_refused_in_the_words_of_the_command(tmp_path):
     for args, says in (([*record, "--out", str(keep)], "or --overwrite to replace it"),
                        ([*run, "--record", str(keep)], "or --record-overwrite to replace it"),
                        ([*run, "--config", str(config)], "set [output] record_overwrite = true"),
-                       (["demo", "--fast", "--config", str(config)], "set [output] record_overwrite = true")):
+                       (["demo", "--fast", "--config", str(config)], "set [output] record_overwrite = true"),
+                       # Refused before the camera opens: there is no OAK here, and that is not what it says.
+                       (["run", "--camera", "oak", "--heading", "oak-imu", "--record", str(keep)],
+                        "or --record-overwrite to replace it")):
         res = run_cli(*args)
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, (args, res.stderr)
         assert f"{keep} exists" in res.stderr and says in res.stderr, (args, res.stderr)
