@@ -244,23 +244,27 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
     bad_rig = tmp_path / "rig.toml"
     bad_rig.write_text("[rig]\nqueue_size = 0\n")
     cases = (
-        ["replay", "--seed", "-1"],
-        ["synth", str(tmp_path / "s"), "--fps", "0"],
-        ["synth", str(tmp_path / "s"), "--render-scale", "nan"],
-        ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--minutes", "nan"],
-        ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--lr", "-1"],
+        (["replay", "--seed", "-1"], "argument --seed"),
+        (["synth", str(tmp_path / "s"), "--fps", "0"], "argument --fps"),
+        (["synth", str(tmp_path / "s"), "--render-scale", "nan"], "argument --render-scale"),
+        (["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--minutes", "nan"], "argument --minutes"),
+        (["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--lr", "-1"], "argument --lr"),
         # --overwrite: even where replacing the recording is allowed, a bad number must not reach it.
-        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--seconds", "inf"],
-        ["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--jpeg-quality", "101"],
-        ["run", "--camera", f"file:{DEMO_LOG}", "--config", str(bad_rig), "--record", str(keep),
-         "--record-overwrite"],
-        ["eval", str(DEMO_LOG), "--plot", str(tmp_path / "curves.txt")],
-        ["eval", str(DEMO_LOG), "--json", str(tmp_path / "no" / "such" / "folder" / "out.json")],
+        (["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--seconds", "inf"],
+         "argument --seconds"),
+        (["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--jpeg-quality", "101"],
+         "argument --jpeg-quality"),
+        (["run", "--camera", f"file:{DEMO_LOG}", "--config", str(bad_rig), "--record", str(keep),
+          "--record-overwrite"], "[rig] queue_size"),
+        (["eval", str(DEMO_LOG), "--plot", str(tmp_path / "curves.txt")], "--plot"),
+        (["eval", str(DEMO_LOG), "--json", str(tmp_path / "no" / "such" / "folder" / "out.json")], "--json"),
     )
-    for args in cases:
+    for args, names in cases:
         res = run_cli(*args)
         assert res.returncode == 2 and "Traceback" not in res.stderr, (args, res.stderr)
-        assert "error:" in res.stderr.strip().splitlines()[-1], (args, res.stderr)
+        last = res.stderr.strip().splitlines()[-1]
+        # The refusal is for the bad value, not a usage error of another kind (also exit 2).
+        assert "error:" in last and names in last and "unrecognized" not in last, (args, res.stderr)
         assert keep.read_bytes() == b"a recording worth keeping", args
     assert not (tmp_path / "m").exists() and not (tmp_path / "s").exists()
 
@@ -276,7 +280,7 @@ def test_an_output_that_writes_nothing_fails_the_run_and_says_so(tiny_model_dir)
     from replay.sources import DEMO_LOG
 
     res = run_cli("run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--model", str(tiny_model_dir),
-                  "--jsonl", "/dev/full", "--serial", "loop://")
+                  "--jsonl", "/dev/full", "--serial", "loop://", "--fast")
     assert res.returncode == 2, res.stderr
     assert re.search(r"JsonlPublisher: \d+ estimates failed to write, 0 written .*No space left", res.stderr)
     # The serial output went on: the failing JSONL file did not stop the rig.

@@ -337,7 +337,7 @@ def test_bad_fields_are_counted_not_raised():
         nmea("GPRMC,256133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D"),  # hour 25
         nmea("GPRMC,204133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,310214,,,D"),  # 31 February
         nmea("GPZDA,204133.000,19,02,14,,"),  # two-digit ZDA year
-        nmea("GPZDA,204133.000,19,02,2300,,"),  # a calendar date, but past int64 nanoseconds (2262)
+        nmea("GPZDA,204133.000,19,02,2080,,"),  # a calendar date, past the last year a receiver reports
         nmea("GPHDT,1e2,T"),
         nmea("GPHDT,10.0"),  # too few fields
         # one field just past its range, the rest of the sentence valid
