@@ -195,6 +195,7 @@ def test_status_rule_limit_follows_the_highest_training_sun(model):
     # Suns above what the model was trained on are flagged: the limit is the training's highest sun
     # (plus the protocol's margin), not its lowest.
     contract = dataclasses.replace(model.contract, training={"data": {"sun_elevation_deg": [10.0, 40.0]}})
+    # FAKE model: status_rule() reads only the contract and the model id.
     rule = SunEstimator(SimpleNamespace(contract=contract, model_id=model.model_id)).status_rule()
     assert rule.max_elevation_deg == 40.0 + ELEVATION_MARGIN_DEG
     assert rule.full_window == model.contract.frames_per_window

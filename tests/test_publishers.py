@@ -597,7 +597,7 @@ def test_a_background_publisher_counts_what_its_publisher_raises_on(tmp_path, ca
 
 
 class ShortWritePort(LoopSerial):
-    """A loop:// port whose first write() returns having written only a few bytes, as a write
+    """FAKE serial port: a loop:// port whose first write() returns having written only a few bytes, as a write
     cut short by ``cancel_write()`` does."""
 
     def __init__(self) -> None:
@@ -640,7 +640,7 @@ def test_a_background_publisher_is_named_after_what_it_runs():
 
 
 class GoneReader(io.StringIO):
-    """A stream whose reader went away (`sunrig replay ... | head`): every write is a broken pipe."""
+    """FAKE stream whose reader went away (`sunrig replay ... | head`): every write is a broken pipe."""
 
     def write(self, text: str) -> int:
         raise BrokenPipeError(32, "Broken pipe")

@@ -118,7 +118,7 @@ def test_a_recorder_that_fails_to_start_leaves_no_file(tmp_path, monkeypatch):
         raise RuntimeError("can't start new thread")
 
     monkeypatch.setattr(rig.recorder, "RecorderPublisher", no_thread)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="can't start new thread"):
         _publishers(serial=None, baud=115200, fmt="nmea", jsonl=None, rule=None,
                     record=str(tmp_path / "{start}.mcap"))
     assert list(tmp_path.iterdir()) == []

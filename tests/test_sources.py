@@ -102,7 +102,7 @@ def test_combinations_that_work(camera, heading):
 
 
 class _Part:
-    """A source part that records its close() in ``log``; ``fail`` makes close() raise."""
+    """FAKE source part: records its close() in ``log``; ``fail`` makes close() raise."""
 
     def __init__(self, name, log, fail=False, truncated=False):
         self.name, self.log, self.fail, self.truncated = name, log, fail, truncated
