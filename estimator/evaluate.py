@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from estimator.estimator import AGGREGATORS, SunEstimator
+from rig.geometry import az_el_from_enu
 from rig.offline import OfflineStats, estimate_stream
 from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_SPREAD_HIGH, FLAG_VALID, StatusRule
 from rig.types import Frame, SunEstimate
@@ -184,7 +185,7 @@ def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estima
             result.errors_deg[agg].append(math.degrees(est.error_rad))
             result.flags[agg].append(rule.flags(est))
             result.elevation_deg[agg].append(math.degrees(est.elevation_rad))
-        result.truth_elevation_deg.append(math.degrees(math.asin(max(-1.0, min(1.0, float(first.truth_enu[2]))))))
+        result.truth_elevation_deg.append(math.degrees(float(az_el_from_enu(first.truth_enu)[1])))
         result.window_logs.append(name)  # last: it is what makes the window count (trim_to_whole_windows)
         # The first full window of each of the first logs, for the scatter figure: each log has its
         # own sun, so the figure shows different skies.

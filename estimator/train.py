@@ -51,7 +51,7 @@ import numpy as np
 from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
 from estimator.crops import crop_side_px
 from rig.errors import SunrigError, ValidationError, require_torch
-from rig.geometry import view_angles_rad, wrap_pi
+from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.types import Frame
 
 torch = require_torch()
@@ -669,10 +669,10 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
 
 def sun_elevation_range_deg(sun_enu: Iterable[np.ndarray]) -> list[float]:
     """The lowest and highest true sun (deg above the horizon) in arrays of (F, 3) ENU vectors."""
-    z = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1, 3)[:, 2] for v in sun_enu])
-    if z.size == 0:
+    enu = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in sun_enu])
+    if enu.size == 0:
         raise TrainingDataError("no frame with a true sun in the training data")
-    el = np.degrees(np.arcsin(np.clip(z, -1.0, 1.0)))
+    el = np.degrees(az_el_from_enu(enu)[1])
     return [round(float(el.min()), 1), round(float(el.max()), 1)]
 
 
