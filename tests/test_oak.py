@@ -514,6 +514,9 @@ def test_real_oak_heading_against_a_compass():
 def test_importing_depthai_leaves_stdout_to_the_estimates():
     # depthai's C++ logger prints import-time warnings (here: "USB protocol not available", as in
     # any container without /dev/bus/usb) on stdout, where `sunrig run --jsonl -` writes JSON.
+    bare = subprocess.run([sys.executable, "-c", "import depthai"], capture_output=True, text=True, timeout=120)
+    if not bare.stdout:
+        pytest.skip("depthai prints nothing on import here: nothing to keep off stdout")
     code = "from drivers.oak import _dai; _dai(); print('{}')"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr

@@ -18,7 +18,14 @@ from replay.synthetic.camera import Camera, CameraEffects
 from replay.synthetic.drive import SUN_ELEVATION_RANGE_DEG
 from replay.synthetic.render import CameraPose, Renderer, project_direction, project_points, world_from_cam
 from replay.synthetic.scene import GroundMap, Material, Scene, SceneObject, box_solid, make_car
-from replay.synthetic.sky import SUN_ANGULAR_RADIUS_RAD, PreethamSky, relative_airmass
+from replay.synthetic.sky import (
+    _AEROSOL_LAMBDA,
+    _RAYLEIGH_TAU,
+    SOLAR_ILLUMINANCE_KLUX,
+    SUN_ANGULAR_RADIUS_RAD,
+    PreethamSky,
+    relative_airmass,
+)
 from rig.geometry import az_el_from_enu, enu_from_az_el, world_from_heading
 from rig.types import HeadingRef
 
@@ -142,13 +149,16 @@ def test_zenith_luminance_is_preethams_formula():
 
 
 def test_direct_sun_follows_the_air_mass_and_the_visibility():
-    # Transmittance exp(-tau m): tau = Rayleigh + Angstrom aerosol beta(T) (lambda)^-1.3 with
-    # beta = 0.04608 T - 0.04586 (the module's constants), m the air mass at the sun's elevation.
+    # Transmittance exp(-tau m): tau = Rayleigh + Angstrom aerosol beta(T) lambda^-1.3 with
+    # Preetham's beta = 0.04608 T - 0.04586, m the air mass at the sun's elevation. The per-channel
+    # optical depths and the solar constant are the module's; the law is what is checked.
     el = math.radians(30.0)
     sun = enu_from_az_el(1.0, el)
-    tau = np.array([0.19, 0.097, 0.062]) + (0.04608 * 3.0 - 0.04586) * np.array([0.465, 0.55, 0.61]) ** -1.3
+    tau = _RAYLEIGH_TAU + (0.04608 * 3.0 - 0.04586) * _AEROSOL_LAMBDA
     clear = PreethamSky(sun, 3.0)
-    np.testing.assert_allclose(clear.sun_irradiance_bgr, 128.0 * np.exp(-tau * relative_airmass(el)), rtol=1e-12)
+    np.testing.assert_allclose(clear.sun_irradiance_bgr, SOLAR_ILLUMINANCE_KLUX * np.exp(-tau * relative_airmass(el)),
+                               rtol=1e-12)
+    assert tau[0] > tau[1] > tau[2]  # blue is scattered most: a low sun is redder
     # A sun dimmed by cloud scales the beam; the visibility is clipped to [0, 1].
     np.testing.assert_allclose(PreethamSky(sun, 3.0, sun_visibility=0.5).sun_irradiance_bgr,
                                0.5 * clear.sun_irradiance_bgr, rtol=1e-12)
