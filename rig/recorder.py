@@ -94,14 +94,11 @@ def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool
 class RecorderPublisher:
     """Writes what it is given to a native log on a writer thread; ``close`` finishes the file.
 
-    ``target``: a path (replaced if it exists) or a log already open (:func:`open_recording`)."""
+    ``writer``: the log, made by :func:`open_recording` (which never replaces a file by accident)."""
 
-    def __init__(self, target: str | Path | LogWriter, *, record_frames: bool = False,
-                 queue_size: int = 64) -> None:
-        from replay.native import LogWriter
-
-        self._writer = target if isinstance(target, LogWriter) else LogWriter(target)
-        self.path = self._writer.path
+    def __init__(self, writer: LogWriter, *, record_frames: bool = False, queue_size: int = 64) -> None:
+        self._writer = writer
+        self.path = writer.path
         self.record_frames = record_frames
         self._queue: DropOldestQueue[Frame | SunEstimate] = DropOldestQueue(queue_size)
         self._stop = threading.Event()

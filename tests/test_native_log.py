@@ -16,7 +16,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import cv2
@@ -814,76 +813,3 @@ def test_source_is_reiterable_and_resets_its_stats(tmp_path):
         json.loads(native.CHANNELS[TOPIC_ESTIMATE].schema_bytes())["title"] == "sunrig.SunEstimate"
     )
     assert os.path.getsize(path) > 0
-
-
-def _estimate(seq: int) -> SunEstimate:
-    return SunEstimate(t_mono_s=1235.0 + seq, seq=seq, sun_enu=[0.0, 0.6, 0.8], heading_rad=0.3, heading_ref="true",
-                       spread_rad=0.05, n_frames=8, n_tokens=1, aggregator="transformer")
-
-
-def test_the_recorder_keeps_frames_only_when_asked_and_every_estimate_on_close(tmp_path):
-    # `--record` without `--record-frames` records the estimates only (frames are most of a log's
-    # size); close() drains what is queued, so the last seconds of a drive are in the file.
-    from rig.recorder import RecorderPublisher
-
-    frames = make_frames(2)
-    for record_frames, name in ((False, "est.mcap"), (True, "all.mcap")):
-        rec = RecorderPublisher(tmp_path / name, record_frames=record_frames, queue_size=64)
-        for f in frames:
-            rec.record_frame(f)
-        for seq in range(40):
-            rec.publish(_estimate(seq))
-        rec.close()
-        n_frames = len(frames) if record_frames else 0
-        assert rec.stats() == {"written": 40 + n_frames, "dropped": 0, "errors": 0, "last_error": None}
-        assert [d["seq"] for d in read_estimates(tmp_path / name)] == list(range(40))
-        if record_frames:  # (a log of estimates alone has no image channel to replay)
-            assert [f.seq for f in read_frames(tmp_path / name)] == [f.seq for f in frames]
-
-
-def test_a_recorder_write_that_fails_is_counted_not_raised(tmp_path):
-    # A full disk must not stop the rig: the estimate is lost, counted in `errors` (which the status
-    # line sums as a publish error) with its reason, and the next ones are tried.
-    from rig.recorder import RecorderPublisher
-
-    rec = RecorderPublisher(tmp_path / "full.mcap")
-    real = rec._writer.write_estimate
-
-    def disk_full_once(est):
-        if est.seq == 1:
-            raise OSError(28, "No space left on device")
-        real(est)
-
-    rec._writer.write_estimate = disk_full_once
-    for seq in range(3):
-        rec.publish(_estimate(seq))
-    rec.close()
-    stats = rec.stats()
-    assert (stats["written"], stats["errors"]) == (2, 1) and "No space left" in stats["last_error"]
-    assert [d["seq"] for d in read_estimates(tmp_path / "full.mcap")] == [0, 2]
-
-
-def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_path):
-    # The recorder never stalls capture or the estimator: while the disk is stuck its queue (2 here)
-    # keeps the newest estimates and counts the ones it let go. Seq 0 is in the stuck write; of
-    # 1..5 the queue ends holding 4 and 5, so 3 are dropped.
-    from rig.recorder import RecorderPublisher
-
-    rec = RecorderPublisher(tmp_path / "slow.mcap", queue_size=2)
-    real = rec._writer.write_estimate
-    entered, release = threading.Event(), threading.Event()
-
-    def stuck(est):
-        entered.set()
-        release.wait(10.0)  # a guard, not a timing: released just below
-        real(est)
-
-    rec._writer.write_estimate = stuck
-    rec.publish(_estimate(0))
-    assert entered.wait(10.0)
-    for seq in range(1, 6):
-        rec.publish(_estimate(seq))
-    release.set()
-    rec.close()
-    assert (rec.stats()["dropped"], rec.stats()["written"]) == (3, 3)
-    assert [d["seq"] for d in read_estimates(tmp_path / "slow.mcap")] == [0, 4, 5]

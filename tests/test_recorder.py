@@ -2,11 +2,15 @@
 
 import os
 import shutil
+import threading
 from datetime import UTC, datetime
 
 import pytest
 
-from rig.recorder import RecordingRefused, check_recording_path, open_recording
+from replay.native import LogWriter, read_estimates, read_frames
+from rig.recorder import RecorderPublisher, RecordingRefused, check_recording_path, open_recording
+from tests.test_native_log import make_frames
+from tests.test_protocol import make_estimate
 
 START = datetime(2026, 11, 23, 3, 15, 0, 400_000, tzinfo=UTC)
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -122,3 +126,68 @@ def test_a_recorder_that_fails_to_start_leaves_no_file(tmp_path, monkeypatch):
         _publishers(serial=None, baud=115200, fmt="nmea", jsonl=None, rule=None,
                     record=str(tmp_path / "{start}.mcap"))
     assert list(tmp_path.iterdir()) == []
+
+
+# --- RecorderPublisher: the recording as a live output ---------------------------------------
+
+
+def test_the_recorder_keeps_frames_only_when_asked_and_every_estimate_on_close(tmp_path):
+    # `--record` without `--record-frames` records the estimates only (frames are most of a log's
+    # size); close() drains what is queued, so the last seconds of a drive are in the file.
+    frames = make_frames(2)
+    for record_frames, name in ((False, "est.mcap"), (True, "all.mcap")):
+        rec = RecorderPublisher(LogWriter(tmp_path / name), record_frames=record_frames, queue_size=64)
+        for f in frames:
+            rec.record_frame(f)
+        for seq in range(40):
+            rec.publish(make_estimate(10.0, 20.0, seq=seq))
+        rec.close()
+        n_frames = len(frames) if record_frames else 0
+        assert rec.stats() == {"written": 40 + n_frames, "dropped": 0, "errors": 0, "last_error": None}
+        assert [d["seq"] for d in read_estimates(tmp_path / name)] == list(range(40))
+        if record_frames:  # (a log of estimates alone has no image channel to replay)
+            assert [f.seq for f in read_frames(tmp_path / name)] == [f.seq for f in frames]
+
+
+def test_a_recorder_write_that_fails_is_counted_not_raised(tmp_path):
+    # A full disk must not stop the rig: the estimate is lost, counted in `errors` (which the status
+    # line sums as a publish error) with its reason, and the next ones are tried.
+    rec = RecorderPublisher(LogWriter(tmp_path / "full.mcap"))
+    real = rec._writer.write_estimate
+
+    def disk_full_once(est):
+        if est.seq == 1:
+            raise OSError(28, "No space left on device")
+        real(est)
+
+    rec._writer.write_estimate = disk_full_once
+    for seq in range(3):
+        rec.publish(make_estimate(10.0, 20.0, seq=seq))
+    rec.close()
+    stats = rec.stats()
+    assert (stats["written"], stats["errors"]) == (2, 1) and "No space left" in stats["last_error"]
+    assert [d["seq"] for d in read_estimates(tmp_path / "full.mcap")] == [0, 2]
+
+
+def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_path):
+    # The recorder never stalls capture or the estimator: while the disk is stuck its queue (2 here)
+    # keeps the newest estimates and counts the ones it let go. Seq 0 is in the stuck write; of
+    # 1..5 the queue ends holding 4 and 5, so 3 are dropped.
+    rec = RecorderPublisher(LogWriter(tmp_path / "slow.mcap"), queue_size=2)
+    real = rec._writer.write_estimate
+    entered, release = threading.Event(), threading.Event()
+
+    def stuck(est):
+        entered.set()
+        release.wait(10.0)  # a guard, not a timing: released just below
+        real(est)
+
+    rec._writer.write_estimate = stuck
+    rec.publish(make_estimate(10.0, 20.0, seq=0))
+    assert entered.wait(10.0)
+    for seq in range(1, 6):
+        rec.publish(make_estimate(10.0, 20.0, seq=seq))
+    release.set()
+    rec.close()
+    assert (rec.stats()["dropped"], rec.stats()["written"]) == (3, 3)
+    assert [d["seq"] for d in read_estimates(tmp_path / "slow.mcap")] == [0, 4, 5]
