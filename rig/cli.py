@@ -655,38 +655,27 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_gnss(args: argparse.Namespace) -> int:
     """Bring-up of a GNSS compass / INS: print what it decodes, one JSON object per sentence."""
     from drivers.gnss import GnssReader
+    from rig.publishers import JsonlPublisher
 
     # The source first: a wrong path fails before an output file is created.
     reader = GnssReader(args.source, baudrate=args.baud, events=4096, require_checksum=args.require_checksum)
-    out = sys.stdout
-    n_lines = 0
+    out = None
     try:
-        if args.jsonl not in (None, "-"):
-            try:
-                out = open(args.jsonl, "w", encoding="utf-8")  # closed below
-            except OSError as exc:
-                raise SunrigError(f"cannot write {args.jsonl}: {exc.strerror or exc}; pass another --jsonl") from None
+        out = JsonlPublisher(args.jsonl or "-")  # the same lines, flushes and write errors as replay's
         while True:
             done = reader.finished  # read first: every update queued before it is taken below
             updates = reader.get_events(timeout_s=0.5)
             for update in updates:
-                out.write(json.dumps(update.to_json_dict()) + "\n")
-            n_lines += len(updates)
-            if updates:
-                out.flush()
+                out.publish(update)
             if done and not updates:
                 break
     except KeyboardInterrupt:
         pass  # Ctrl-C is how a live port session ends
-    except BrokenPipeError:
-        raise
-    except OSError as exc:
-        raise SunrigError(f"cannot write {args.jsonl or 'stdout'}: {exc.strerror or exc}; "
-                          "free space or pass another --jsonl") from None
     finally:
         reader.close()
-        if out is not sys.stdout:
+        if out is not None:
             out.close()
+    n_lines = out.stats()["written"]
     if reader.failure:
         raise RuntimeError(f"the GNSS reader thread failed: {reader.failure}")
     stats = reader.stats()

@@ -417,10 +417,17 @@ class JsonlPublisher:
         if self._closed:
             return
         self._closed = True
-        if self._owned:
-            self._stream.close()
-        else:
-            self._stream.flush()
+        try:
+            if self._owned:
+                self._stream.close()
+            else:
+                self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            # What a failed write left in the buffer fails again here: the same lost lines, said once more.
+            raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
+                               "free space or pass another --jsonl") from None
 
     def __enter__(self) -> JsonlPublisher:
         return self

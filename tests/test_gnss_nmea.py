@@ -750,6 +750,18 @@ def test_cli_on_a_file_with_no_nmea_fails_and_says_what_to_check(tmp_path, capsy
     assert "0 updates from 0 sentences" in err and "no NMEA sentence from" in err and "--baud" in err
 
 
+def test_cli_on_a_full_disk_says_so_in_one_line(tmp_path, capsys):
+    # The JSONL output is replay's JsonlPublisher: a failed write is a one-line error, exit 2,
+    # not an internal error from the lines still buffered when the file closes.
+    from rig.cli import main
+
+    capture = tmp_path / "capture.nmea"
+    capture.write_bytes(RMC + GGA)
+    assert main(["gnss", str(capture), "--jsonl", "/dev/full"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "cannot write JSONL to /dev/full: No space left" in lines[0], lines
+
+
 def test_decoder_types_for_direct_use():
     gga = decode_sentence(parse_sentence(GGA))
     assert isinstance(gga, Gga) and gga.quality == 2 and gga.talker == "GP"
