@@ -21,7 +21,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Any, Protocol, runtime_checkable
+from typing import IO, Any, Generic, Protocol, TypeVar, runtime_checkable
 
 import serial
 
@@ -32,6 +32,8 @@ from rig.ring import DropOldestQueue
 from rig.types import SunEstimate
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 FORMATS: dict[str, Callable[[SunEstimate, StatusRule], bytes]] = {"nmea": encode_nmea, "binary": encode_binary}
@@ -465,8 +467,104 @@ class SentencePublisher:
             self._stream.flush()
 
 
+class QueuedWriter(Generic[T]):
+    """One writer thread behind a bounded queue: the thread half of :class:`BackgroundPublisher`
+    and of the recorder (``rig/recorder.py``), so that the caller, the rig's estimate thread,
+    never waits on a write.
+
+    ``put`` returns at once; when ``max_pending`` items wait, the oldest is dropped (``dropped``).
+    The thread hands each item to ``write``: an exception is counted (``errors``, logged once per
+    kind) and the next item is tried; a ``BrokenPipeError`` (the reader went away) ends the thread
+    and sets :attr:`gone`. ``finish`` (closing what ``write`` writes to) runs exactly once, after
+    the last write: :meth:`close` runs it in its caller's thread, where its error reaches that
+    caller, when the thread has drained the queue within ``join_timeout_s``; otherwise the thread
+    is stuck in a write (a pipe nobody reads, a disk that stopped answering) and is left behind,
+    and it runs ``finish`` itself when that write returns, so even then the output is finished
+    rather than written to and closed from two threads at once.
+    """
+
+    def __init__(self, write: Callable[[T], object], finish: Callable[[], object], *, what: str,
+                 max_pending: int) -> None:
+        self._write, self._finish, self._what = write, finish, what
+        self._queue: DropOldestQueue[T] = DropOldestQueue(max_pending)
+        self._stop = threading.Event()
+        self._gone = threading.Event()
+        self._lock = threading.Lock()  # hands `finish` to exactly one of close() and the thread
+        self._ended = self._left_behind = False
+        self.written = 0
+        self._errors = ErrorTally(log, what)
+        self._thread = threading.Thread(target=self._run, name=f"sunrig-{what}", daemon=True)
+        self._thread.start()
+
+    @property
+    def closed(self) -> bool:
+        return self._stop.is_set()
+
+    @property
+    def gone(self) -> bool:
+        """The reader went away (a broken pipe): nothing more can be written."""
+        return self._gone.is_set()
+
+    def put(self, item: T) -> None:
+        self._queue.put(item)
+
+    def stats(self) -> dict[str, Any]:
+        return {"dropped": self._queue.dropped, "pending": len(self._queue), "errors": self._errors.count,
+                "last_error": self._errors.last, "writer_alive": self._thread.is_alive()}
+
+    def close(self, join_timeout_s: float) -> bool:
+        """Let the thread write what is queued, for at most ``join_timeout_s``, then finish.
+        False when the thread is stuck in a write and was left to finish on its own (warned).
+        Idempotent: later calls return True and do nothing."""
+        if self._stop.is_set():
+            return True
+        self._stop.set()
+        self._queue.close()
+        self._thread.join(join_timeout_s)
+        with self._lock:
+            if not self._ended:
+                self._left_behind = True
+        if self._left_behind:
+            log.warning("%s is stuck in a write (a reader that stopped reading, a disk that stopped answering?); "
+                        "left behind with %d pending, to finish when that write returns", self._what, len(self._queue))
+            return False
+        self._finish()
+        return True
+
+    def _run(self) -> None:
+        try:
+            self._drain()
+        finally:
+            with self._lock:
+                self._ended = True
+                late = self._left_behind
+            if late:  # close() gave up on this thread: finishing is left to it
+                try:
+                    self._finish()
+                except Exception as exc:  # noqa: BLE001 - no caller is left to take it
+                    log.warning("%s could not finish after its stuck write: %s", self._what, exc)
+
+    def _drain(self) -> None:
+        while True:
+            item = self._queue.get(0.5)
+            if item is None:
+                if self._stop.is_set():
+                    return  # closed, and nothing left: get() returns at once once closed
+                continue
+            try:
+                self._write(item)
+            except BrokenPipeError:
+                self._gone.set()  # `| head` has read enough: no error, and nothing left to write
+                return
+            except Exception as exc:  # noqa: BLE001 - counted and reported; the next item may pass
+                self._errors.add(exc, getattr(item, "seq", -1))
+                continue
+            self.written += 1
+
+
 class BackgroundPublisher:
-    """Another publisher, run in a thread of its own: ``publish`` returns at once.
+    """Another publisher, run in a thread of its own (:class:`QueuedWriter`): ``publish``
+    returns at once.
 
     For the publishers that write in their caller's thread (:class:`JsonlPublisher`,
     :class:`SentencePublisher`) when the caller is the live rig. A pipe nobody drains or a
@@ -475,67 +573,37 @@ class BackgroundPublisher:
     Drop policy: up to ``max_pending`` estimates wait, and when full the oldest is dropped
     (``dropped``): a stall shorter than that loses nothing. An estimate the inner publisher
     raised on is counted in ``errors`` (the error logged once per kind). :meth:`close` waits at
-    most ``join_timeout_s`` for the writer; a writer stuck in a write is left to finish on its own
-    (daemon thread) and the inner publisher is then not closed under it. A broken pipe (the
-    reader went away, ``| head``) ends the writer: later ``publish()`` calls raise
-    ``BrokenPipeError``, as the inner publisher would in the caller's thread, and the pipeline
-    then stops feeding this output.
+    most ``join_timeout_s`` for the writer and closes the inner publisher; a writer stuck in a
+    write is left to finish on its own (daemon thread), and it closes the inner publisher when
+    that write returns. A broken pipe (the reader went away, ``| head``) ends the writer: later
+    ``publish()`` calls raise ``BrokenPipeError``, as the inner publisher would in the caller's
+    thread, and the pipeline then stops feeding this output.
     """
 
     def __init__(self, inner: Publisher, *, max_pending: int = 256, join_timeout_s: float = 2.0) -> None:
         self.inner = inner
-        self._queue: DropOldestQueue[SunEstimate] = DropOldestQueue(max_pending)
         self._join_timeout_s = join_timeout_s
-        self._stop = threading.Event()
-        self._gone = threading.Event()  # the reader went away (broken pipe): nothing more to write
-        self._errors = ErrorTally(log, type(inner).__name__)
-        self._thread = threading.Thread(target=self._run, name=f"sunrig-{type(inner).__name__}", daemon=True)
-        self._thread.start()
+        self._worker: QueuedWriter[SunEstimate] = QueuedWriter(inner.publish, inner.close, what=type(inner).__name__,
+                                                               max_pending=max_pending)
 
     def publish(self, est: SunEstimate) -> None:
-        if self._stop.is_set():
+        if self._worker.closed:
             raise PublishError(f"publish() on the closed background {type(self.inner).__name__}; make a new one")
-        if self._gone.is_set():
+        if self._worker.gone:
             # As the inner publisher would raise in the caller's thread: the caller (the pipeline)
             # takes a broken pipe as "this output has ended", not as an error.
             raise BrokenPipeError(f"the reader of {type(self.inner).__name__}'s stream went away")
-        self._queue.put(est)
+        self._worker.put(est)
 
     def stats(self) -> dict[str, Any]:
-        return {**self.inner.stats(), "dropped": self._queue.dropped, "pending": len(self._queue),
-                "errors": self._errors.count, "last_error": self._errors.last,
-                "writer_alive": self._thread.is_alive()}
+        return {**self.inner.stats(), **self._worker.stats()}
 
     def close(self) -> None:
         """Write what is pending (within ``join_timeout_s``), then close the inner publisher."""
-        if self._stop.is_set():
-            return
-        self._stop.set()
-        self._queue.close()
-        self._thread.join(self._join_timeout_s)
-        if self._thread.is_alive():
-            log.warning("%s is stuck in a write (a reader that stopped reading?); left behind with %d estimates "
-                        "pending", type(self.inner).__name__, len(self._queue))
-            return
-        self.inner.close()
+        self._worker.close(self._join_timeout_s)
 
     def __enter__(self) -> BackgroundPublisher:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-    def _run(self) -> None:
-        while True:
-            est = self._queue.get(0.5)
-            if est is None:
-                if self._stop.is_set():
-                    return  # closed, and nothing left: get() returns at once once closed
-                continue
-            try:
-                self.inner.publish(est)
-            except BrokenPipeError:
-                self._gone.set()  # `| head` has read enough: no error, and nothing left to write
-                return
-            except Exception as exc:  # noqa: BLE001 - counted and reported; the next estimate may pass
-                self._errors.add(exc, est.seq)

@@ -1,21 +1,19 @@
 """The MCAP recorder as a rig publisher: estimates (and frames, when asked) into a native log.
 
 Disk writes happen on the recorder's own thread behind a bounded queue. When the disk cannot keep
-up, the newest items are refused and counted rather than stalling capture or the estimator.
+up, the oldest waiting items are dropped and counted rather than stalling capture or the estimator.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import threading
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rig.errors import SunrigError
-from rig.publishers import ErrorTally
-from rig.ring import DropOldestQueue
+from rig.publishers import QueuedWriter
 from rig.types import Frame, SunEstimate
 
 if TYPE_CHECKING:
@@ -94,53 +92,39 @@ def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool
 class RecorderPublisher:
     """Writes what it is given to a native log on a writer thread; ``close`` finishes the file.
 
-    ``writer``: the log, made by :func:`open_recording` (which never replaces a file by accident)."""
+    ``writer``: the log, made by :func:`open_recording` (which never replaces a file by accident).
+    The thread is a :class:`~rig.publishers.QueuedWriter`: when the disk cannot keep up, the
+    oldest of ``queue_size`` waiting items are dropped and counted, and a failed write (a full
+    disk) is counted, not raised. ``close`` waits up to ``join_timeout_s`` for the queue to be
+    written, so a recording keeps its last seconds; a write stuck longer (a disk that stopped
+    answering) is left behind, and the thread finishes the file when that write returns.
+    """
 
-    def __init__(self, writer: LogWriter, *, record_frames: bool = False, queue_size: int = 64) -> None:
+    def __init__(self, writer: LogWriter, *, record_frames: bool = False, queue_size: int = 64,
+                 join_timeout_s: float = 10.0) -> None:
         self._writer = writer
         self.path = writer.path
         self.record_frames = record_frames
-        self._queue: DropOldestQueue[Frame | SunEstimate] = DropOldestQueue(queue_size)
-        self._stop = threading.Event()
-        self._closed = False
-        self.written = 0
-        self._errors = ErrorTally(log, f"recorder {self.path}")
-        self._thread = threading.Thread(target=self._run, name="sunrig-recorder", daemon=True)
-        self._thread.start()
+        self._join_timeout_s = join_timeout_s
+        self._worker: QueuedWriter[Frame | SunEstimate] = QueuedWriter(
+            self._write, writer.close, what=f"recorder {self.path}", max_pending=queue_size)
 
     def record_frame(self, frame: Frame) -> None:
-        if self.record_frames and not self._closed:
-            self._queue.put(frame)
+        if self.record_frames and not self._worker.closed:
+            self._worker.put(frame)
 
     def publish(self, est: SunEstimate) -> None:
-        if not self._closed:
-            self._queue.put(est)
+        if not self._worker.closed:
+            self._worker.put(est)
 
-    def _run(self) -> None:
-        while True:
-            item = self._queue.get(0.1)
-            if item is None:
-                if self._stop.is_set():
-                    return
-                continue
-            try:
-                if isinstance(item, Frame):
-                    self._writer.write_frame(item)
-                else:
-                    self._writer.write_estimate(item)
-                self.written += 1
-            except Exception as exc:  # noqa: BLE001 - a full disk must not stop the rig
-                self._errors.add(exc, item.seq)
+    def _write(self, item: Frame | SunEstimate) -> None:
+        if isinstance(item, Frame):
+            self._writer.write_frame(item)
+        else:
+            self._writer.write_estimate(item)
 
     def stats(self) -> dict:
-        return {"written": self.written, "dropped": self._queue.dropped, "errors": self._errors.count,
-                "last_error": self._errors.last}
+        return {"written": self._worker.written, **self._worker.stats()}
 
     def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._stop.set()
-        self._queue.close()
-        self._thread.join(10.0)  # drain what is queued: a recording should keep its last seconds
-        self._writer.close()
+        self._worker.close(self._join_timeout_s)

@@ -42,6 +42,7 @@ from rig.publishers import (
     BackgroundPublisher,
     JsonlPublisher,
     Publisher,
+    QueuedWriter,
     SentencePublisher,
     SerialPublisher,
     publisher_name,
@@ -683,3 +684,57 @@ def test_a_background_publisher_closes_what_it_runs_and_sentences_are_counted():
         jsonl = JsonlPublisher(io.StringIO())
         BackgroundPublisher(jsonl).close()
         jsonl.publish(make_estimate(10.0, 20.0))
+
+
+# --- QueuedWriter: the thread behind the background outputs and the recorder ------------------
+
+
+def test_a_queued_writer_finishes_its_output_once_in_the_caller_of_close():
+    # Drained within the join: the output is finished by close(), so a failure to finish (a full
+    # disk under the summary of a recording) reaches whoever closed it, and a second close is a no-op.
+    written, finished = [], []
+
+    def finish():
+        finished.append(threading.current_thread().name)
+        raise OSError(28, "No space left on device")
+
+    w = QueuedWriter(written.append, finish, what="test output", max_pending=8)
+    for seq in range(5):
+        w.put(make_estimate(10.0, 20.0, seq=seq))
+    with pytest.raises(OSError, match="No space left"):
+        w.close(HANG_GUARD_S)
+    assert [e.seq for e in written] == list(range(5)) and w.written == 5
+    assert finished == [threading.current_thread().name]
+    assert w.close(HANG_GUARD_S) and len(finished) == 1
+
+
+def test_a_queued_writer_stuck_past_close_finishes_its_output_when_the_write_returns(caplog):
+    # A pipe nobody reads, a disk that stopped answering: close() must return, and the output must
+    # not be closed from the caller while the thread is still writing to it. The thread finishes it
+    # after its write returns (its error logged: there is no caller left to take it).
+    entered, release = threading.Event(), threading.Event()
+    written, finished = [], []
+
+    def stuck_write(est):
+        entered.set()
+        release.wait(HANG_GUARD_S)  # a guard, not a timing: released below
+        written.append(est.seq)
+
+    def finish():
+        finished.append((threading.current_thread().name, list(written)))
+        raise OSError(5, "Input/output error")
+
+    w = QueuedWriter(stuck_write, finish, what="test output", max_pending=8)
+    for seq in range(3):
+        w.put(make_estimate(10.0, 20.0, seq=seq))
+    assert entered.wait(HANG_GUARD_S)
+    with caplog.at_level(logging.WARNING, logger="rig.publishers"):
+        assert within(HANG_GUARD_S, lambda: w.close(0.05)) is False
+        assert finished == [] and w.stats()["writer_alive"]
+        release.set()
+        wait_until(lambda: not w.stats()["writer_alive"], "the stuck writer to end")
+    assert finished == [("sunrig-test output", [0, 1, 2])]  # after every queued write, in its own thread
+    messages = [rec.getMessage() for rec in caplog.records]
+    assert any("stuck in a write" in m and "2 pending" in m for m in messages)
+    assert any("could not finish after its stuck write" in m and "Input/output error" in m for m in messages)
+    assert w.close(HANG_GUARD_S) and len(finished) == 1

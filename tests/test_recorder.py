@@ -1,8 +1,10 @@
 """Where a recording goes: never over an existing one by accident, a new file per start with {start}."""
 
+import logging
 import os
 import shutil
 import threading
+import time
 from datetime import UTC, datetime
 
 import pytest
@@ -143,7 +145,8 @@ def test_the_recorder_keeps_frames_only_when_asked_and_every_estimate_on_close(t
             rec.publish(make_estimate(10.0, 20.0, seq=seq))
         rec.close()
         n_frames = len(frames) if record_frames else 0
-        assert rec.stats() == {"written": 40 + n_frames, "dropped": 0, "errors": 0, "last_error": None}
+        assert rec.stats() == {"written": 40 + n_frames, "dropped": 0, "errors": 0, "last_error": None,
+                               "pending": 0, "writer_alive": False}
         assert [d["seq"] for d in read_estimates(tmp_path / name)] == list(range(40))
         if record_frames:  # (a log of estimates alone has no image channel to replay)
             assert [f.seq for f in read_frames(tmp_path / name)] == [f.seq for f in frames]
@@ -191,3 +194,33 @@ def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_p
     rec.close()
     assert (rec.stats()["dropped"], rec.stats()["written"]) == (3, 3)
     assert [d["seq"] for d in read_estimates(tmp_path / "slow.mcap")] == [0, 4, 5]
+
+
+def test_a_recorder_stuck_past_close_finishes_its_file_when_the_disk_answers(tmp_path, caplog):
+    # The rig's shutdown must not wait on a dead disk, nor close the log under a write in progress
+    # (two threads in one MCAP writer): the writer thread finishes the file when the write returns,
+    # so the recording keeps every queued estimate and its summary.
+    rec = RecorderPublisher(LogWriter(tmp_path / "late.mcap"), join_timeout_s=0.05)
+    real = rec._writer.write_estimate
+    entered, release = threading.Event(), threading.Event()
+
+    def stuck(est):
+        entered.set()
+        release.wait(10.0)  # a guard, not a timing: released just below
+        real(est)
+
+    rec._writer.write_estimate = stuck
+    for seq in range(3):
+        rec.publish(make_estimate(10.0, 20.0, seq=seq))
+    assert entered.wait(10.0)
+    with caplog.at_level(logging.WARNING, logger="rig.publishers"):
+        rec.close()
+    assert not rec._writer.closed and any("stuck in a write" in r.getMessage() for r in caplog.records)
+    release.set()
+    for _ in range(1000):  # a guard of 10 s, not a timing
+        if rec._writer.closed:
+            break
+        time.sleep(0.01)
+    assert rec._writer.closed and rec.stats()["written"] == 3
+    assert [d["seq"] for d in read_estimates(tmp_path / "late.mcap")] == [0, 1, 2]
+    assert (tmp_path / "late.mcap").read_bytes().endswith(MCAP_MAGIC)  # finished: a footer and its magic
