@@ -247,14 +247,12 @@ def _source_options(cfg: dict):
     return SourceOptions(**fields)
 
 
-def _spec_files(*specs: str | None) -> list[Path]:
-    """The local files that source specs read (``file:LOG``, ``opencv:VIDEO``, ``nmea:CAPTURE``)."""
-    files = []
-    for spec in specs:
-        kind, _, rest = (spec or "").partition(":")
-        if kind in ("file", "opencv", "nmea") and rest and Path(rest).is_file():
-            files.append(Path(rest))
-    return files
+def _spec_files(camera: str, heading: str) -> list[Path]:
+    """The local files that the sources read (``file:LOG``, ``opencv:VIDEO``, ``nmea:CAPTURE``)."""
+    from drivers.sources import parse_camera, parse_heading
+
+    specs = (parse_camera(camera), parse_heading(heading))  # a bad spec fails here as it would at the open
+    return [Path(s.target) for s in specs if s.kind in ("file", "opencv", "nmea") and Path(s.target).is_file()]
 
 
 def _refuse_overwriting(inputs: list[Path], **outputs: str | None) -> None:
