@@ -172,20 +172,27 @@ def test_a_recorder_write_that_fails_is_counted_not_raised(tmp_path):
     assert [d["seq"] for d in read_estimates(tmp_path / "full.mcap")] == [0, 2]
 
 
-def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_path):
-    # The recorder never stalls capture or the estimator: while the disk is stuck its queue (2 here)
-    # keeps the newest estimates and counts the ones it let go. Seq 0 is in the stuck write; of
-    # 1..5 the queue ends holding 4 and 5, so 3 are dropped.
-    rec = RecorderPublisher(LogWriter(tmp_path / "slow.mcap"), queue_size=2)
+def stall_estimate_writes(rec: RecorderPublisher) -> tuple[threading.Event, threading.Event]:
+    """FAKE stalled disk: each estimate write waits (up to 10 s, a guard, not a timing) until the
+    returned ``release`` is set; ``entered`` is set once the writer is inside one."""
     real = rec._writer.write_estimate
     entered, release = threading.Event(), threading.Event()
 
     def stuck(est):
         entered.set()
-        release.wait(10.0)  # a guard, not a timing: released just below
+        release.wait(10.0)
         real(est)
 
     rec._writer.write_estimate = stuck
+    return entered, release
+
+
+def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_path):
+    # The recorder never stalls capture or the estimator: while the disk is stuck its queue (2 here)
+    # keeps the newest estimates and counts the ones it let go. Seq 0 is in the stuck write; of
+    # 1..5 the queue ends holding 4 and 5, so 3 are dropped.
+    rec = RecorderPublisher(LogWriter(tmp_path / "slow.mcap"), queue_size=2)
+    entered, release = stall_estimate_writes(rec)
     rec.publish(make_estimate(10.0, 20.0, seq=0))
     assert entered.wait(10.0)
     for seq in range(1, 6):
@@ -201,15 +208,7 @@ def test_a_recorder_stuck_past_close_finishes_its_file_when_the_disk_answers(tmp
     # (two threads in one MCAP writer): the writer thread finishes the file when the write returns,
     # so the recording keeps every queued estimate and its summary.
     rec = RecorderPublisher(LogWriter(tmp_path / "late.mcap"), join_timeout_s=0.05)
-    real = rec._writer.write_estimate
-    entered, release = threading.Event(), threading.Event()
-
-    def stuck(est):
-        entered.set()
-        release.wait(10.0)  # a guard, not a timing: released just below
-        real(est)
-
-    rec._writer.write_estimate = stuck
+    entered, release = stall_estimate_writes(rec)
     for seq in range(3):
         rec.publish(make_estimate(10.0, 20.0, seq=seq))
     assert entered.wait(10.0)
