@@ -383,8 +383,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     """Live sources to a native log: frames with heading, GNSS fix and UTC (nmea:), intrinsics.
 
-    Ctrl-C ends the recording, and the log is finished (summary and index); a Ctrl-C while a
-    frame (or the summary) is being written lets that write finish first.
+    Ctrl-C (or SIGTERM, SIGHUP) ends the recording, and the log is finished (summary and index);
+    one while a frame (or the summary) is being written lets that write finish first.
     """
     import signal
     import threading
@@ -397,9 +397,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         check_recording_path(args.out, overwrite=args.overwrite)
     # The sources first: a wrong camera or port fails before the output file is created.
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
-    state = {"writing": False, "stop": False}
+    state = {"writing": False, "stop": False, "by": None}
 
-    def on_sigint(signum, frame):  # noqa: ARG001 - the signal handler's signature
+    def on_stop(signum, frame):  # noqa: ARG001 - the signal handler's signature
+        state["by"] = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
         if state["writing"]:
             state["stop"] = True  # finish this frame first: a frame is written whole or not at all
         else:
@@ -412,7 +413,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     next_status = start + 5.0
     interrupted = False
     disk_full: OSError | None = None
-    previous = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    handlers = contextlib.ExitStack()  # closed in the finally below, before the source
+    handlers.enter_context(_signals_handled(on_stop, ("SIGINT", *STOP_SIGNALS)))
     # A backstop for --seconds: a camera that stops sending frames must not keep the recording open.
     deadline = threading.Timer(args.seconds + 2.0, source.stop) if args.seconds is not None else None
     if deadline is not None:
@@ -447,7 +449,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                         args.seconds is not None and now - start >= args.seconds):
                     break
         except KeyboardInterrupt:
-            interrupted = True  # Ctrl-C is how a live recording ends
+            interrupted = True  # Ctrl-C (or SIGTERM from a service manager) is how a live recording ends
         except OSError as exc:
             if exc.errno not in _DISK_FULL:
                 raise
@@ -464,8 +466,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     finally:
         if deadline is not None:
             deadline.cancel()
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        handlers.close()
         source.close()
     if disk_full is not None:
         raise SunrigError(f"record: {out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
@@ -475,7 +476,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             sys.stderr.write("\n")
         summary = f"{n} frames ({n_heading} with heading) in {time.monotonic() - start:.1f} s to {out}"
         if interrupted or state["stop"]:
-            summary += " (stopped by Ctrl-C; the log is complete)"
+            summary += f" (stopped by {state['by'] or 'Ctrl-C'}; the log is complete)"
         details = _source_summary(source.stats())
         if details:
             summary += f"; {details}"
@@ -487,6 +488,46 @@ def _main_thread() -> bool:
     import threading
 
     return threading.current_thread() is threading.main_thread()  # only the main thread may set handlers
+
+
+# Signals that end a command as Ctrl-C does. Their default action ends the process at once, with
+# nothing flushed: a recording stopped that way by `systemctl stop` or `docker stop` (SIGTERM), or
+# by the terminal of an ssh session that dropped (SIGHUP), was left empty.
+STOP_SIGNALS = ("SIGTERM", "SIGHUP")
+
+
+@contextlib.contextmanager
+def _signals_handled(handler, names=STOP_SIGNALS):
+    """``handler`` for the signals ``names`` while the block runs, then the previous handlers back.
+    A signal ignored when the command started (``nohup`` ignores SIGHUP) stays ignored; off the
+    main thread (where Python sets no handlers: a library caller) nothing changes."""
+    import signal
+
+    previous = {}
+    if _main_thread():
+        for name in names:
+            sig = getattr(signal, name, None)  # Windows has no SIGHUP
+            if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:
+                previous[sig] = signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, before in previous.items():
+            signal.signal(sig, before)
+
+
+@contextlib.contextmanager
+def _stop_signals_as_ctrl_c(received: list[int]):
+    """SIGTERM and SIGHUP raise KeyboardInterrupt in the main thread, as Ctrl-C does, so every
+    command stops the way it stops on Ctrl-C: the rig closes its outputs and finishes its recording,
+    training keeps its steps. ``received`` gets the signal's number."""
+
+    def stop(signum, frame):  # noqa: ARG001 - the signal handler's signature
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    with _signals_handled(stop):
+        yield
 
 
 def _source_summary(stats: dict) -> str:
@@ -961,15 +1002,17 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.debug else logging.WARNING,
         format="sunrig: %(levelname)s: %(message)s",
     )
+    received: list[int] = []
     try:
-        return args.func(args)
+        with _stop_signals_as_ctrl_c(received):
+            return args.func(args)
     except SunrigError as exc:
         if args.debug:
             raise
         print(f"sunrig: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
-        return 130
+        return 128 + (received[0] if received else 2)  # the shell's code for death by that signal
     except BrokenPipeError:
         # The reader of our stdout went away (e.g. `| head`): not an error of ours.
         return 0

@@ -179,6 +179,67 @@ def test_run_file_camera_to_loop_serial_jsonl_and_record(tmp_path, tiny_model_di
     assert dropped + no_heading + bad_exposure + late + estimates + skipped + failed == frames, res.stderr
 
 
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_a_rig_stopped_by_its_service_manager_finishes_its_outputs(tmp_path, signame):
+    # `systemctl stop` and `docker stop` send SIGTERM; a dropped ssh session sends SIGHUP. Either
+    # used to end the rig at once, and the recording (whose chunks are buffered) was left empty.
+    # Now they stop it as Ctrl-C does: exit 0, every estimate in the JSONL also in a finished log.
+    import signal
+    import time
+
+    from replay.native import read_estimates
+    from replay.sources import DEMO_LOG
+
+    rec, out = tmp_path / "rec.mcap", tmp_path / "est.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--camera", f"file:{DEMO_LOG}",
+                             "--jsonl", str(out), "--record", str(rec)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60.0  # a guard, not a timing
+        while time.monotonic() < deadline and proc.poll() is None:
+            if out.exists() and len(out.read_text().splitlines()) >= 3:
+                break
+            time.sleep(0.02)
+        proc.send_signal(getattr(signal, signame))  # 3 of 33 estimates in: the paced drive has ~3 s left
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in err, err
+    rows = out.read_text().splitlines()
+    assert 3 <= len(rows) < 33, err  # stopped early, by the signal
+    assert rec.read_bytes().endswith(b"\x89MCAP0\r\n"), "the log was not finished"
+    assert len(list(read_estimates(rec))) == len(rows)
+    assert "sunrig: done:" in err
+
+
+def test_stop_signals_end_any_command_as_ctrl_c_does_and_nohup_is_respected(monkeypatch):
+    # A command that does not catch the interrupt exits 128 + the signal's number, as a shell
+    # reports death by that signal; a signal ignored at start (`nohup` ignores SIGHUP) stays
+    # ignored; and the handlers are put back after the command.
+    import signal
+    import time
+
+    import rig.cli
+
+    def interrupted_by(signum):
+        def cmd(args):
+            signal.raise_signal(signum)
+            time.sleep(5.0)  # the interrupt lands here: not reached in full
+            return 0
+        return cmd
+
+    monkeypatch.setattr(rig.cli, "cmd_sun", interrupted_by(signal.SIGTERM))
+    assert rig.cli.main(["sun"]) == 128 + signal.SIGTERM
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        monkeypatch.setattr(rig.cli, "cmd_sun", lambda args: signal.raise_signal(signal.SIGHUP) or 0)
+        assert rig.cli.main(["sun"]) == 0
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
 def test_run_errors_are_one_line(tmp_path):
     for args in (["run", "--camera", "oak"], ["run"], ["run", "--camera", "file:/nope.mcap"],
                  ["run", "--camera", f"file:{tmp_path}", "--config", str(tmp_path / "missing.toml")]):

@@ -355,10 +355,10 @@ def test_record_a_bad_source_creates_no_file(tmp_path, capsys):
 
 
 class InterruptedSource:
-    """The demo log's frames, with a real SIGINT (Ctrl-C) raised after ``after`` frames."""
+    """The demo log's frames, with a real signal (SIGINT: Ctrl-C) raised after ``after`` frames."""
 
-    def __init__(self, after: int):
-        self.after = after
+    def __init__(self, after: int, signame: str = "SIGINT"):
+        self.after, self.signame = after, signame
         self.closed = False
 
     def __iter__(self):
@@ -368,7 +368,7 @@ class InterruptedSource:
 
         for k, frame in enumerate(read_frames(DEMO_LOG)):
             if k == self.after:
-                signal.raise_signal(signal.SIGINT)
+                signal.raise_signal(getattr(signal, self.signame))
             yield frame
 
     def stats(self):
@@ -381,20 +381,24 @@ class InterruptedSource:
         self.closed = True
 
 
-def test_ctrl_c_while_waiting_for_a_frame_finishes_the_log(tmp_path, monkeypatch, capsys):
+# SIGTERM is how systemd and docker stop a service, SIGHUP what a dropped ssh session sends: both
+# stop a recording as Ctrl-C does. Their default action would end the process with nothing flushed.
+@pytest.mark.parametrize(("signame", "said"), [("SIGINT", "Ctrl-C"), ("SIGTERM", "SIGTERM"), ("SIGHUP", "SIGHUP")])
+def test_ctrl_c_while_waiting_for_a_frame_finishes_the_log(tmp_path, monkeypatch, capsys, signame, said):
     import drivers.sources
     from replay.native import open_log
 
-    source = InterruptedSource(after=5)
+    source = InterruptedSource(after=5, signame=signame)
     monkeypatch.setattr(drivers.sources, "open_source", lambda *a, **k: source)
     out = tmp_path / "rec.mcap"
     assert record("--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out)) == 0
-    assert "stopped by Ctrl-C; the log is complete" in capsys.readouterr().err
+    assert f"stopped by {said}; the log is complete" in capsys.readouterr().err
     log = open_log(out)
     assert len(list(log)) == 5 and not log.truncated and source.closed
 
 
-def test_ctrl_c_while_writing_a_frame_lets_it_finish(tmp_path, monkeypatch):
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_while_writing_a_frame_lets_it_finish(tmp_path, monkeypatch, signame):
     import signal
 
     from replay.native import LogWriter, read_frames
@@ -403,7 +407,7 @@ def test_ctrl_c_while_writing_a_frame_lets_it_finish(tmp_path, monkeypatch):
 
     def write_then_interrupt(self, frame, **kw):
         if frame.seq == 2:
-            signal.raise_signal(signal.SIGINT)  # arrives mid-write: must not cut the frame in half
+            signal.raise_signal(getattr(signal, signame))  # arrives mid-write: must not cut the frame in half
         real_write(self, frame, **kw)
 
     monkeypatch.setattr(LogWriter, "write_frame", write_then_interrupt)
