@@ -585,6 +585,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     _check_writable("--json", args.json)
     _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
     paths = _expand_logs(args.logs)
+    _refuse_overwriting(paths, json=args.json, plot=args.plot)
     sources = [(str(p), open_frames(p, utc_offset_h=args.utc_offset)) for p in paths]  # all checked before any work
     model = _load_model(args.model)
     estimator = SunEstimator(model, seed=args.seed)
@@ -696,6 +697,7 @@ def cmd_gnss(args: argparse.Namespace) -> int:
     from drivers.gnss import GnssReader
     from rig.publishers import JsonlPublisher
 
+    _refuse_overwriting([Path(args.source)], jsonl=args.jsonl)  # a capture file read and written at once
     # The source first: a wrong path fails before an output file is created.
     reader = GnssReader(args.source, baudrate=args.baud, events=4096, require_checksum=args.require_checksum)
     out = None

@@ -255,12 +255,19 @@ def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
     log = tmp_path / "drive.mcap"
     shutil.copy(DEMO_LOG, log)
     before = log.read_bytes()
+    capture = tmp_path / "gnss.log"
+    capture.write_bytes(b"$GPHDT,33.0,T*0D\r\n")
+    nmea_before = capture.read_bytes()
     for args in (["replay", str(log), "--jsonl", str(log)],
                  ["record", "--camera", f"file:{log}", "--heading", "log", "--out", str(log), "--overwrite"],
-                 ["run", "--camera", f"file:{log}", "--heading", "log", "--jsonl", str(log)]):
+                 ["run", "--camera", f"file:{log}", "--heading", "log", "--jsonl", str(log)],
+                 ["eval", str(log), "--json", str(log)]):
         res = run_cli(*args)
         assert res.returncode == 2 and "is the input being read" in res.stderr, (args, res.stderr)
         assert log.read_bytes() == before, args
+    res = run_cli("gnss", str(capture), "--jsonl", str(capture))  # a GNSS capture file
+    assert res.returncode == 2 and "is the input being read" in res.stderr, res.stderr
+    assert capture.read_bytes() == nmea_before
 
 
 def test_an_existing_recording_is_refused_in_the_words_of_the_command(tmp_path):
