@@ -45,17 +45,20 @@ def _int_in(lo: int, hi: int | None = None):
     return parse
 
 
-def _float_in(lo: float, hi: float = math.inf):
-    """An argparse type: a finite number in (``lo``, ``hi``]. nan and inf are typos here, never
-    meant (a nan budget never ends)."""
-    what = f"a finite number > {lo:g}" if hi == math.inf else f"a number in ({lo:g}, {hi:g}]"
+def _float_in(lo: float, hi: float = math.inf, *, lo_included: bool = False):
+    """An argparse type: a finite number in (``lo``, ``hi``] (``[lo, hi]`` with ``lo_included``).
+    nan and inf are typos here, never meant (a nan budget never ends)."""
+    if hi == math.inf:
+        what = f"a finite number {'>=' if lo_included else '>'} {lo:g}"
+    else:
+        what = f"a number in {'[' if lo_included else '('}{lo:g}, {hi:g}]"
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and lo < value <= hi):
+        if not (math.isfinite(value) and (lo <= value if lo_included else lo < value) and value <= hi):
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
         return value
     return parse
@@ -64,6 +67,7 @@ def _float_in(lo: float, hi: float = math.inf):
 _positive_int = _int_in(1)
 _nonneg_int = _int_in(0)
 _positive_float = _float_in(0.0)
+_UTC_OFFSET = _float_in(-24.0, 24.0, lo_included=True)
 
 
 def _load_model(model_dir: str | None):
@@ -814,19 +818,20 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("source options")
     g.add_argument("--calibration", metavar="FILE",
                    help="OpenCV calibration (YAML/JSON/XML: camera_matrix, image_width, image_height)")
-    g.add_argument("--hfov-deg", type=float, metavar="DEG", help="or the camera's horizontal field of view")
-    g.add_argument("--width", type=int, help="requested frame width (opencv device, oak)")
-    g.add_argument("--height", type=int, help="requested frame height (opencv device, oak)")
+    g.add_argument("--hfov-deg", type=_float_in(0.0, 179.0), metavar="DEG",
+                   help="or the camera's horizontal field of view")
+    g.add_argument("--width", type=_positive_int, help="requested frame width (opencv device, oak)")
+    g.add_argument("--height", type=_positive_int, help="requested frame height (opencv device, oak)")
     g.add_argument("--fps", type=_positive_float, help="requested frame rate (opencv device, oak)")
     g.add_argument("--source-baud", type=_positive_int, metavar="BAUD",
                    help="baud rate of an nmea: port (default 115200)")
-    g.add_argument("--max-gap-s", type=float, metavar="S",
+    g.add_argument("--max-gap-s", type=_positive_float, metavar="S",
                    help="nmea: no heading interpolated across a longer gap between samples (default 1.5)")
-    g.add_argument("--max-age-s", type=float, metavar="S",
+    g.add_argument("--max-age-s", type=_positive_float, metavar="S",
                    help="nmea: a frame waits at most this long for the heading after it (default 1.5)")
-    g.add_argument("--heading-latency-s", type=float, metavar="S",
+    g.add_argument("--heading-latency-s", type=_float_in(0.0, lo_included=True), metavar="S",
                    help="nmea: the heading device's output latency, subtracted from its times (default 0)")
-    g.add_argument("--declination-deg", type=float, metavar="DEG",
+    g.add_argument("--declination-deg", type=_float_in(-180.0, 180.0, lo_included=True), metavar="DEG",
                    help="oak-imu: magnetic declination, east positive (makes the heading true north)")
 
 
@@ -862,7 +867,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="choose each window's frames from the last S seconds (default 4)")
     _output_flags(p)
     p.add_argument("--realtime", action="store_true", help="pace by the log's timestamps instead of full speed")
-    p.add_argument("--utc-offset", type=float, metavar="HOURS",
+    p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
@@ -920,7 +925,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--aggregators", metavar="A,B", help="comma-separated subset (default: all)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=float, default=4.0, metavar="S")
-    p.add_argument("--utc-offset", type=float, metavar="HOURS",
+    p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
     p.add_argument("--quiet", action="store_true")
@@ -934,20 +939,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="network preset: fast (default, the 2-core CPU recipe of docs/model.md), light, "
                         "paper (ResNet18 at 224 px), tiny (for tests)")
     p.add_argument("--minutes", type=_positive_float, default=80.0, help="training time budget (default 80)")
-    p.add_argument("--steps", type=_nonneg_int, default=0, help="stop after this many steps instead")
+    p.add_argument("--steps", type=_positive_int, default=0,
+                   help="stop after this many steps instead of at the time budget")
     p.add_argument("--batch", type=_positive_int, default=6, help="windows per step (default 6)")
     p.add_argument("--crops", type=_positive_int, metavar="N",
                    help="crops per frame, recorded in the contract and used at run time (default 4, the paper's; "
                         "a resume keeps its run's). With --export-only: the run-time count of the exported model")
     p.add_argument("--lr", type=_positive_float, default=5e-4, help="peak learning rate (default 5e-4)")
-    p.add_argument("--hard-share", type=float, default=0.5,
+    p.add_argument("--hard-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.5,
                    help="share of windows drawn from drives in proportion to their running error (default 0.5)")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=0)
-    p.add_argument("--threads", type=_nonneg_int, default=0, help="torch threads (default: all cores)")
+    p.add_argument("--threads", type=_positive_int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
-    p.add_argument("--utc-offset", type=float, metavar="HOURS",
+    p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
     p.add_argument("--init", metavar="MODEL_DIR",

@@ -326,6 +326,20 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
           "--record-overwrite"], "[rig] queue_size"),
         (["eval", str(DEMO_LOG), "--plot", str(tmp_path / "curves.txt")], "--plot"),
         (["eval", str(DEMO_LOG), "--json", str(tmp_path / "no" / "such" / "folder" / "out.json")], "--json"),
+        # 0 once meant "no limit" / "all cores" for these: a full 80-minute run the user did not ask for.
+        (["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--steps", "0"], "argument --steps"),
+        (["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--threads", "0"], "argument --threads"),
+        (["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--hard-share", "nan"], "argument --hard-share"),
+        (["eval", str(DEMO_LOG), "--utc-offset", "nan"], "argument --utc-offset"),
+        # Source options are checked even where the source does not use them (a config moved to
+        # another rig keeps them), and before any device opens.
+        (["run", "--camera", f"file:{DEMO_LOG}", "--max-gap-s", "nan"], "argument --max-gap-s"),
+        (["run", "--camera", f"file:{DEMO_LOG}", "--max-age-s", "-1"], "argument --max-age-s"),
+        (["run", "--camera", f"file:{DEMO_LOG}", "--heading-latency-s", "nan"], "argument --heading-latency-s"),
+        (["run", "--camera", f"file:{DEMO_LOG}", "--hfov-deg", "nan"], "argument --hfov-deg"),
+        (["run", "--camera", f"file:{DEMO_LOG}", "--width", "-1"], "argument --width"),
+        (["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--declination-deg", "inf"],
+         "argument --declination-deg"),
     )
     for args, names in cases:
         res = run_cli(*args)
