@@ -25,6 +25,18 @@ EXIT_USER_ERROR = 2
 EXIT_BUG = 1
 # A full disk (or quota, or file size limit) while writing: the user's to fix, not a bug.
 _DISK_FULL = (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
+# OS errors that the machine, not sunrig, causes: a path that cannot be read or written, a full
+# disk, a failing device. With a file name, any OS error is one of these.
+_MACHINE_ERRNOS = frozenset((*_DISK_FULL, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT, errno.ENOTDIR,
+                             errno.EISDIR, errno.EIO))
+
+
+def _machine_error(exc: BaseException) -> str | None:
+    """The one line for an OS error that is the machine's to fix, or None for a bug of ours."""
+    if not isinstance(exc, OSError) or (exc.filename is None and exc.errno not in _MACHINE_ERRNOS):
+        return None
+    where = f"{exc.filename}: " if exc.filename is not None else ""
+    return f"{where}{exc.strerror or exc}; check the path is right and writable and the disk has free space"
 
 
 def _int_in(lo: int, hi: int | None = None):
@@ -1027,6 +1039,10 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - the last line of defence prints one line
         if args.debug:
             raise
+        machine = _machine_error(exc)  # e.g. an output path found unwritable only when written
+        if machine is not None:
+            print(f"sunrig: error: {machine}", file=sys.stderr)
+            return EXIT_USER_ERROR
         print(f"sunrig: internal error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)",
               file=sys.stderr)
         return EXIT_BUG

@@ -240,6 +240,32 @@ def test_stop_signals_end_any_command_as_ctrl_c_does_and_nohup_is_respected(monk
         signal.signal(signal.SIGHUP, previous)
 
 
+def test_an_output_the_machine_refuses_is_a_user_error_not_a_bug(monkeypatch):
+    # A full disk or a path that turns out unwritable only when written (after a whole evaluation)
+    # is the user's to fix: one line, exit 2, never "internal error" (which asks for a bug report).
+    import errno
+
+    import rig.cli
+    from replay.sources import DEMO_LOG
+
+    if os.path.exists("/dev/full"):
+        res = run_cli("eval", str(DEMO_LOG), "--quiet", "--json", "/dev/full")
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        assert res.stderr.strip().splitlines() == [
+            "sunrig: error: No space left on device; check the path is right and writable and the disk has free space"]
+
+    def fails_with(exc):
+        def cmd(args):
+            raise exc
+        return cmd
+
+    denied = PermissionError(errno.EPERM, "Operation not permitted", "/sys/m")
+    monkeypatch.setattr(rig.cli, "cmd_sun", fails_with(denied))
+    assert rig.cli.main(["sun"]) == 2
+    monkeypatch.setattr(rig.cli, "cmd_sun", fails_with(OSError("a bug of ours, with no errno")))
+    assert rig.cli.main(["sun"]) == 1
+
+
 def test_run_errors_are_one_line(tmp_path):
     for args in (["run", "--camera", "oak"], ["run"], ["run", "--camera", "file:/nope.mcap"],
                  ["run", "--camera", f"file:{tmp_path}", "--config", str(tmp_path / "missing.toml")]):
