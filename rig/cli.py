@@ -536,13 +536,22 @@ def _signals_handled(handler, names=STOP_SIGNALS):
 def _stop_signals_as_ctrl_c(received: list[int]):
     """SIGTERM and SIGHUP raise KeyboardInterrupt in the main thread, as Ctrl-C does, so every
     command stops the way it stops on Ctrl-C: the rig closes its outputs and finishes its recording,
-    training keeps its steps. ``received`` gets the signal's number."""
+    training keeps its steps. ``received`` gets each signal's number.
+
+    A second signal does not cut that short: it arrives while the outputs are being closed (GNU
+    timeout sends its signal to the command and to its process group, so twice; an impatient
+    Ctrl-C), where an interrupt would leave a recording unfinished. It is told to wait, and a
+    third quits at once. Every wait in the stop is bounded, so waiting never means hanging."""
 
     def stop(signum, frame):  # noqa: ARG001 - the signal handler's signature
         received.append(signum)
+        if len(received) == 2:
+            sys.stderr.write("sunrig: stopping: closing the outputs and finishing the recording; "
+                             "signal once more to quit at once\n")
+            return
         raise KeyboardInterrupt
 
-    with _signals_handled(stop):
+    with _signals_handled(stop, ("SIGINT", *STOP_SIGNALS)):
         yield
 
 

@@ -240,6 +240,34 @@ def test_stop_signals_end_any_command_as_ctrl_c_does_and_nohup_is_respected(monk
         signal.signal(signal.SIGHUP, previous)
 
 
+@pytest.mark.parametrize("signals", [2, 3])
+def test_a_second_signal_lets_the_outputs_close_and_a_third_quits(monkeypatch, capsys, signals):
+    # GNU timeout signals the command and its process group (so twice), and users press Ctrl-C
+    # again: the second must not interrupt the closing of the outputs (a recording would be left
+    # unfinished, the exit report lost). It is told to wait; a third quits at once.
+    import signal
+    import time
+
+    import rig.cli
+
+    closed = []
+
+    def cmd(args):
+        try:
+            signal.raise_signal(signal.SIGINT)
+            time.sleep(5.0)  # the first interrupt lands here
+        finally:
+            for _ in range(signals - 1):
+                signal.raise_signal(signal.SIGINT)  # the next ones land while closing
+            closed.append(True)
+        return 0
+
+    monkeypatch.setattr(rig.cli, "cmd_sun", cmd)
+    assert rig.cli.main(["sun"]) == 130
+    assert closed == ([True] if signals == 2 else [])
+    assert "signal once more to quit at once" in capsys.readouterr().err
+
+
 def test_an_output_the_machine_refuses_is_a_user_error_not_a_bug(monkeypatch):
     # A full disk or a path that turns out unwritable only when written (after a whole evaluation)
     # is the user's to fix: one line, exit 2, never "internal error" (which asks for a bug report).
