@@ -91,8 +91,11 @@ def parse_heading(spec: str) -> HeadingSpec:
 def check_pair(camera: CameraSpec, heading: HeadingSpec) -> None:
     """Refuse the combinations that cannot work, saying what to pass instead."""
     if heading.kind == "oak-imu" and camera.kind != "oak":
+        # What else works depends on the camera: a recording's frames cannot pair with a live port.
+        others = "log, visual or none" if camera.kind == "file" else (
+            "visual or none" if _is_video_file(camera) else "nmea:PORT, visual or none")
         raise SourceError(f"--heading oak-imu is the OAK's own IMU: use it with --camera oak, or pass "
-                          f"--heading nmea:PORT, visual or none for --camera {camera}")
+                          f"--heading {others} for --camera {camera}")
     if heading.kind == "log" and camera.kind != "file":
         raise SourceError(f"--heading log is a log's recorded heading: --camera {camera} has none; pass "
                           + ("--heading oak-imu, " if camera.kind == "oak" else "--heading ")

@@ -87,6 +87,24 @@ def test_combinations_that_cannot_work(camera, heading, match):
 
 
 @pytest.mark.parametrize(("camera", "heading"), [
+    ("opencv:0", "oak-imu"), ("file:x.mcap", "oak-imu"), ("opencv:clip.avi", "oak-imu"),
+    ("opencv:0", "log"), ("oak", "log"), ("file:x.mcap", "nmea:/dev/ttyUSB0"), ("opencv:clip.avi", "nmea:COM3"),
+])
+def test_every_heading_a_refusal_suggests_works_with_that_camera(camera, heading):
+    # The way out must be a way out: a refusal for a file: camera once suggested nmea:PORT, which
+    # is refused for it too, and left out log, the one that fits.
+    import re
+
+    with pytest.raises(SourceError) as info:
+        check_pair(parse_camera(camera), parse_heading(heading))
+    suggested = re.search(r"(?:pass|use) --heading (.+?)(?: for --camera|$)", str(info.value)).group(1)
+    names = [n.strip() for n in re.split(r",| or ", suggested) if n.strip()]
+    assert names, str(info.value)
+    for name in names:
+        check_pair(parse_camera(camera), parse_heading(name.replace("PORT", "/dev/ttyUSB0")))
+
+
+@pytest.mark.parametrize(("camera", "heading"), [
     ("oak", "oak-imu"), ("oak", "nmea:/dev/ttyUSB0"), ("oak", "visual"), ("opencv:0", "nmea:COM3"),
     ("opencv:rtsp://h/p", "visual"), ("opencv:clip.avi", "visual"), ("file:x.mcap", "log"),
     # A network stream is live (its frames carry the time they arrive), so a compass pairs with it:
