@@ -389,6 +389,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
     words = _RECORD_FLAG_WORDS if args.record is not None else _RECORD_CONFIG_WORDS
     _check_live_outputs(cfg, _spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), words)
+    if not (cfg["output"]["serial"] or cfg["output"]["jsonl"] or cfg["output"]["record"]):
+        # Fine for bring-up (the status line shows camera, heading and rate), but a rig whose
+        # config lost its [output] would otherwise run for hours telling no one.
+        logging.getLogger(__name__).warning("no output: estimates are made and dropped; pass --serial PORT, "
+                                            "--jsonl PATH|- or --record OUT.mcap (or set [output] in --config)")
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     try:
         return _live(cfg, source, nmea_stdout=False, quiet=args.quiet, record_words=words)
@@ -578,6 +583,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
     cfg["rig"]["realtime"] = not args.fast
     cfg["rig"]["status_every_s"] = min(cfg["rig"]["status_every_s"], 1.0)
+    out = cfg["output"]
+    if not out["serial"]:  # stdout carries the NMEA text
+        if out["format"] != "nmea":
+            raise SunrigError(f"--format {out['format']} needs --serial PORT: without a port the sentences go to "
+                              "stdout as NMEA text")
+        if out["jsonl"] == "-":
+            raise SunrigError("--jsonl - would mix JSON lines into the NMEA text on stdout: pass --jsonl FILE, "
+                              "or --serial PORT")
     _check_live_outputs(cfg, [Path(DEMO_LOG)], _RECORD_CONFIG_WORDS)
     return _live(cfg, open_frames(DEMO_LOG), nmea_stdout=not cfg["output"]["serial"], quiet=args.quiet)
 

@@ -294,6 +294,19 @@ def test_an_output_the_machine_refuses_is_a_user_error_not_a_bug(monkeypatch):
     assert rig.cli.main(["sun"]) == 1
 
 
+def test_outputs_that_cannot_work_as_asked_are_refused_or_warned():
+    # demo writes NMEA text on stdout when it has no port: binary there, or JSON lines mixed in,
+    # would give a reader neither format. A rig with no output at all runs (bring-up), but says so.
+    from replay.sources import DEMO_LOG
+
+    for args, said in ((["demo", "--fast", "--format", "binary"], "--format binary needs --serial PORT"),
+                       (["demo", "--fast", "--jsonl", "-"], "--jsonl - would mix JSON lines")):
+        res = run_cli(*args)
+        assert res.returncode == 2 and res.stdout == "" and said in res.stderr, (args, res.stderr)
+    res = run_cli("run", "--camera", f"file:{DEMO_LOG}", "--fast", "--quiet")
+    assert res.returncode == 0 and "WARNING: no output: estimates are made and dropped" in res.stderr, res.stderr
+
+
 def test_run_errors_are_one_line(tmp_path):
     for args in (["run", "--camera", "oak"], ["run"], ["run", "--camera", "file:/nope.mcap"],
                  ["run", "--camera", f"file:{tmp_path}", "--config", str(tmp_path / "missing.toml")]):
