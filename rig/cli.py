@@ -389,12 +389,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = _effective_config(args)
     words = _RECORD_FLAG_WORDS if args.record is not None else _RECORD_CONFIG_WORDS
     _check_live_outputs(cfg, _spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), words)
+    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     if not (cfg["output"]["serial"] or cfg["output"]["jsonl"] or cfg["output"]["record"]):
         # Fine for bring-up (the status line shows camera, heading and rate), but a rig whose
-        # config lost its [output] would otherwise run for hours telling no one.
+        # config lost its [output] would otherwise run for hours telling no one. Said once the
+        # sources are open, so that a bad source stays a one-line error.
         logging.getLogger(__name__).warning("no output: estimates are made and dropped; pass --serial PORT, "
                                             "--jsonl PATH|- or --record OUT.mcap (or set [output] in --config)")
-    source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     try:
         return _live(cfg, source, nmea_stdout=False, quiet=args.quiet, record_words=words)
     finally:
