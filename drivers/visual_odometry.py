@@ -494,8 +494,10 @@ class VisualOdometry:
 def with_visual_heading(frames: Iterable[Frame], vo: VisualOdometry | None = None) -> Iterator[Frame]:
     """The frames with their attitude replaced by the visual odometry heading (relative to the
     first frame), or None where tracking was lost. A heading the frames carried is dropped: one
-    stream never mixes references."""
+    stream never mixes references. So is a true sun they carried (``sun_enu_truth``)."""
     vo = vo or VisualOdometry()
     for frame in frames:
         sample = vo.update(frame.t_mono_s, frame.image_bgr, frame.intrinsics)
-        yield dataclasses.replace(frame, attitude=None if sample is None else sample.attitude())
+        # The truth is in true-north ENU; this stream's world has its "north" at the start heading,
+        # so the truth would grade (or train) its estimates by the unknown start heading's offset.
+        yield dataclasses.replace(frame, attitude=None if sample is None else sample.attitude(), sun_enu_truth=None)

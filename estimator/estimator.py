@@ -199,6 +199,9 @@ class SunEstimator:
     def _make_estimate(self, name: str, tokens: WindowTokens, unit: np.ndarray, spread: float,
                        world: np.ndarray) -> SunEstimate:
         frame = tokens.newest.frame
+        # The truth is in true-north ENU: it grades only an estimate made in that world. A RELATIVE
+        # or MAGNETIC window's world is turned by its start heading or the declination.
+        truth = frame.sun_enu_truth if tokens.heading_ref == HeadingRef.TRUE else None
         return SunEstimate(
             t_mono_s=frame.t_mono_s,
             seq=frame.seq,
@@ -210,6 +213,6 @@ class SunEstimator:
             n_tokens=len(world),
             aggregator=name,
             utc_ns=frame.utc_ns,
-            truth_enu=frame.sun_enu_truth,
+            truth_enu=truth,
             token_enu=world,
         )

@@ -52,7 +52,7 @@ from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_
 from estimator.crops import crop_side_px
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
-from rig.types import Frame
+from rig.types import Frame, HeadingRef
 
 torch = require_torch()
 
@@ -69,7 +69,7 @@ METRICS = "train_metrics.jsonl"  # one line per 50 steps, appended across resume
 
 
 class TrainingDataError(SunrigError):
-    """The logs given to training cannot train anything (no frames with heading and true sun)."""
+    """The logs given to training cannot train anything (no frames with a TRUE heading and true sun)."""
 
 
 # ------------------------------------------------------------------------------------------
@@ -100,9 +100,17 @@ def _scaled(frame: Frame, crop_size: int, crop_fov_rad: float) -> tuple[np.ndarr
     return img, scale
 
 
+def trainable(frame: Frame) -> bool:
+    """A frame training can use: a heading and a true sun in the same world, true-north ENU. A
+    RELATIVE or MAGNETIC heading would pair the truth with yaws turned by an unknown offset."""
+    # The rule of replay.groundtruth.truth_allowed, for frames that have a heading.
+    has_true_heading = frame.attitude is not None and frame.attitude.reference == HeadingRef.TRUE
+    return has_true_heading and frame.sun_enu_truth is not None
+
+
 def load_drive(frames: Sequence[Frame], name: str, crop_size: int, crop_fov_rad: float) -> Drive | None:
-    """A drive from its frames; frames without heading or true sun are left out (None if none)."""
-    usable = [f for f in frames if f.attitude is not None and f.sun_enu_truth is not None]
+    """A drive from its frames; frames without a TRUE heading or true sun are left out (None if none)."""
+    usable = [f for f in frames if trainable(f)]
     if not usable:
         return None
     images, scales = zip(*(_scaled(f, crop_size, crop_fov_rad) for f in usable), strict=True)
@@ -137,7 +145,7 @@ def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float,
             progress(i + 1, len(paths))
     if not drives:
         raise TrainingDataError(
-            "none of the logs has frames with both a heading and the true sun; "
+            "none of the logs has frames with both a TRUE heading and the true sun; "
             "train on logs from `sunrig synth`, KITTI drives, or recordings with GNSS time and position"
         )
     return drives
@@ -677,10 +685,10 @@ def sun_elevation_range_deg(sun_enu: Iterable[np.ndarray]) -> list[float]:
 
 
 def _truth_enu(path: Path) -> np.ndarray:
-    """A log's true sun for the frames training uses (those with heading and a true sun)."""
+    """A log's true sun for the frames training uses (:func:`trainable`)."""
     from replay.sources import open_frames
 
-    rows = [f.sun_enu_truth for f in open_frames(Path(path)) if f.attitude is not None and f.sun_enu_truth is not None]
+    rows = [f.sun_enu_truth for f in open_frames(Path(path)) if trainable(f)]
     return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
 
 

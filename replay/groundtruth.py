@@ -7,7 +7,8 @@ pure function per frame (:func:`frame_with_truth`) inside a thin wrapper over an
 
 What gets a truth, and why:
 
-- A frame that already carries ``sun_enu_truth`` (synthetic drives, KITTI) keeps it.
+- A frame that already carries ``sun_enu_truth`` (synthetic drives, KITTI) keeps it, unless its
+  heading is MAGNETIC or RELATIVE (see the heading reference below): then it is dropped.
 - Time: the frame's own ``utc_ns`` (its mid-exposure), else its GNSS fix's ``utc_ns`` (a fix
   can be up to a second older than the frame: the sun moves ~0.004 deg in a second).
 - Place: the frame's fix, else the last fix seen within :data:`MAX_FIX_AGE_S` of the frame's
@@ -78,10 +79,10 @@ def frame_with_truth(frame: Frame, fix: GnssFix | None = None) -> Frame:
 @dataclass
 class GroundTruthStats:
     frames: int = 0
-    had_truth: int = 0  # the source's own truth, kept
+    had_truth: int = 0  # the source's own truth, kept (a TRUE heading or none)
     truth_added: int = 0
     no_fix: int = 0  # no time, or no fix within MAX_FIX_AGE_S
-    heading_not_true: int = 0  # magnetic or relative heading: no truth on purpose
+    heading_not_true: int = 0  # magnetic or relative heading: no truth on purpose (an own one dropped)
 
 
 class GroundTruthSource:
@@ -113,11 +114,9 @@ class GroundTruthSource:
             stats.frames += 1
             if frame.gnss is not None:
                 last_fix = frame.gnss
-            if frame.sun_enu_truth is not None:
-                stats.had_truth += 1
-                yield frame
-                continue
             if not truth_allowed(frame):
+                # Before the source's own truth: a log recorded with another heading (e.g. visual
+                # odometry over a synthetic drive) can still carry its true-north truth.
                 stats.heading_not_true += 1
                 ref = frame.attitude.reference
                 if ref not in warned:
@@ -126,6 +125,10 @@ class GroundTruthSource:
                         "frames with a %s heading get no ground truth: the sun's true-north direction cannot "
                         "grade or train estimates in a %s world frame (record a TRUE heading for that)",
                         ref.value, "magnetic-north" if ref == HeadingRef.MAGNETIC else "start-heading")
+                yield frame if frame.sun_enu_truth is None else dataclasses.replace(frame, sun_enu_truth=None)
+                continue
+            if frame.sun_enu_truth is not None:
+                stats.had_truth += 1
                 yield frame
                 continue
             t_ns = frame_time_ns(frame)

@@ -184,6 +184,19 @@ def test_estimates_carry_the_newest_frames_utc_and_reference(model):
         assert r.heading_ref is HeadingRef.RELATIVE
 
 
+
+@pytest.mark.parametrize("ref", [HeadingRef.RELATIVE, HeadingRef.MAGNETIC])
+def test_only_a_true_heading_window_carries_the_truth(model, ref):
+    # The truth is in true-north ENU; a relative or magnetic window's world is turned by the start
+    # heading or the declination, so an error against it would be that offset, not the estimator's.
+    frames = [dataclasses.replace(f, attitude=Attitude(f.attitude.heading_rad, ref)) for f in make_frames(3)]
+    est = SunEstimator(model)
+    for r in est.estimate_many(est.encode_batch(frames), AGGREGATORS).values():
+        assert r.truth_enu is None and r.error_rad is None
+        assert "error_deg" not in r.to_json_dict() and "truth_enu" not in r.to_json_dict()
+    true = est.estimate(est.encode_batch(make_frames(3)))
+    np.testing.assert_array_equal(true.truth_enu, [0.0, 0.6, 0.8])
+
 def test_estimate_many_refuses_an_unknown_aggregator(model):
     # A misspelt name in eval's --aggregators must not quietly run another aggregator.
     est = SunEstimator(model)

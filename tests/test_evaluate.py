@@ -146,6 +146,32 @@ def test_ctrl_c_keeps_the_windows_evaluated_so_far(tiny_model_dir):
     assert result.truth_elevation_deg == pytest.approx([math.degrees(math.asin(0.6))] * 6)
 
 
+
+@pytest.mark.torch
+def test_windows_without_a_true_heading_are_counted_not_graded(tiny_model_dir):
+    # A drive with a relative heading that still carries a true-north truth (a synthetic drive
+    # recorded with visual odometry): its windows have no truth, so they are counted, not graded.
+    from estimator.estimator import SunEstimator
+    from estimator.evaluate import evaluate
+    from estimator.runtime import OnnxModel
+    from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+    from rig.window import SpreadWindowPolicy
+
+    k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(2)
+
+    def drive(ref):
+        for i in range(10):
+            yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8),
+                        intrinsics=k, attitude=Attitude(math.radians(7.0 * i), ref), sun_enu_truth=[0.0, 0.8, 0.6])
+
+    estimator = SunEstimator(OnnxModel.load(tiny_model_dir))
+    result = evaluate([("rel", drive(HeadingRef.RELATIVE)), ("true", drive(HeadingRef.TRUE))], estimator,
+                      SpreadWindowPolicy(8, 4.0), aggregators=["transformer"])
+    # Full windows from the 8th frame on: 3 per drive. Only the TRUE drive's are graded.
+    assert result.windows_without_truth == 3 and result.window_logs == ["true"] * 3
+    assert len(result.errors_deg["transformer"]) == 3 and len(result.truth_elevation_deg) == 3
+
 def test_a_window_cut_short_is_trimmed_from_every_list():
     # Ctrl-C between two appends of one window: window_logs (appended last) says what is whole.
     r = EvalResult(errors_deg={"transformer": [1.0, 2.0, 3.0], "mean": [1.0, 2.0]},

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -122,3 +123,31 @@ def test_open_frames_keeps_a_logs_own_truth():
     assert len(own) == len(wrapped) > 0
     for a, b in zip(own, wrapped, strict=True):
         np.testing.assert_array_equal(a.sun_enu_truth, b.sun_enu_truth)
+
+
+def test_a_frames_own_truth_is_dropped_with_a_magnetic_or_relative_heading(caplog):
+    # A log recorded with another heading (visual odometry over the demo drive) still carries the
+    # drive's true-north truth: it would grade estimates made in a magnetic or start-heading world.
+    own = [0.0, 0.6, 0.8]
+    frames = [_frame(0, truth=own), _frame(1, ref=HeadingRef.RELATIVE, truth=own),
+              _frame(2, ref=HeadingRef.RELATIVE, truth=own), _frame(3, ref=HeadingRef.MAGNETIC, truth=own),
+              _frame(4, attitude=False, truth=own)]
+    src = GroundTruthSource(frames)
+    with caplog.at_level(logging.WARNING, logger="replay.groundtruth"):
+        out = list(src)
+    assert [f.sun_enu_truth is not None for f in out] == [True, False, False, False, True]
+    assert [f.attitude is not None and f.attitude.reference for f in out[1:4]] == [
+        HeadingRef.RELATIVE, HeadingRef.RELATIVE, HeadingRef.MAGNETIC]  # only the truth changes
+    s = src.truth_stats
+    assert (s.frames, s.had_truth, s.heading_not_true, s.truth_added) == (5, 2, 3, 0)
+    warned = [r.getMessage() for r in caplog.records if "get no ground truth" in r.getMessage()]
+    assert len(warned) == 2 and "relative" in warned[0] and "magnetic" in warned[1]  # once per reference
+
+
+def test_open_frames_drops_the_truth_of_a_log_recorded_with_a_relative_heading(tmp_path):
+    path = tmp_path / "visual.mcap"
+    with LogWriter(path) as w:
+        for f in list(open_log(DEMO_LOG))[:4]:
+            w.write_frame(dataclasses.replace(f, attitude=Attitude(0.1 * f.seq, HeadingRef.RELATIVE)))
+    assert all(f.sun_enu_truth is not None for f in open_frames(path, ground_truth=False))
+    assert all(f.sun_enu_truth is None for f in open_frames(path))

@@ -177,6 +177,32 @@ def test_train_refuses_logs_without_truth(tmp_path):
         train([p], tmp_path / "m", TrainConfig(preset="tiny", max_steps=1))
 
 
+
+@pytest.mark.parametrize("ref", [HeadingRef.RELATIVE, HeadingRef.MAGNETIC])
+def test_frames_without_a_true_heading_do_not_train(tmp_path, ref):
+    # Their yaws are turned from true north by the start heading or the declination, the truth is
+    # not: together they are inconsistent targets. Read here without the ground-truth wrapper
+    # (which drops such truths too), so training's own rule is what is tested.
+    import dataclasses
+    from functools import partial
+
+    from estimator.contract import PAPER_CROP_FOV_DEG
+    from estimator.train import load_drives
+    from replay.native import LogWriter
+    from replay.sources import open_frames
+
+    fov = math.radians(PAPER_CROP_FOV_DEG)
+    frames = _frames(4, 0)
+    mixed = frames[:2] + [dataclasses.replace(f, attitude=Attitude(f.attitude.heading_rad, ref)) for f in frames[2:]]
+    assert load_drive(mixed, "d", 16, fov).images.shape[0] == 2
+    p = tmp_path / "not_true.mcap"
+    with LogWriter(p) as w:
+        for f in mixed[2:]:
+            w.write_frame(f)
+    assert all(f.sun_enu_truth is not None for f in open_frames(p, ground_truth=False))
+    with pytest.raises(TrainingDataError, match="TRUE heading"):
+        load_drives([p], 16, fov, read_frames=partial(open_frames, ground_truth=False))
+
 def test_resume_with_another_preset_is_refused(logs, tmp_path):
     out = tmp_path / "model"
     train(logs, out, TrainConfig(preset="tiny", max_steps=1, batch_windows=1))

@@ -30,6 +30,8 @@ from drivers.visual_odometry import (
     with_visual_heading,
     yaw_from_rotation,
 )
+from replay.native import open_log
+from replay.sources import DEMO_LOG
 from rig.errors import ValidationError
 from rig.types import Frame, HeadingRef, Intrinsics
 from tests.tolerances import DEG, EXACT_F64
@@ -324,3 +326,14 @@ def test_a_cut_to_an_unrelated_scene_gives_no_heading():
     assert vo.update(0.0, textured(0), INTR) is not None
     assert vo.update(0.1, textured(7), INTR) is None
     assert vo.stats["lost"] == 1 and vo.stats["essential"] == 0 and vo.stats["rotation_only"] == 0
+
+
+def test_with_visual_heading_drops_the_frames_true_sun():
+    # The demo drive carries a TRUE heading and its true sun (true-north ENU). Visual odometry's
+    # heading is relative to the first frame, so the truth no longer fits the frame's world: kept,
+    # it graded relative estimates against a sun turned by the start heading.
+    frames = list(open_log(DEMO_LOG))[:3]
+    assert all(f.sun_enu_truth is not None and f.attitude.reference == HeadingRef.TRUE for f in frames)
+    out = list(with_visual_heading(frames, VisualOdometry()))
+    assert [f.attitude is not None and f.attitude.reference for f in out] == [HeadingRef.RELATIVE] * 3
+    assert all(f.sun_enu_truth is None for f in out)
