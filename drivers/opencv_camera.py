@@ -310,7 +310,9 @@ class OpenCvCamera:
         self._factory = capture_factory or (lambda t: open_capture(t, width, height, fps))
 
         if self.target.kind == "file" and capture_factory is None and not Path(str(self.target.value)).is_file():
-            what = "is a folder, not a video file" if Path(str(self.target.value)).is_dir() else "does not exist"
+            path = Path(str(self.target.value))
+            what = ("is a folder, not a video file" if path.is_dir() else
+                    "is a device or special file, not a video file" if path.exists() else "does not exist")
             raise CameraError(f"video file {self.target.value} {what}; pass an existing file, "
                               "a device index (opencv:0) or an rtsp:// URL")
         cap = self._factory(self.target)

@@ -122,8 +122,9 @@ class OnnxModel:
         """
         root = Path(model_dir)
         if not root.is_dir():
+            what = "is a file, not a model folder" if root.exists() else "does not exist"
             raise ModelError(
-                f"model folder {str(root)!r} does not exist or is not a folder; "
+                f"model folder {str(root)!r} {what}; "
                 f"pass the folder that holds {BACKBONE_FILE} and {AGGREGATOR_FILE}"
             )
         paths = {name: root / name for name in (BACKBONE_FILE, AGGREGATOR_FILE)}
@@ -291,8 +292,10 @@ def _check_checksums(root: Path, digests: Mapping[str, str]) -> None:
                          f"folder again, re-export it, or delete {CHECKSUMS_FILE} to load it unchecked")
     damaged = [name for name, digest in digests.items() if expected[name] != digest]
     if damaged:
-        raise ModelError(f"model folder {str(root)!r}: {' and '.join(damaged)} do not match {CHECKSUMS_FILE} "
-                         "(damaged in a copy, or changed by hand); copy the model folder again or re-export it")
+        verb = "does" if len(damaged) == 1 else "do"
+        raise ModelError(f"model folder {str(root)!r}: {' and '.join(damaged)} {verb} not match {CHECKSUMS_FILE} "
+                         "(damaged in a copy, or changed by hand); copy the model folder again, or re-export it "
+                         "from its training run (sunrig train --out RUN --export-only DIR)")
 
 
 def _open_session(path: Path, blob: bytes, opts: ort.SessionOptions) -> ort.InferenceSession:

@@ -809,6 +809,11 @@ def _check_image_channel(name: str, topics: dict[str, str]) -> None:
     expected = CHANNELS[TOPIC_IMAGE].schema_name
     if TOPIC_IMAGE not in topics:
         listed = ", ".join(sorted(topics)) or "none"
+        if TOPIC_ESTIMATE in topics:  # sunrig's own: a `run --record` without --record-frames
+            raise LogError(
+                f"{name} holds estimates only (recorded without --record-frames), no frames to replay; "
+                "read them with replay.native.read_estimates, or record with --record-frames"
+            )
         raise LogError(
             f"{name} is an MCAP log but not a sunrig log: it has no {TOPIC_IMAGE} channel "
             f"(channels: {listed}); {_HINT}"
@@ -882,15 +887,12 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
             stats.truncated = True
             stats.bytes_read = f.tell()
             if warn:
-                at_end = stats.bytes_read >= size
-                why = "it was cut off mid-write" if at_end else f"a damaged record ({exc})"
-                logger.warning(
-                    "%s: the log ends early at byte %d of %d (%s); replayed what came before",
-                    name,
-                    stats.bytes_read,
-                    size,
-                    why,
-                )
+                if stats.bytes_read >= size:  # the reader stopped at the file's end: in a cut record
+                    logger.warning("%s: the log is cut off mid-write (its last record is incomplete, at byte "
+                                   "%d); replayed what came before", name, size)
+                else:
+                    logger.warning("%s: the log ends early at byte %d of %d (a damaged record: %s); replayed "
+                                   "what came before", name, stats.bytes_read, size, exc)
             return
         if isinstance(record, Chunk):
             try:

@@ -397,6 +397,17 @@ def test_finished_log_cut_anywhere_replays_a_growing_prefix(tmp_path, caplog):
     assert 0.3 * len(frames) < counts[len(counts) // 2] < 0.8 * len(frames)
 
 
+def test_a_log_of_estimates_only_says_how_it_was_made(tmp_path):
+    # `sunrig run --record` without --record-frames: sunrig's own file, but nothing to replay.
+    from tests.test_protocol import make_estimate
+
+    path = tmp_path / "est.mcap"
+    with LogWriter(path) as w:
+        w.write_estimate(make_estimate(10.0, 20.0, seq=1))
+    with pytest.raises(LogError, match="holds estimates only .*--record-frames"):
+        list(read_frames(path))
+
+
 def test_cut_inside_the_first_chunk_is_a_clear_error(tmp_path):
     path = write_log(tmp_path / "full.mcap", make_frames(5))
     data = path.read_bytes()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -257,6 +258,12 @@ def test_stop_and_close_end_a_file_read_early_and_close_is_idempotent(video):
 def test_a_folder_is_not_called_missing(tmp_path):
     with pytest.raises(CameraError, match="is a folder, not a video file"):
         OpenCvCamera(str(tmp_path), hfov_deg=60.0)  # the driver takes what follows opencv:
+
+
+@pytest.mark.skipif(not Path("/dev/zero").exists(), reason="needs /dev/zero")
+def test_a_device_file_is_not_called_missing():
+    with pytest.raises(CameraError, match="is a device or special file, not a video file"):
+        OpenCvCamera("/dev/zero", hfov_deg=60.0)
 
 
 def test_a_missing_file_is_one_clear_error(tmp_path):

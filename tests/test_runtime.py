@@ -265,6 +265,13 @@ def test_refuses_a_missing_folder(tmp_path):
     assert "does not exist" in message and "backbone.onnx" in message
 
 
+def test_a_graph_file_given_for_the_folder_is_called_a_file(tmp_path):
+    graph = tmp_path / BACKBONE_FILE
+    graph.write_bytes(b"")
+    message = refusal(ModelError, graph)
+    assert "is a file, not a model folder" in message and "does not exist" not in message
+
+
 def test_refuses_a_folder_without_graphs(tmp_path):
     (tmp_path / BACKBONE_FILE).write_bytes(b"")
     message = refusal(ModelError, tmp_path)
@@ -291,7 +298,7 @@ def test_a_graph_damaged_in_a_copy_is_refused_by_its_checksum(tiny_model_dir, tm
     blob[mid:mid + 64] = bytes(b ^ 0xFF for b in blob[mid:mid + 64])
     (folder / AGGREGATOR_FILE).write_bytes(bytes(blob))
     message = refusal(ModelError, folder)
-    assert "aggregator.onnx do not match SHA256SUMS" in message and "copy the model folder again" in message
+    assert "aggregator.onnx does not match SHA256SUMS" in message and "copy the model folder again" in message
     # A sums file that checks nothing is refused too: empty, or cut short before a graph's line.
     sums = (tiny_model_dir / CHECKSUMS_FILE).read_text()
     (folder / CHECKSUMS_FILE).write_text("")
