@@ -1019,6 +1019,18 @@ def read_frames(path: str | os.PathLike[str]) -> Iterator[Frame]:
     yield from open_log(path)
 
 
+def frame_count(path: str | os.PathLike[str]) -> int | None:
+    """How many frames a finished log holds, from its summary's statistics (no chunk is read);
+    None when it has no summary (a log cut off mid-write) or no image channel."""
+    f, size = _open_log_file(Path(path))
+    with f:
+        summary = _summary(f, size)
+    if summary is None or summary.statistics is None:
+        return None
+    ids = [cid for cid, c in summary.channels.items() if c.topic == TOPIC_IMAGE]
+    return sum(summary.statistics.channel_message_counts.get(cid, 0) for cid in ids) if ids else None
+
+
 def read_estimates(path: str | os.PathLike[str]) -> Iterator[dict]:
     """The ``/sun/estimate`` messages as dicts (rebuild with :func:`estimate_from_dict`).
 

@@ -510,3 +510,22 @@ def test_a_small_drive_written_to_a_log_reads_back(tmp_path):
         assert got.image_bgr.shape == ref.image_bgr.shape
         # JPEG: close, not equal.
         assert np.abs(got.image_bgr.astype(int) - ref.image_bgr.astype(int)).mean() < 6
+
+
+def test_a_resumed_set_keeps_its_drives_and_refuses_drives_of_another_length(tmp_path):
+    # An interrupted `sunrig synth` resumes: kept drives are not rendered again. But a set asked
+    # for with more frames must not silently be the shorter drives already in the folder.
+    from replay.native import frame_count
+    from replay.synthetic import write_synthetic_logs
+    from rig.errors import ValidationError
+
+    first = write_synthetic_logs(tmp_path, drives=1, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    made = first[0].stat().st_mtime_ns
+    more = write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    assert more[0].stat().st_mtime_ns == made and [frame_count(p) for p in more] == [2, 2]
+    with pytest.raises(ValidationError, match="drive_9_0000.mcap is kept .* holds 2 frames, not 3"):
+        write_synthetic_logs(tmp_path, drives=2, frames=3, seed=9, intrinsics=SMALL, progress=False)
+    (tmp_path / "drive_9_0001.mcap").write_bytes(first[0].read_bytes()[:-100])  # a summary cut off
+    assert frame_count(tmp_path / "drive_9_0001.mcap") is None
+    with pytest.raises(ValidationError, match="drive_9_0001.mcap .* holds an unfinished log"):
+        write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)

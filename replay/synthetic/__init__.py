@@ -60,13 +60,30 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
     return path, frames
 
 
+def _check_kept(paths: list[Path], frames: int) -> None:
+    """A drive kept from an earlier run must be the drive asked for: the name fixes the seed, and
+    the frame count is checked (a set asked for with 20 frames must not be 10-frame drives)."""
+    from replay.native import frame_count
+
+    for path in paths:
+        if path.exists():
+            found = frame_count(path)
+            if found != frames:
+                held = f"{found} frames" if found is not None else "an unfinished log"
+                raise ValidationError(
+                    f"{path} is kept from an earlier run but holds {held}, not {frames}: pass another "
+                    "folder, or delete the folder's drives to make them again"
+                )
+
+
 def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames: int, seed: int,
                          intrinsics: Intrinsics | None = None, progress: bool = True,
                          render_scale: float = 0.5, fps: float = 10.0, jobs: int = 1) -> list[Path]:
     """Write ``drives`` native logs of ``frames`` frames each, ``drive_{seed}_{i:04d}.mcap``.
 
     Drive i uses :func:`drive_seed` (seed, i), so any one log can be remade alone, and a drive
-    whose log already exists is not rendered again: an interrupted run resumes. ``jobs`` drives
+    whose log already exists is not rendered again: an interrupted run resumes (one whose
+    frame count differs is refused). ``jobs`` drives
     render in parallel processes. Returns the paths in order. Images go through the log
     writer's JPEG encoder.
     """
@@ -77,6 +94,7 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
+    _check_kept(paths, frames)
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
             for i, p in enumerate(paths) if not p.exists()]
     bar = Progress("synth", total=drives * frames, unit="frames", enabled=None if progress else False)
