@@ -191,8 +191,11 @@ class SunEstimator:
                     spread = spread_rad(world[inliers], unit)
                 else:  # single: the first crop of the newest frame
                     first = sum(f.n_crops for f in window[: window.index(tokens.newest)])
+                    unit, _ = mean_direction(world[first : first + 1])
+                    # Its spread is the other crops' around it, not one vector's around itself
+                    # (always 0, so the status rule called every single-crop answer valid).
+                    spread = spread_rad(world, unit)
                     world = world[first : first + 1]
-                    unit, spread = mean_direction(world)
             results[name] = self._make_estimate(name, tokens, unit, spread, world)
         return results
 

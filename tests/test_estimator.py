@@ -60,7 +60,6 @@ def test_all_aggregators_give_unit_vectors_with_truth(model):
         assert np.linalg.norm(r.sun_enu) == pytest.approx(1.0)
         assert r.error_rad is not None and r.seq == 7
         assert r.n_tokens == (1 if name == "single" else t)
-    assert results["single"].spread_rad == 0.0
 
 
 def test_global_yaw_offset_rotates_every_aggregator_exactly(model):
@@ -156,6 +155,18 @@ def test_single_is_the_first_crop_of_the_newest_frame(model):
     first_of_newest = 7 * window[0].n_crops
     expected = r["mean"].token_enu[first_of_newest]
     np.testing.assert_allclose(r["single"].sun_enu, expected / np.linalg.norm(expected), atol=1e-9)
+
+
+def test_single_spread_is_the_other_crops_around_it(model):
+    # One vector has no spread around itself (0 made the status rule call every single-crop
+    # answer valid, one 100 deg off included); the window's crops around it say how far it can be
+    # trusted, as for the other aggregators.
+    from estimator.calibration import spread_rad
+
+    est = SunEstimator(model)
+    r = est.estimate_many(est.encode_batch(make_frames(8)), ["single", "mean"])
+    assert r["single"].spread_rad == pytest.approx(spread_rad(r["mean"].token_enu, r["single"].sun_enu))
+    assert r["single"].spread_rad > 0.0
 
 
 def test_meanshift_spread_is_over_its_inliers(model):
