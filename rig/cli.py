@@ -896,9 +896,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a native sunrig log (.mcap) or a KITTI raw drive folder; default: the bundled demo drive")
     p.add_argument("--jsonl", metavar="PATH|-", help="write one JSON object per estimate here (- for stdout)")
     p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
-    p.add_argument("--aggregator", default="transformer", choices=["transformer", "mean", "meanshift", "single"])
+    p.add_argument("--aggregator", default="transformer", choices=["transformer", "mean", "meanshift", "single"],
+                   help="how a window's crops become one answer (default transformer, the paper's)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
-    p.add_argument("--window-span-s", type=float, default=4.0, metavar="S",
+    p.add_argument("--window-span-s", type=_positive_float, default=4.0, metavar="S",
                    help="choose each window's frames from the last S seconds (default 4)")
     _output_flags(p)
     p.add_argument("--realtime", action="store_true", help="pace by the log's timestamps instead of full speed")
@@ -911,15 +912,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", parents=[debug], help="the live rig: camera and heading in, sun direction out")
     _source_flags(p)
     p.add_argument("--config", metavar="FILE.toml", help="configuration file; flags override it")
-    p.add_argument("--model", metavar="DIR")
-    p.add_argument("--aggregator", choices=["transformer", "mean", "meanshift", "single"])
+    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
+    p.add_argument("--aggregator", choices=["transformer", "mean", "meanshift", "single"],
+                   help="how a window's crops become one answer (default transformer, the paper's)")
     _output_flags(p, defaults=False)
     p.add_argument("--record", metavar="OUT.mcap", help="record estimates (and frames with --record-frames)")
-    p.add_argument("--record-frames", action="store_true")
+    p.add_argument("--record-frames", action="store_true",
+                   help="record the frames too (most of a log's size): a log that replays and trains")
     p.add_argument("--record-overwrite", action="store_true",
                    help="replace an existing --record file (by default it is refused; {start} in its name is "
                         "the UTC start time, for a new file per run)")
-    p.add_argument("--fast", action="store_true", help="do not pace a file: camera by its timestamps")
+    p.add_argument("--fast", action="store_true",
+                   help="do not pace a file: camera by its timestamps; as live, frames the estimator cannot keep "
+                        "up with are dropped (sunrig replay estimates every frame)")
     p.add_argument("--quiet", action="store_true", help="no status lines on stderr")
     p.set_defaults(func=cmd_run)
 
@@ -940,16 +945,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("demo", parents=[debug], help="the bundled drive through the live rig, in real time")
-    p.add_argument("--config", metavar="FILE.toml")
-    p.add_argument("--model", metavar="DIR")
+    p.add_argument("--config", metavar="FILE.toml", help="configuration file ([output], [rig], [estimator])")
+    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
     _output_flags(p, defaults=False)
-    p.add_argument("--fast", action="store_true", help="as fast as possible instead of real time")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--fast", action="store_true",
+                   help="as fast as possible instead of real time (frames the estimator cannot keep up with "
+                        "are dropped, as live)")
+    p.add_argument("--quiet", action="store_true", help="no status lines on stderr")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("config", parents=[debug], help="show the effective configuration")
     p.add_argument("--print", action="store_true", required=True, help="print it as TOML")
-    p.add_argument("--config", metavar="FILE.toml")
+    p.add_argument("--config", metavar="FILE.toml", help="configuration file (default: the built-in defaults)")
     p.set_defaults(func=cmd_config)
 
     p = sub.add_parser("eval", parents=[debug], help="angular error of every aggregator over logs with ground truth")
@@ -959,11 +966,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregators", metavar="A,B", help="comma-separated subset (default: all)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
-    p.add_argument("--window-span-s", type=float, default=4.0, metavar="S")
+    p.add_argument("--window-span-s", type=_positive_float, default=4.0, metavar="S",
+                   help="choose each window's frames from the last S seconds (default 4)")
     p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("train", parents=[debug], help="train a model on logs with ground truth (needs sunrig[train])")
@@ -985,7 +993,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="share of windows drawn from drives in proportion to their running error (default 0.5)")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
-    p.add_argument("--seed", type=_nonneg_int, default=0)
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="initialisation and sampling seed (default 0)")
     p.add_argument("--threads", type=_positive_int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
     p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
@@ -996,19 +1004,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-only", metavar="DIR",
                    help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run); "
                         "with the run's logs, a checkpoint that predates it also records their sun elevations")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("synth", parents=[debug], help="write procedural street drives with the true sun as native logs")
     p.add_argument("out", help="output folder (drives already there are kept: a run resumes)")
-    p.add_argument("--drives", type=int, default=10)
-    p.add_argument("--frames", type=int, default=40, help="frames per drive (default 40)")
+    p.add_argument("--drives", type=_positive_int, default=10, help="how many drives (default 10)")
+    p.add_argument("--frames", type=_positive_int, default=40, help="frames per drive (default 40)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="drive i of seed S is always the same drive")
     p.add_argument("--fps", type=_positive_float, default=10.0, help="frame rate of the drives (default 10)")
-    p.add_argument("--jobs", type=int, default=1, help="drives rendered in parallel (default 1)")
+    p.add_argument("--jobs", type=_positive_int, default=1, help="drives rendered in parallel (default 1)")
     p.add_argument("--render-scale", type=_float_in(0.0, 1.0), default=0.5,
                    help="internal render size relative to the output (default 0.5, upsampled)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("sun", parents=[debug], help="the sun's position for a time and place (NREL SPA), as JSON")

@@ -498,3 +498,17 @@ def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
     assert "--crops 8" in exported.contract.training["export_command"]
     crops = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
     np.testing.assert_array_equal(exported.embed(crops), trained.embed(crops))
+
+
+def test_every_option_of_every_command_says_what_it_does():
+    # `sunrig CMD --help` is the reference a rig user has at hand: no option without a line.
+    import argparse
+
+    from rig.cli import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    silent = [f"{name} {a.option_strings[0] if a.option_strings else a.dest}"
+              for name, sub in commands.items() for a in sub._actions
+              if not a.help and not isinstance(a, argparse._HelpAction)]
+    assert silent == []
