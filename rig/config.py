@@ -69,6 +69,38 @@ CHOICES = {
     ("output", "format"): ("nmea", "binary"),
 }
 
+# The range of each number: (lowest, highest, lowest allowed itself?). Checked where the option is
+# read (a file or the command line), so `sunrig config --print` and every command refuse the same
+# values, before any device opens. 0 (and nan for declination_deg) is "unset" where its comment
+# says so (TOML has no null).
+_INF = float("inf")
+RANGES: dict[tuple[str, str], tuple[float, float, bool]] = {
+    ("source", "hfov_deg"): (0.0, 179.0, True),
+    ("source", "width"): (0, _INF, True),
+    ("source", "height"): (0, _INF, True),
+    ("source", "fps"): (0.0, _INF, True),
+    ("source", "baud"): (0, _INF, False),
+    ("source", "max_gap_s"): (0.0, _INF, False),
+    ("source", "max_age_s"): (0.0, _INF, False),
+    ("source", "heading_latency_s"): (0.0, _INF, True),
+    ("source", "declination_deg"): (-180.0, 180.0, True),
+    ("estimator", "seed"): (0, _INF, True),
+    ("window", "span_s"): (0.0, _INF, False),
+    ("window", "yaw_scale_deg"): (0.0, 180.0, False),
+    ("rig", "queue_size"): (0, _INF, False),
+    ("rig", "ring_capacity"): (0, _INF, False),
+    ("rig", "ring_max_age_s"): (0.0, _INF, False),
+    ("rig", "status_every_s"): (0.0, _INF, False),
+    ("output", "baud"): (0, _INF, False),
+}
+
+
+def _in_range(section: str, key: str, value: float) -> bool:
+    lo, hi, lo_ok = RANGES[(section, key)]
+    if value != value:  # nan: only where it means "unset"
+        return (section, key) == ("source", "declination_deg")
+    return (lo <= value if lo_ok else lo < value) and value <= hi and value != _INF
+
 
 def _check(section: str, key: str, value: Any) -> Any:
     default = DEFAULTS[section][key]
@@ -82,6 +114,11 @@ def _check(section: str, key: str, value: Any) -> Any:
     choices = CHOICES.get((section, key))
     if choices and value not in choices:
         raise ConfigError(f"[{section}] {key}: expected one of {', '.join(choices)}, got {value!r}")
+    if (section, key) in RANGES and not _in_range(section, key, value):
+        lo, hi, lo_ok = RANGES[(section, key)]
+        what = f"{'>=' if lo_ok else '>'} {lo:g}" if hi == _INF else f"in {'[' if lo_ok else '('}{lo:g}, {hi:g}]"
+        kind = "an integer" if expected is int else "a finite number"
+        raise ConfigError(f"[{section}] {key}: expected {kind} {what}, got {value!r}")
     return value
 
 

@@ -6,7 +6,7 @@ import tomllib
 
 import pytest
 
-from rig.config import DEFAULTS, ConfigError, dump_toml, load_config, override
+from rig.config import DEFAULTS, ConfigError, dump_toml, load_config, merge, override
 
 
 def _same(a, b):
@@ -65,6 +65,15 @@ def test_file_then_flags(tmp_path):
         # A section written as a value (`output = "x"`) is named, not an AttributeError.
         ("output = 'x'\n", "[output] must be a table of options"),
         ("[output\n", "not valid TOML"),
+        # Out of range: refused where the value is read, so `config --print` never shows a
+        # configuration that `run` then refuses after opening a camera.
+        ("[window]\nspan_s = -4\n", "[window] span_s: expected a finite number > 0, got -4.0"),
+        ("[window]\nyaw_scale_deg = 0\n", "[window] yaw_scale_deg: expected a finite number in (0, 180]"),
+        ("[rig]\nqueue_size = 0\n", "[rig] queue_size: expected an integer > 0, got 0"),
+        ("[source]\nmax_gap_s = nan\n", "[source] max_gap_s: expected a finite number > 0, got nan"),
+        ("[source]\nhfov_deg = -1.0\n", "[source] hfov_deg: expected a finite number in [0, 179]"),
+        ("[source]\ndeclination_deg = inf\n", "[source] declination_deg: expected a finite number in [-180, 180]"),
+        ("[rig]\nring_max_age_s = inf\n", "[rig] ring_max_age_s: expected a finite number > 0, got inf"),
     ],
 )
 def test_mistakes_are_named(tmp_path, text, message):
@@ -102,3 +111,13 @@ def test_defaults_are_those_of_what_they_configure():
 def test_an_existing_recording_is_refused_by_default():
     # A drive cannot be recorded again (rig/recorder.py): replacing a recording must be asked for.
     assert DEFAULTS["output"]["record_overwrite"] is False
+
+
+def test_unset_values_and_every_default_are_in_range(tmp_path):
+    # 0 means "unset" for the camera's own size, rate and field of view, and nan for the
+    # declination (TOML has no null): those must pass, as must every default.
+    path = tmp_path / "unset.toml"
+    path.write_text("[source]\nhfov_deg = 0.0\nwidth = 0\nfps = 0.0\ndeclination_deg = nan\n")
+    cfg = load_config(path)
+    assert math.isnan(cfg["source"]["declination_deg"]) and cfg["source"]["width"] == 0
+    merge(load_config(), DEFAULTS, where="defaults")  # every default through the same checks
