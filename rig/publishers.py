@@ -388,6 +388,7 @@ class JsonlPublisher:
             self._stream = target
             self._name = getattr(target, "name", type(target).__name__)
         self._closed = False
+        self._failed = False  # a write failed and said so: close() need not say it again
         self._counts = {"published": 0, "written": 0}
 
     def publish(self, est: SunEstimate) -> None:
@@ -400,6 +401,7 @@ class JsonlPublisher:
         except BrokenPipeError:
             raise  # the reader went away (`| head`): the output has ended (see RigPipeline._publish)
         except OSError as exc:
+            self._failed = True
             raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
                                "free space or pass another --jsonl") from None
         self._counts["written"] += 1
@@ -427,9 +429,11 @@ class JsonlPublisher:
         except BrokenPipeError:
             raise
         except OSError as exc:
-            # What a failed write left in the buffer fails again here: the same lost lines, said once more.
-            raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
-                               "free space or pass another --jsonl") from None
+            # What a failed write left in the buffer fails again here: the same lost lines. Said
+            # only if no write has said it (a file that filled up between the last write and close).
+            if not self._failed:
+                raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
+                                   "free space or pass another --jsonl") from None
 
     def __enter__(self) -> JsonlPublisher:
         return self

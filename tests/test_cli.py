@@ -436,6 +436,15 @@ def test_an_output_that_writes_nothing_fails_the_run_and_says_so(tiny_model_dir)
     assert re.search(r"estimates [1-9]\d* at", res.stderr), res.stderr
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_a_full_disk_under_replay_jsonl_is_said_once():
+    # The failed write says it; closing the file fails again on the same buffered line, and
+    # saying that too (as a warning before the error) told the user twice.
+    res = run_cli("replay", "--jsonl", "/dev/full")
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        "sunrig: error: cannot write JSONL to /dev/full: No space left on device; free space or pass another --jsonl"]
+
+
 def test_config_print_merges_file_and_flags(tmp_path):
     cfg = tmp_path / "rig.toml"
     cfg.write_text('[output]\nbaud = 9600\n[window]\nspan_s = 6.0\n')
