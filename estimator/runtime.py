@@ -145,10 +145,12 @@ class OnnxModel:
         bb, agg = contracts[BACKBONE_FILE], contracts[AGGREGATOR_FILE]
         diff = bb.differences(agg)
         if diff:
+            # A field such as `training` holds a whole recipe: name it, do not print both copies.
+            shown = "; ".join(d if len(d) <= 100 else d.split(":", 1)[0] + ": differs" for d in diff)
             raise ContractMismatch(
                 f"model folder {str(root)!r}: {BACKBONE_FILE} and {AGGREGATOR_FILE} carry "
-                f"different contracts (backbone != aggregator: {'; '.join(diff)}); "
-                "both graphs must come from one export: re-export the model"
+                f"different contracts (backbone != aggregator: {shown}); "
+                "both graphs must come from one export: copy the model folder again, or re-export it"
             )
         _check_io(paths[BACKBONE_FILE], sessions[BACKBONE_FILE], _BACKBONE_IO, bb)
         _check_io(paths[AGGREGATOR_FILE], sessions[AGGREGATOR_FILE], _AGGREGATOR_IO, bb)

@@ -344,6 +344,8 @@ def test_refuses_graphs_from_two_models(tiny_model_dir, crop48_model_dir, tmp_pa
     message = refusal(ContractMismatch, folder)
     assert "carry different contracts" in message
     assert "crop_size_px: 48 != 32" in message and "re-export" in message
+    # The training record (a whole recipe) is named, not printed twice: the line stays readable.
+    assert "training: differs" in message and len(message) < 600, message
 
 
 @pytest.mark.torch
