@@ -142,6 +142,10 @@ def merge(cfg: dict[str, dict[str, Any]], raw: Mapping[str, Any], where: str = "
     """``cfg`` updated by a nested mapping; unknown sections or options are errors, not ignored."""
     for section, values in raw.items():
         if section not in DEFAULTS:
+            homes = [name for name, options in DEFAULTS.items() if section in options]
+            if homes and not isinstance(values, Mapping):  # `camera = "oak"` above every [section]
+                raise ConfigError(f"{where}: {section} is outside any section; put it under "
+                                  + " or ".join(f"[{home}]" for home in homes))
             raise ConfigError(f"{where}: unknown section [{section}]; known: {', '.join(DEFAULTS)}")
         if not isinstance(values, Mapping):
             raise ConfigError(f"{where}: [{section}] must be a table of options")

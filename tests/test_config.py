@@ -54,6 +54,8 @@ def test_file_then_flags(tmp_path):
     ("text", "message"),
     [
         ("[outptu]\nserial = 'x'\n", "unknown section [outptu]"),
+        ("camera = 'oak'\n", "camera is outside any section; put it under [source]"),
+        ("baud = 9600\n", "baud is outside any section; put it under [source] or [output]"),
         ("[output]\nbaudrate = 9600\n", "unknown option [output] baudrate; known: serial, baud"),
         ("[output]\nbaud = '9600'\n", "[output] baud: expected int, got '9600'"),
         ("[output]\nformat = 'xml'\n", "[output] format: expected one of nmea, binary"),
