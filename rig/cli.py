@@ -189,6 +189,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     progress = Progress(f"replay {Path(log_path).name}", enabled=None if not args.quiet else False)
     frames = paced(source) if args.realtime else source
     errors = []
+    interrupted = False
     try:
         # Paced, each frame is estimated as it arrives; unpaced, frames are encoded in batches.
         batch = 1 if args.realtime else 8
@@ -199,9 +200,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
             for p in pubs:
                 p.publish(est)
             progress.update(n, f"frames {stats.frames}")
+    except KeyboardInterrupt:
+        interrupted = True  # what was replayed is written: say how far it got, as eval does
     finally:
         _close_all(pubs)
     summary = f"{stats.frames} frames, {stats.windows - stats.windows_failed} estimates"
+    if interrupted:
+        summary = f"interrupted after {summary}"
     if stats.frames_without_heading:
         summary += f", {stats.frames_without_heading} frames without heading skipped"
     if stats.frames_bad_exposure:
@@ -218,7 +223,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         summary += " (log truncated: replayed up to its last complete chunk)"
     if not args.quiet:
         progress.close(summary)
-    return 0
+    return 130 if interrupted else 0  # as for any Ctrl-C, with the work so far written
 
 
 def _effective_config(args: argparse.Namespace) -> dict:

@@ -212,6 +212,30 @@ def test_a_rig_stopped_by_its_service_manager_finishes_its_outputs(tmp_path, sig
     assert "sunrig: done:" in err
 
 
+def test_an_interrupted_replay_says_how_far_it_got(tmp_path):
+    # Every line written stays written; the summary says the replay was cut short, and where.
+    import signal
+    import time
+
+    out = tmp_path / "est.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "replay", "--realtime", "--jsonl", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60.0  # a guard, not a timing
+        while time.monotonic() < deadline and proc.poll() is None:
+            if out.exists() and len(out.read_text().splitlines()) >= 3:
+                break
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    lines = len(out.read_text().splitlines())
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert re.search(rf"interrupted after \d+ frames, {lines} estimates", err), err
+    assert lines < 33, err
+
+
 def test_stop_signals_end_any_command_as_ctrl_c_does_and_nohup_is_respected(monkeypatch):
     # A command that does not catch the interrupt exits 128 + the signal's number, as a shell
     # reports death by that signal; a signal ignored at start (`nohup` ignores SIGHUP) stays
