@@ -20,6 +20,10 @@ from pathlib import Path
 
 from rig.errors import SunrigError
 from rig.progress import Progress
+from rig.stopping import StopSignals
+
+# How the running command is being stopped (rig/stopping.py): Ctrl-C, SIGTERM and SIGHUP.
+STOP = StopSignals()
 
 EXIT_USER_ERROR = 2
 EXIT_BUG = 1
@@ -31,12 +35,29 @@ _MACHINE_ERRNOS = frozenset((*_DISK_FULL, errno.EACCES, errno.EPERM, errno.EROFS
                              errno.EISDIR, errno.EIO))
 
 
+# sunrig's own folders: a file of ours that cannot be read is a broken install or a bug, not a
+# path the user gave.
+_OWN_FOLDERS = tuple(Path(__file__).resolve().parent.parent / name
+                     for name in ("rig", "estimator", "replay", "drivers"))
+
+
 def _machine_error(exc: BaseException) -> str | None:
-    """The one line for an OS error that is the machine's to fix, or None for a bug of ours."""
-    if not isinstance(exc, OSError) or (exc.filename is None and exc.errno not in _MACHINE_ERRNOS):
+    """The one line for an OS error that is the machine's to fix (a path that cannot be written, a
+    full disk, a failing device), or None for one that is a bug of ours."""
+    if not isinstance(exc, OSError) or exc.errno not in _MACHINE_ERRNOS:
         return None
-    where = f"{exc.filename}: " if exc.filename is not None else ""
-    return f"{where}{exc.strerror or exc}; check the path is right and writable and the disk has free space"
+    if exc.filename is not None:
+        path = Path(os.fsdecode(exc.filename)).resolve()
+        if any(path.is_relative_to(own) for own in _OWN_FOLDERS):
+            return None
+    if exc.errno in _DISK_FULL:
+        hint = "free space on that disk, or write elsewhere"
+    elif exc.errno == errno.EIO:
+        hint = "check the disk or device"
+    else:
+        hint = "check the path is right and writable"
+    where = f"{os.fsdecode(exc.filename)}: " if exc.filename is not None else ""
+    return f"{where}{exc.strerror or exc}; {hint}"
 
 
 def _int_in(lo: int, hi: int | None = None):
@@ -223,7 +244,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         summary += " (log truncated: replayed up to its last complete chunk)"
     if not args.quiet:
         progress.close(summary)
-    return 130 if interrupted else 0  # as for any Ctrl-C, with the work so far written
+    return STOP.exit_code() if interrupted else 0  # as for any Ctrl-C, with the work so far written
 
 
 def _effective_config(args: argparse.Namespace) -> dict:
@@ -347,7 +368,9 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
                            jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
                            record=out["record"] or None, record_overwrite=out["record_overwrite"],
                            record_frames=out["record_frames"], nmea_stdout=nmea_stdout, live=True)
-    recorder = next((p for p in pubs if type(p).__name__ == "RecorderPublisher"), None)
+    from rig.recorder import RecorderPublisher
+
+    recorder = next((p for p in pubs if isinstance(p, RecorderPublisher)), None)
 
     live_line = sys.stderr.isatty()
 
@@ -362,13 +385,20 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
     try:
         stats = pipe.run()  # ends by itself when every output's reader has gone (`| head`)
     finally:
-        _close_all(pubs)
+        with STOP.finishing():  # a stop signal now must not leave a recording half closed
+            _close_all(pubs)
     if not quiet:
         if live_line:
             sys.stderr.write("\n")
         print(f"sunrig: done: {stats.status_line(stats.ended_s)}", file=sys.stderr)
-        if recorder is not None:
+        if recorder is not None and recorder.finished:
             print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
+    if recorder is not None and not recorder.finished:
+        why = (f"a write to its disk did not return in {recorder.join_timeout_s:g} s: a disk that stopped answering?"
+               if recorder.stuck else "closing it failed, as said above")
+        print(f"sunrig: error: the recording {recorder.path} is unfinished ({why}); its complete chunks "
+              f"still replay (sunrig replay {recorder.path})", file=sys.stderr)
+        return EXIT_USER_ERROR
     return _report_output_losses(stats)
 
 
@@ -411,9 +441,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     """Live sources to a native log: frames with heading, GNSS fix and UTC (nmea:), intrinsics.
 
     Ctrl-C (or SIGTERM, SIGHUP) ends the recording, and the log is finished (summary and index);
-    one while a frame (or the summary) is being written lets that write finish first.
+    one while a frame (or the summary) is being written lets that write finish first (rig.stopping).
     """
-    import signal
     import threading
 
     from rig.recorder import check_recording_path, open_recording
@@ -424,15 +453,6 @@ def cmd_record(args: argparse.Namespace) -> int:
         check_recording_path(args.out, overwrite=args.overwrite)
     # The sources first: a wrong camera or port fails before the output file is created.
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
-    state = {"writing": False, "stop": False, "by": None}
-
-    def on_stop(signum, frame):  # noqa: ARG001 - the signal handler's signature
-        state["by"] = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-        if state["writing"]:
-            state["stop"] = True  # finish this frame first: a frame is written whole or not at all
-        else:
-            raise KeyboardInterrupt
-
     quiet = args.quiet
     live_line = sys.stderr.isatty()
     n = n_heading = 0
@@ -440,8 +460,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     next_status = start + 5.0
     interrupted = False
     disk_full: OSError | None = None
-    handlers = contextlib.ExitStack()  # closed in the finally below, before the source
-    handlers.enter_context(_signals_handled(on_stop, ("SIGINT", *STOP_SIGNALS)))
     # A backstop for --seconds: a camera that stops sending frames must not keep the recording open.
     deadline = threading.Timer(args.seconds + 2.0, source.stop) if args.seconds is not None else None
     if deadline is not None:
@@ -454,11 +472,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         out = writer.path
         try:
             for frame in source:
-                state["writing"] = True
-                try:
+                with STOP.finishing():  # a frame is written whole or not at all
                     writer.write_frame(frame, jpeg_quality=args.jpeg_quality)
-                finally:
-                    state["writing"] = False
                 n += 1
                 n_heading += frame.attitude is not None
                 now = time.monotonic()
@@ -470,7 +485,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                         sys.stderr.write(f"record: {line}\n")
                         next_status = now + 5.0
                     sys.stderr.flush()
-                if state["stop"]:
+                if STOP.requested:  # held while the frame was written
                     break
                 if (args.frames is not None and n >= args.frames) or (
                         args.seconds is not None and now - start >= args.seconds):
@@ -482,18 +497,16 @@ def cmd_record(args: argparse.Namespace) -> int:
                 raise
             disk_full = exc
         finally:
-            state["writing"] = True  # a Ctrl-C now must not cut the summary short
             try:
-                writer.close()
+                with STOP.finishing():  # a stop signal now must not cut the summary short
+                    writer.close()
             except OSError as exc:
                 if exc.errno not in _DISK_FULL:
                     raise
                 disk_full = disk_full or exc
-            state["writing"] = False
     finally:
         if deadline is not None:
             deadline.cancel()
-        handlers.close()
         source.close()
     if disk_full is not None:
         raise SunrigError(f"record: {out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
@@ -502,8 +515,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         if live_line:
             sys.stderr.write("\n")
         summary = f"{n} frames ({n_heading} with heading) in {time.monotonic() - start:.1f} s to {out}"
-        if interrupted or state["stop"]:
-            summary += f" (stopped by {state['by'] or 'Ctrl-C'}; the log is complete)"
+        if interrupted or STOP.requested:
+            summary += f" (stopped by {STOP.by or 'Ctrl-C'}; the log is complete)"
         details = _source_summary(source.stats())
         if details:
             summary += f"; {details}"
@@ -515,55 +528,6 @@ def _main_thread() -> bool:
     import threading
 
     return threading.current_thread() is threading.main_thread()  # only the main thread may set handlers
-
-
-# Signals that end a command as Ctrl-C does. Their default action ends the process at once, with
-# nothing flushed: a recording stopped that way by `systemctl stop` or `docker stop` (SIGTERM), or
-# by the terminal of an ssh session that dropped (SIGHUP), was left empty.
-STOP_SIGNALS = ("SIGTERM", "SIGHUP")
-
-
-@contextlib.contextmanager
-def _signals_handled(handler, names=STOP_SIGNALS):
-    """``handler`` for the signals ``names`` while the block runs, then the previous handlers back.
-    A signal ignored when the command started (``nohup`` ignores SIGHUP) stays ignored; off the
-    main thread (where Python sets no handlers: a library caller) nothing changes."""
-    import signal
-
-    previous = {}
-    if _main_thread():
-        for name in names:
-            sig = getattr(signal, name, None)  # Windows has no SIGHUP
-            if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:
-                previous[sig] = signal.signal(sig, handler)
-    try:
-        yield
-    finally:
-        for sig, before in previous.items():
-            signal.signal(sig, before)
-
-
-@contextlib.contextmanager
-def _stop_signals_as_ctrl_c(received: list[int]):
-    """SIGTERM and SIGHUP raise KeyboardInterrupt in the main thread, as Ctrl-C does, so every
-    command stops the way it stops on Ctrl-C: the rig closes its outputs and finishes its recording,
-    training keeps its steps. ``received`` gets each signal's number.
-
-    A second signal does not cut that short: it arrives while the outputs are being closed (GNU
-    timeout sends its signal to the command and to its process group, so twice; an impatient
-    Ctrl-C), where an interrupt would leave a recording unfinished. It is told to wait, and a
-    third quits at once. Every wait in the stop is bounded, so waiting never means hanging."""
-
-    def stop(signum, frame):  # noqa: ARG001 - the signal handler's signature
-        received.append(signum)
-        if len(received) == 2:
-            sys.stderr.write("sunrig: stopping: closing the outputs and finishing the recording; "
-                             "signal once more to quit at once\n")
-            return
-        raise KeyboardInterrupt
-
-    with _signals_handled(stop, ("SIGINT", *STOP_SIGNALS)):
-        yield
 
 
 def _source_summary(stats: dict) -> str:
@@ -657,7 +621,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not args.quiet:
         progress.close("; ".join(lines) if lines else "no full window with ground truth in these logs")
     if result.interrupted:
-        return 130  # as for any Ctrl-C, but with the work so far written
+        return STOP.exit_code()  # as for any Ctrl-C, but with the work so far written
     if not lines:
         return EXIT_USER_ERROR
     return 0
@@ -858,10 +822,11 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("source options")
     g.add_argument("--calibration", metavar="FILE",
                    help="OpenCV calibration (YAML/JSON/XML: camera_matrix, image_width, image_height)")
-    g.add_argument("--hfov-deg", type=_float_in(0.0, 179.0), metavar="DEG",
-                   help="or the camera's horizontal field of view")
-    g.add_argument("--width", type=_positive_int, help="requested frame width (opencv device, oak)")
-    g.add_argument("--height", type=_positive_int, help="requested frame height (opencv device, oak)")
+    # 0 is "unset" here as in the config file ([source]), so a flag can unset what a file set.
+    g.add_argument("--hfov-deg", type=_float_in(0.0, 179.0, lo_included=True), metavar="DEG",
+                   help="or the camera's horizontal field of view (0: unset)")
+    g.add_argument("--width", type=_nonneg_int, help="requested frame width (opencv device, oak; 0: its own)")
+    g.add_argument("--height", type=_nonneg_int, help="requested frame height (opencv device, oak; 0: its own)")
     g.add_argument("--fps", type=_positive_float, help="requested frame rate (opencv device, oak)")
     g.add_argument("--source-baud", type=_positive_int, metavar="BAUD",
                    help="baud rate of an nmea: port (default 115200)")
@@ -1058,9 +1023,10 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.debug else logging.WARNING,
         format="sunrig: %(levelname)s: %(message)s",
     )
-    received: list[int] = []
+    global STOP
+    STOP = StopSignals()  # one per command: tests run several in one process
     try:
-        with _stop_signals_as_ctrl_c(received):
+        with STOP.installed():
             return args.func(args)
     except SunrigError as exc:
         if args.debug:
@@ -1068,7 +1034,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sunrig: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
-        return 128 + (received[0] if received else 2)  # the shell's code for death by that signal
+        return STOP.exit_code()  # the shell's code for death by that signal
     except BrokenPipeError:
         # The reader of our stdout went away (e.g. `| head`): not an error of ours.
         return 0

@@ -495,6 +495,7 @@ class QueuedWriter(Generic[T]):
         self._gone = threading.Event()
         self._lock = threading.Lock()  # hands `finish` to exactly one of close() and the thread
         self._ended = self._left_behind = False
+        self._finished = False  # `finish` returned (on either side)
         self.written = 0
         self._errors = ErrorTally(log, what)
         self._thread = threading.Thread(target=self._run, name=f"sunrig-{what}", daemon=True)
@@ -503,6 +504,17 @@ class QueuedWriter(Generic[T]):
     @property
     def closed(self) -> bool:
         return self._stop.is_set()
+
+    @property
+    def finished(self) -> bool:
+        """``finish`` has run to its end: the output is complete."""
+        return self._finished
+
+    @property
+    def left_behind(self) -> bool:
+        """close() gave up on the thread, which is still in a write (it finishes the output if the
+        write returns)."""
+        return self._left_behind and not self._ended
 
     @property
     def gone(self) -> bool:
@@ -520,19 +532,25 @@ class QueuedWriter(Generic[T]):
         """Let the thread write what is queued, for at most ``join_timeout_s``, then finish.
         False when the thread is stuck in a write and was left to finish on its own (warned).
         Idempotent: later calls return True and do nothing."""
-        if self._stop.is_set():
-            return True
-        self._stop.set()
-        self._queue.close()
-        self._thread.join(join_timeout_s)
         with self._lock:
-            if not self._ended:
-                self._left_behind = True
+            if self._stop.is_set():
+                return True
+            self._stop.set()
+        self._queue.close()
+        try:
+            self._thread.join(join_timeout_s)
+        finally:
+            # Also when the join was interrupted (a signal): the thread then finishes the output
+            # itself, rather than nobody.
+            with self._lock:
+                if not self._ended:
+                    self._left_behind = True
         if self._left_behind:
             log.warning("%s is stuck in a write (a reader that stopped reading, a disk that stopped answering?); "
                         "left behind with %d pending, to finish when that write returns", self._what, len(self._queue))
             return False
         self._finish()
+        self._finished = True
         return True
 
     def _run(self) -> None:
@@ -545,6 +563,7 @@ class QueuedWriter(Generic[T]):
             if late:  # close() gave up on this thread: finishing is left to it
                 try:
                     self._finish()
+                    self._finished = True
                 except Exception as exc:  # noqa: BLE001 - no caller is left to take it
                     log.warning("%s could not finish after its stuck write: %s", self._what, exc)
 

@@ -105,7 +105,7 @@ class RecorderPublisher:
         self._writer = writer
         self.path = writer.path
         self.record_frames = record_frames
-        self._join_timeout_s = join_timeout_s
+        self.join_timeout_s = join_timeout_s
         self._worker: QueuedWriter[Frame | SunEstimate] = QueuedWriter(
             self._write, writer.close, what=f"recorder {self.path}", max_pending=queue_size)
 
@@ -126,5 +126,15 @@ class RecorderPublisher:
     def stats(self) -> dict:
         return {"written": self._worker.written, **self._worker.stats()}
 
+    @property
+    def finished(self) -> bool:
+        """The log is complete (summary and index): closed, and its writer was not left stuck."""
+        return self._worker.finished
+
+    @property
+    def stuck(self) -> bool:
+        """close() gave up on a write that has not returned (the log is finished if it ever does)."""
+        return self._worker.left_behind
+
     def close(self) -> None:
-        self._worker.close(self._join_timeout_s)
+        self._worker.close(self.join_timeout_s)

@@ -738,3 +738,24 @@ def test_a_queued_writer_stuck_past_close_finishes_its_output_when_the_write_ret
     assert any("stuck in a write" in m and "2 pending" in m for m in messages)
     assert any("could not finish after its stuck write" in m and "Input/output error" in m for m in messages)
     assert w.close(HANG_GUARD_S) and len(finished) == 1
+
+
+def test_a_close_interrupted_by_a_signal_leaves_the_finish_to_the_thread():
+    # Ctrl-C or SIGTERM landing while close() waits for the writer: without a hand-off nobody
+    # would finish the output (a recording with no summary, for good).
+    release = threading.Event()
+    finished = []
+    w = QueuedWriter(lambda est: release.wait(HANG_GUARD_S), lambda: finished.append(True), what="test output",
+                     max_pending=8)
+    w.put(make_estimate(10.0, 20.0, seq=0))
+
+    def interrupted_join(timeout=None):
+        raise KeyboardInterrupt  # FAKE: the signal, at the one place where it would land
+
+    real_join, w._thread.join = w._thread.join, interrupted_join
+    with pytest.raises(KeyboardInterrupt):
+        w.close(HANG_GUARD_S)
+    assert w.left_behind and not w.finished
+    release.set()
+    real_join(HANG_GUARD_S)
+    assert finished == [True] and w.finished and not w.left_behind

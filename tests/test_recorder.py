@@ -215,11 +215,41 @@ def test_a_recorder_stuck_past_close_finishes_its_file_when_the_disk_answers(tmp
     with caplog.at_level(logging.WARNING, logger="rig.publishers"):
         rec.close()
     assert not rec._writer.closed and any("stuck in a write" in r.getMessage() for r in caplog.records)
+    assert rec.stuck and not rec.finished
     release.set()
     for _ in range(1000):  # a guard of 10 s, not a timing
         if rec._writer.closed:
             break
         time.sleep(0.01)
-    assert rec._writer.closed and rec.stats()["written"] == 3
+    assert rec._writer.closed and rec.stats()["written"] == 3 and rec.finished and not rec.stuck
     assert [d["seq"] for d in read_estimates(tmp_path / "late.mcap")] == [0, 1, 2]
     assert (tmp_path / "late.mcap").read_bytes().endswith(MCAP_MAGIC)  # finished: a footer and its magic
+
+
+def test_a_run_whose_recording_is_stuck_at_the_end_says_it_is_unfinished(tmp_path, monkeypatch, capsys):
+    # The daemon thread dies with the process: "recorded to" and exit 0 would be a lie.
+    import rig.recorder
+    from replay.sources import DEMO_LOG
+    from rig.cli import main
+
+    release = threading.Event()
+    real = LogWriter.write_estimate
+
+    def stalled(self, est):
+        release.wait(10.0)  # FAKE dead disk; a guard, not a timing: released at the end
+        real(self, est)
+
+    class QuickToGiveUp(rig.recorder.RecorderPublisher):
+        def __init__(self, writer, **kw):
+            super().__init__(writer, join_timeout_s=0.05, **kw)
+
+    monkeypatch.setattr(LogWriter, "write_estimate", stalled)
+    monkeypatch.setattr(rig.recorder, "RecorderPublisher", QuickToGiveUp)
+    out = tmp_path / "rec.mcap"
+    try:
+        code = main(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--record", str(out), "--fast"])
+        err = capsys.readouterr().err
+    finally:
+        release.set()
+    assert code == 2 and "recorded to" not in err, err
+    assert f"the recording {out} is unfinished (a write to its disk did not return in 0.05 s" in err

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 
 import cv2
 import numpy as np
@@ -432,6 +433,30 @@ def test_ctrl_c_while_writing_a_frame_lets_it_finish(tmp_path, monkeypatch, sign
     out = tmp_path / "rec.mcap"
     assert record("--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out), "--quiet") == 0
     assert [f.seq for f in read_frames(out)] == [0, 1, 2]
+
+
+def test_a_third_signal_quits_a_record_whose_write_hangs(tmp_path, monkeypatch):
+    # A first signal mid-write is held so the frame is written whole, a second is told to wait;
+    # a disk that never returns must still not make the recording unstoppable short of SIGKILL.
+    import signal
+
+    from replay.native import LogWriter, read_frames
+
+    real_write = LogWriter.write_frame
+    slept = []
+
+    def hanging_write(self, frame, **kw):
+        if frame.seq == 2:
+            for _ in range(3):
+                signal.raise_signal(signal.SIGTERM)  # the third raises here, inside the write
+            time.sleep(5.0)  # a disk that does not answer: never reached
+            slept.append(True)
+        real_write(self, frame, **kw)
+
+    monkeypatch.setattr(LogWriter, "write_frame", hanging_write)
+    out = tmp_path / "rec.mcap"
+    assert record("--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out), "--quiet") == 0
+    assert slept == [] and [f.seq for f in read_frames(out)] == [0, 1]  # closed properly, frame 2 not begun
 
 
 @pytest.mark.torch

@@ -1,0 +1,101 @@
+"""How a command is stopped: Ctrl-C, SIGTERM and SIGHUP, all alike.
+
+The default action of SIGTERM (`systemctl stop`, `docker stop`, `kill`) and SIGHUP (the terminal
+of an ssh session that dropped) ends the process at once with nothing flushed: a recording
+stopped that way was left empty. :class:`StopSignals` makes them what Ctrl-C is in Python, a
+``KeyboardInterrupt`` in the main thread, so every command stops the way it stops on Ctrl-C: the
+rig closes its outputs and finishes its recording, training keeps its steps.
+
+An interrupt must not land in the middle of finishing something, where it would leave a
+recording unfinished; and a second signal is common (GNU ``timeout`` signals the command and its
+process group, so twice; an impatient Ctrl-C). So:
+
+- the first signal raises ``KeyboardInterrupt``, unless the command is inside :meth:`finishing`
+  (writing a frame, closing its outputs): then it is held, and :attr:`requested` tells the command
+  to stop at the next point it looks;
+- the second is told to wait;
+- the third raises ``KeyboardInterrupt`` wherever the command is: quit at once.
+
+Every wait in a stop is bounded, so waiting never means hanging. A signal ignored when the
+command started (``nohup`` ignores SIGHUP) stays ignored.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+from collections.abc import Iterator
+
+NAMES = ("SIGINT", "SIGTERM", "SIGHUP")  # SIGHUP: not on Windows, skipped there
+
+_WAIT_MESSAGE = b"sunrig: stopping: finishing what is being written; signal once more to quit at once\n"
+
+
+class StopSignals:
+    """Ctrl-C, SIGTERM and SIGHUP as one stop request (module docstring). Install with
+    :meth:`installed` around a command; the command reads :attr:`requested` and wraps what must
+    not be cut in :meth:`finishing`."""
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        self._finishing = 0
+        self._told = False
+
+    @property
+    def requested(self) -> bool:
+        return bool(self.received)
+
+    @property
+    def by(self) -> str | None:
+        """What asked first, in a user's words: ``Ctrl-C``, ``SIGTERM``, ``SIGHUP``; None if nothing."""
+        if not self.received:
+            return None
+        first = self.received[0]
+        return "Ctrl-C" if first == signal.SIGINT else signal.Signals(first).name
+
+    def exit_code(self) -> int:
+        """128 + the first signal's number, as a shell reports death by it (130 for Ctrl-C)."""
+        return 128 + (self.received[0] if self.received else int(signal.SIGINT))
+
+    def handle(self, signum: int, frame: object) -> None:  # noqa: ARG002 - a signal handler's signature
+        self.received.append(signum)
+        n = len(self.received)
+        if n >= 3 or (n == 1 and not self._finishing):
+            raise KeyboardInterrupt
+        if not self._told:
+            self._told = True
+            # os.write, not sys.stderr: the main thread may be inside a stderr write right now,
+            # and a buffered stream refuses a reentrant call.
+            with contextlib.suppress(OSError):
+                os.write(2, _WAIT_MESSAGE)
+
+    @contextlib.contextmanager
+    def finishing(self) -> Iterator[None]:
+        """A block a first or second signal must not cut (it is held; see :attr:`requested`)."""
+        self._finishing += 1
+        try:
+            yield
+        finally:
+            self._finishing -= 1
+
+    @contextlib.contextmanager
+    def installed(self, names: tuple[str, ...] = NAMES) -> Iterator[StopSignals]:
+        """:meth:`handle` for ``names`` while the block runs, then the previous handlers back. Off
+        the main thread (a library caller: Python sets handlers there only) nothing changes."""
+        previous: dict[int, object] = {}
+        try:
+            if threading.current_thread() is threading.main_thread():
+                for name in names:
+                    sig = getattr(signal, name, None)
+                    if sig is None or signal.getsignal(sig) is signal.SIG_IGN:
+                        continue
+                    # Recorded before the handler goes in: a signal landing in between still
+                    # finds the previous handler put back by the finally below.
+                    previous[sig] = signal.getsignal(sig)
+                    signal.signal(sig, self.handle)
+            yield self
+        finally:
+            for sig, before in previous.items():
+                signal.signal(sig, before)
