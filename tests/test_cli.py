@@ -180,32 +180,41 @@ def test_run_file_camera_to_loop_serial_jsonl_and_record(tmp_path, tiny_model_di
     assert dropped + no_heading + bad_exposure + late + estimates + skipped + failed == frames, res.stderr
 
 
+def signalled_after_three_estimates(args, jsonl, signum) -> tuple[int, str]:
+    """Run `sunrig ARGS` (paced: the 4-s demo drive), send ``signum`` once its JSONL has three
+    lines (about 3 s of the drive left), and return its exit code and stderr."""
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60.0  # a guard, not a timing
+        while time.monotonic() < deadline and proc.poll() is None:
+            if jsonl.exists() and len(jsonl.read_text().splitlines()) >= 3:
+                break
+            time.sleep(0.02)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    return proc.returncode, err
+
+
 @pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
 def test_a_rig_stopped_by_its_service_manager_finishes_its_outputs(tmp_path, signame):
     # `systemctl stop` and `docker stop` send SIGTERM; a dropped ssh session sends SIGHUP. Either
     # used to end the rig at once, and the recording (whose chunks are buffered) was left empty.
     # Now they stop it as Ctrl-C does: exit 0, every estimate in the JSONL also in a finished log.
     import signal
-    import time
 
     from replay.native import read_estimates
     from replay.sources import DEMO_LOG
 
     rec, out = tmp_path / "rec.mcap", tmp_path / "est.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--camera", f"file:{DEMO_LOG}",
-                             "--jsonl", str(out), "--record", str(rec)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 60.0  # a guard, not a timing
-        while time.monotonic() < deadline and proc.poll() is None:
-            if out.exists() and len(out.read_text().splitlines()) >= 3:
-                break
-            time.sleep(0.02)
-        proc.send_signal(getattr(signal, signame))  # 3 of 33 estimates in: the paced drive has ~3 s left
-        _, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-    assert proc.returncode == 0 and "Traceback" not in err, err
+    returncode, err = signalled_after_three_estimates(
+        ["run", "--camera", f"file:{DEMO_LOG}", "--jsonl", str(out), "--record", str(rec)], out,
+        getattr(signal, signame))
+    assert returncode == 0 and "Traceback" not in err, err
     rows = out.read_text().splitlines()
     assert 3 <= len(rows) < 33, err  # stopped early, by the signal
     assert rec.read_bytes().endswith(b"\x89MCAP0\r\n"), "the log was not finished"
@@ -216,23 +225,12 @@ def test_a_rig_stopped_by_its_service_manager_finishes_its_outputs(tmp_path, sig
 def test_an_interrupted_replay_says_how_far_it_got(tmp_path):
     # Every line written stays written; the summary says the replay was cut short, and where.
     import signal
-    import time
 
     out = tmp_path / "est.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "replay", "--realtime", "--jsonl", str(out)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 60.0  # a guard, not a timing
-        while time.monotonic() < deadline and proc.poll() is None:
-            if out.exists() and len(out.read_text().splitlines()) >= 3:
-                break
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
+    returncode, err = signalled_after_three_estimates(["replay", "--realtime", "--jsonl", str(out)], out,
+                                                      signal.SIGINT)
     lines = len(out.read_text().splitlines())
-    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert returncode == 130 and "Traceback" not in err, err
     assert re.search(rf"interrupted after \d+ frames, {lines} estimates", err), err
     assert lines < 33, err
 
