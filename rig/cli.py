@@ -171,11 +171,13 @@ def _recording_refusals(option: str, replace: str):
 
 
 def _close_all(pubs: list) -> None:
-    for p in pubs:
-        try:
-            p.close()
-        except Exception as exc:  # noqa: BLE001 - closing one output must not hide the others
-            logging.getLogger(__name__).warning("closing %s failed: %s", type(p).__name__, exc)
+    # A stop signal now must not leave an output half closed (a recording without its summary).
+    with STOP.finishing():
+        for p in pubs:
+            try:
+                p.close()
+            except Exception as exc:  # noqa: BLE001 - closing one output must not hide the others
+                logging.getLogger(__name__).warning("closing %s failed: %s", type(p).__name__, exc)
 
 
 def paced(frames, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep, max_jump_s: float = 10.0):
@@ -385,8 +387,7 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
     try:
         stats = pipe.run()  # ends by itself when every output's reader has gone (`| head`)
     finally:
-        with STOP.finishing():  # a stop signal now must not leave a recording half closed
-            _close_all(pubs)
+        _close_all(pubs)
     if not quiet:
         if live_line:
             sys.stderr.write("\n")
