@@ -14,6 +14,7 @@ import logging
 import math
 import os
 import sys
+import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -387,7 +388,13 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
     try:
         stats = pipe.run()  # ends by itself when every output's reader has gone (`| head`)
     finally:
-        _close_all(pubs)
+        try:
+            _close_all(pubs)
+        except KeyboardInterrupt:  # quit at once (rig/stopping.py): say what that cost
+            if recorder is not None and not recorder.finished:
+                print(f"sunrig: quit before the recording {recorder.path} was finished; its complete chunks "
+                      "still replay", file=sys.stderr)
+            raise
     if not quiet:
         if live_line:
             sys.stderr.write("\n")
@@ -444,8 +451,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     Ctrl-C (or SIGTERM, SIGHUP) ends the recording, and the log is finished (summary and index);
     one while a frame (or the summary) is being written lets that write finish first (rig.stopping).
     """
-    import threading
-
     from rig.recorder import check_recording_path, open_recording
 
     cfg = _effective_config(args)
@@ -525,12 +530,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
-def _main_thread() -> bool:
-    import threading
-
-    return threading.current_thread() is threading.main_thread()  # only the main thread may set handlers
-
-
 def _source_summary(stats: dict) -> str:
     """The counters worth a user's attention: drops, read failures, frames without heading and why."""
     parts = []
@@ -607,12 +606,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     summary = result.summary()
     summary["model"] = {"dir": str(model.model_dir), "id": model.model_id}
     text = json.dumps(summary, indent=2)
-    if args.json and args.json != "-":
-        Path(args.json).write_text(text + "\n", encoding="utf-8")
-    else:
-        print(text)
-    if args.plot:
-        plot_eval(result, Path(args.plot))
+    with STOP.finishing():  # the work is done: a stop signal now must not lose its record
+        if args.json and args.json != "-":
+            Path(args.json).write_text(text + "\n", encoding="utf-8")
+        else:
+            print(text)
+        if args.plot:
+            plot_eval(result, Path(args.plot))
     lines = [f"{name}: mean {s['mean_deg']:.2f} deg, median {s['median_deg']:.2f}, max {s['max_deg']:.1f}, "
              f"{s[TAIL_KEY]} of {s['n_windows']} windows over {TAIL_DEG:g} deg"
              for name, s in summary["aggregators"].items() if s["n_windows"]]
@@ -1025,7 +1025,10 @@ def main(argv: list[str] | None = None) -> int:
         format="sunrig: %(levelname)s: %(message)s",
     )
     global STOP
-    STOP = StopSignals()  # one per command: tests run several in one process
+    if threading.current_thread() is threading.main_thread():
+        # One per command (tests run several in one process). Only the main thread's: signals
+        # reach it alone, and a command running there must keep reading its own.
+        STOP = StopSignals()
     try:
         with STOP.installed():
             return args.func(args)

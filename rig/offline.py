@@ -59,14 +59,19 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
                 continue
             stats.clock_jumps = jumps_before + ring.restarts
             window = policy.select(ring.snapshot())
-            stats.windows += 1
             try:
-                yield estimator.estimate_many(window, aggregators)
+                results = estimator.estimate_many(window, aggregators)
             except EstimationError as exc:
+                stats.windows += 1
                 stats.windows_failed += 1
                 if len(stats.failures) < 20:
                     stats.failures.append(f"seq {feats.frame.seq}: {exc}")
                 log.warning("window ending at seq %d skipped: %s", feats.frame.seq, exc)
+                continue
+            # Counted once answered: an interrupt inside estimate_many leaves no window counted
+            # that no one received.
+            stats.windows += 1
+            yield results
         pending.clear()
 
     for frame in frames:

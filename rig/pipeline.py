@@ -201,18 +201,23 @@ class RigPipeline:
     def run(self, timeout_s: float | None = None) -> RigStats:
         """Run to the end of the source (or ``stop``, or ``timeout_s``); raise on a stage failure."""
         self.stats.started_s = self.clock()
+        # Stages are waited for through their done events, never Thread.join: a join cut short by
+        # Ctrl-C marks its thread as ended while it still runs (CPython 3.11), and the outputs
+        # would then be closed under a stage still publishing.
+        estimate_done = threading.Event()
+        stages = {"capture": self._capture_done, "encode": self._encode_done, "estimate": estimate_done}
         threads = [
             self._stage("capture", self._capture, self._capture_done),
             self._stage("encode", self._encode, self._encode_done),
-            self._stage("estimate", self._estimate, None),
+            self._stage("estimate", self._estimate, estimate_done),
         ]
         for t in threads:
             t.start()
         next_status = self.clock() + self.config.status_every_s
         deadline = None if timeout_s is None else self.clock() + timeout_s
         try:
-            while any(t.is_alive() for t in threads):
-                threads[-1].join(_POLL_S)
+            while not all(done.is_set() for done in stages.values()):
+                estimate_done.wait(_POLL_S)
                 now = self.clock()
                 if self.on_status and now >= next_status:
                     self._collect_publisher_stats()
@@ -229,11 +234,11 @@ class RigPipeline:
             self._frames.close()
             self._mailbox.close()
             end = time.monotonic() + _JOIN_S
-            for t in threads:
-                t.join(max(0.0, end - time.monotonic()))
+            for done in stages.values():
+                done.wait(max(0.0, end - time.monotonic()))
             self.stats.ended_s = self.clock()
             self._collect_publisher_stats()
-        stuck = [t.name for t in threads if t.is_alive()]
+        stuck = [f"sunrig-{name}" for name, done in stages.items() if not done.is_set()]
         if stuck:
             log.warning("abandoned stage(s) %s that did not stop within %.0f s", ", ".join(stuck), _JOIN_S)
         if self._failure is not None:

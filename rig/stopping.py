@@ -13,8 +13,9 @@ process group, so twice; an impatient Ctrl-C). So:
 - the first signal raises ``KeyboardInterrupt``, unless the command is inside :meth:`finishing`
   (writing a frame, closing its outputs): then it is held, and :attr:`requested` tells the command
   to stop at the next point it looks;
-- the second is told to wait;
-- the third raises ``KeyboardInterrupt`` wherever the command is: quit at once.
+- a signal that finds the command finishing (the first, held; or the second, while the first's
+  stop closes the outputs) is told to wait, once;
+- the next one after that raises ``KeyboardInterrupt`` wherever the command is: quit at once.
 
 Every wait in a stop is bounded, so waiting never means hanging. A signal ignored when the
 command started (``nohup`` ignores SIGHUP) stays ignored.
@@ -28,7 +29,7 @@ import signal
 import threading
 from collections.abc import Iterator
 
-NAMES = ("SIGINT", "SIGTERM", "SIGHUP")  # SIGHUP: not on Windows, skipped there
+NAMES = ("SIGINT", "SIGTERM", "SIGHUP", "SIGBREAK")  # each skipped where the OS has none (SIGBREAK: Windows)
 
 _WAIT_MESSAGE = b"sunrig: stopping: finishing what is being written; signal once more to quit at once\n"
 
@@ -41,7 +42,7 @@ class StopSignals:
     def __init__(self) -> None:
         self.received: list[int] = []
         self._finishing = 0
-        self._told = False
+        self._told_at: int | None = None  # how many signals had come when told to wait
 
     @property
     def requested(self) -> bool:
@@ -62,10 +63,10 @@ class StopSignals:
     def handle(self, signum: int, frame: object) -> None:  # noqa: ARG002 - a signal handler's signature
         self.received.append(signum)
         n = len(self.received)
-        if n >= 3 or (n == 1 and not self._finishing):
-            raise KeyboardInterrupt
-        if not self._told:
-            self._told = True
+        if (n == 1 and not self._finishing) or (self._told_at is not None and n > self._told_at):
+            raise KeyboardInterrupt  # the first, with nothing to finish; or once more after the wait message
+        if self._told_at is None:
+            self._told_at = n
             # os.write, not sys.stderr: the main thread may be inside a stderr write right now,
             # and a buffered stream refuses a reentrant call.
             with contextlib.suppress(OSError):
@@ -89,11 +90,14 @@ class StopSignals:
             if threading.current_thread() is threading.main_thread():
                 for name in names:
                     sig = getattr(signal, name, None)
-                    if sig is None or signal.getsignal(sig) is signal.SIG_IGN:
+                    before = signal.getsignal(sig) if sig is not None else None
+                    # Ignored (nohup) stays ignored; None is a handler set outside Python, which
+                    # could not be put back: both are left alone.
+                    if before is None or before is signal.SIG_IGN:
                         continue
                     # Recorded before the handler goes in: a signal landing in between still
                     # finds the previous handler put back by the finally below.
-                    previous[sig] = signal.getsignal(sig)
+                    previous[sig] = before
                     signal.signal(sig, self.handle)
             yield self
         finally:

@@ -327,3 +327,31 @@ def test_rig_config_refuses_sizes_and_times_that_cannot_work(kwargs):
     # every 0 s is a busy loop. Each comes from a config file, so it is named there, not at run time.
     with pytest.raises(ValidationError, match=f"\\[rig\\] {next(iter(kwargs))}"):
         RigConfig(**kwargs)
+
+
+def test_a_ctrl_c_stops_every_stage_before_run_returns(model):
+    # run() waits for its stages after a stop, so the outputs are closed after the last publish,
+    # never under it. (It once waited with Thread.join, which a Ctrl-C landing in it left
+    # believing the estimate stage had ended while it was still inside a publish: CPython 3.11.)
+    import os
+    import signal
+
+    publishing = threading.Event()
+
+    class SignalsThenSlow(Collect):
+        def publish(self, est):
+            publishing.set()
+            try:
+                super().publish(est)
+                if len(self.estimates) == 3:
+                    os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C, while run() waits for the stages
+                time.sleep(0.3)  # a slow output: the stage is inside it when the stop comes
+            finally:
+                publishing.clear()
+
+    out = SignalsThenSlow()
+    pipe = RigPipeline(frames(200), SunEstimator(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(realtime=True))  # paced at 10 Hz: a 20-s drive, stopped early
+    stats = pipe.run(timeout_s=60.0)
+    assert not publishing.is_set(), "run() returned while a stage was still publishing"
+    assert 3 <= len(out.estimates) < 200 and stats.frames_captured < 200

@@ -253,3 +253,24 @@ def test_a_run_whose_recording_is_stuck_at_the_end_says_it_is_unfinished(tmp_pat
         release.set()
     assert code == 2 and "recorded to" not in err, err
     assert f"the recording {out} is unfinished (a write to its disk did not return in 0.05 s" in err
+
+
+def test_a_stop_signal_while_the_rig_closes_its_recording_lets_it_finish(tmp_path, monkeypatch):
+    # A file camera has just ended and the outputs are closing when systemd's SIGTERM arrives:
+    # the log is finished all the same, and the run ends as it would have.
+    import signal
+
+    from replay.sources import DEMO_LOG
+    from rig.cli import main
+
+    real_close = LogWriter.close
+
+    def signalled_close(self):
+        signal.raise_signal(signal.SIGTERM)  # lands inside the close
+        real_close(self)
+
+    monkeypatch.setattr(LogWriter, "close", signalled_close)
+    out = tmp_path / "rec.mcap"
+    assert main(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--record", str(out), "--fast",
+                 "--quiet"]) == 0
+    assert out.read_bytes().endswith(MCAP_MAGIC) and len(list(read_estimates(out))) >= 1

@@ -435,9 +435,9 @@ def test_ctrl_c_while_writing_a_frame_lets_it_finish(tmp_path, monkeypatch, sign
     assert [f.seq for f in read_frames(out)] == [0, 1, 2]
 
 
-def test_a_third_signal_quits_a_record_whose_write_hangs(tmp_path, monkeypatch):
-    # A first signal mid-write is held so the frame is written whole, a second is told to wait;
-    # a disk that never returns must still not make the recording unstoppable short of SIGKILL.
+def test_a_signal_after_the_wait_message_quits_a_record_whose_write_hangs(tmp_path, monkeypatch):
+    # A first signal mid-write is held so the frame is written whole, and says to signal once
+    # more; a disk that never returns must not make the recording unstoppable short of SIGKILL.
     import signal
 
     from replay.native import LogWriter, read_frames
@@ -447,8 +447,8 @@ def test_a_third_signal_quits_a_record_whose_write_hangs(tmp_path, monkeypatch):
 
     def hanging_write(self, frame, **kw):
         if frame.seq == 2:
-            for _ in range(3):
-                signal.raise_signal(signal.SIGTERM)  # the third raises here, inside the write
+            for _ in range(2):
+                signal.raise_signal(signal.SIGTERM)  # the second raises here, inside the write
             time.sleep(5.0)  # a disk that does not answer: never reached
             slept.append(True)
         real_write(self, frame, **kw)
