@@ -269,7 +269,8 @@ def main() -> None:
         "rss_mb": span("rss_mb"),
         "rss_trend_mb_per_hour": None if trend is None else round(trend, 2),
         # One sample a minute: a trend that flattens is warm-up (allocator, arenas), one that holds is a leak.
-        "rss_mb_by_minute": [round(s["rss_mb"], 1) for s in samples if s["t_s"] % 60.0 < SAMPLE_EVERY_S],
+        "rss_mb_by_minute": [round(s["rss_mb"], 1) for s in samples
+                             if s["t_s"] >= SAMPLE_EVERY_S and s["t_s"] % 60.0 < SAMPLE_EVERY_S],
         "fds": span("fds"),
         "threads": span("threads"),
         "faults": {"camera_connections": camera_cuts.connections, "camera_cuts": camera_cuts.cuts,
