@@ -74,7 +74,8 @@ class StopSignals:
 
     @contextlib.contextmanager
     def finishing(self) -> Iterator[None]:
-        """A block a first or second signal must not cut (it is held; see :attr:`requested`)."""
+        """A block a stop signal must not cut: one arriving inside is held (see :attr:`requested`) and
+        says so, and only the next one quits."""
         self._finishing += 1
         try:
             yield
