@@ -123,3 +123,17 @@ def test_unset_values_and_every_default_are_in_range(tmp_path):
     cfg = load_config(path)
     assert math.isnan(cfg["source"]["declination_deg"]) and cfg["source"]["width"] == 0
     merge(load_config(), DEFAULTS, where="defaults")  # every default through the same checks
+
+
+def test_the_configuration_in_docs_deploy_is_valid(tmp_path):
+    # The file a user copies to /etc must load as it is written there.
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "deploy.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```toml\n(.*?)```", text, flags=re.S)
+    assert len(blocks) == 1
+    path = tmp_path / "rig.toml"
+    path.write_text(blocks[0])
+    cfg = load_config(path)
+    assert cfg["source"]["camera"] == "opencv:0" and cfg["output"]["record"].endswith("{start}.mcap")
