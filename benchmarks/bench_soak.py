@@ -48,13 +48,12 @@ SAMPLE_EVERY_S = 5.0
 
 
 def nmea(body: str) -> bytes:
-    checksum = 0
-    for ch in body.encode("ascii"):
-        checksum ^= ch
-    return f"${body}*{checksum:02X}\r\n".encode("ascii")
+    from rig.protocol import nmea_checksum
+
+    return f"${body}*{nmea_checksum(body.encode('ascii')):02X}\r\n".encode("ascii")
 
 
-class Drive:
+class DemoStream:
     """The bundled drive as JPEG bytes and headings, and which frame is being served now."""
 
     def __init__(self) -> None:
@@ -81,7 +80,7 @@ class Cuts:
         self.connections = self.cuts = 0
 
 
-def camera_server(drive: Drive, cuts: Cuts) -> ThreadingHTTPServer:
+def camera_server(drive: DemoStream, cuts: Cuts) -> ThreadingHTTPServer:
     class Stream(BaseHTTPRequestHandler):
         def log_message(self, *args) -> None:  # quiet: the benchmark prints JSON only
             pass
@@ -110,7 +109,7 @@ def camera_server(drive: Drive, cuts: Cuts) -> ThreadingHTTPServer:
     return server
 
 
-def gnss_server(drive: Drive, cuts: Cuts) -> socket.socket:
+def gnss_server(drive: DemoStream, cuts: Cuts) -> socket.socket:
     listener = socket.create_server(("127.0.0.1", 0))
 
     def serve() -> None:
@@ -167,12 +166,11 @@ def sample(pid: int) -> dict | None:
 
 def slope_per_hour(ts: list[float], ys: list[float]) -> float | None:
     """Least-squares slope of ys over ts (seconds), per hour."""
-    n = len(ts)
-    if n < 3:
+    import numpy as np
+
+    if len(ts) < 3 or len(set(ts)) < 2:
         return None
-    mt, my = sum(ts) / n, sum(ys) / n
-    var = sum((t - mt) ** 2 for t in ts)
-    return None if var == 0 else 3600.0 * sum((t - mt) * (y - my) for t, y in zip(ts, ys, strict=True)) / var
+    return 3600.0 * float(np.polyfit(ts, ys, 1)[0])
 
 
 def main() -> None:
@@ -190,7 +188,7 @@ def main() -> None:
         sys.exit("bench_soak: needs Linux (/proc and pseudo-terminals)")
 
     stop = threading.Event()
-    drive = Drive()
+    drive = DemoStream()
     camera_cuts, gnss_cuts = Cuts(args.camera_drop_s, stop), Cuts(args.gnss_drop_s, stop)
     http = camera_server(drive, camera_cuts)
     listener = gnss_server(drive, gnss_cuts)

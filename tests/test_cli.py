@@ -346,12 +346,13 @@ def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
     import shutil
 
     from replay.sources import DEMO_LOG
+    from tests.test_gnss_nmea import nmea
 
     log = tmp_path / "drive.mcap"
     shutil.copy(DEMO_LOG, log)
     before = log.read_bytes()
     capture = tmp_path / "gnss.log"
-    capture.write_bytes(b"$GPHDT,33.0,T*0D\r\n")
+    capture.write_bytes(nmea("GPHDT,33.0,T"))
     nmea_before = capture.read_bytes()
     for args in (["replay", str(log), "--jsonl", str(log)],
                  ["record", "--camera", f"file:{log}", "--heading", "log", "--out", str(log), "--overwrite"],

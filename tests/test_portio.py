@@ -148,9 +148,10 @@ def test_reconnects_give_back_their_descriptors(worker):
     # and a close, the count is back where it was (a little slack for the interpreter's own).
     from drivers.gnss import GnssReader
     from rig.publishers import SerialPublisher
+    from tests.test_gnss_nmea import nmea
     from tests.test_protocol import make_estimate
 
-    peer = DroppingPeer(greeting=b"$GPHDT,33.0,T*0D\r\n" * 3)
+    peer = DroppingPeer(greeting=nmea("GPHDT,33.0,T") * 3)
     before = open_fds()
     if worker == "gnss reader":
         device = GnssReader(peer.url, timeout_s=0.02, backoff_s=(0.005, 0.01))
