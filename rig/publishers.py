@@ -402,8 +402,7 @@ class JsonlPublisher:
             raise  # the reader went away (`| head`): the output has ended (see RigPipeline._publish)
         except OSError as exc:
             self._failed = True
-            raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
-                               "free space or pass another --jsonl") from None
+            raise self._write_error(exc) from None
         self._counts["written"] += 1
 
     def _row(self, est: SunEstimate) -> dict[str, Any]:
@@ -432,8 +431,11 @@ class JsonlPublisher:
             # What a failed write left in the buffer fails again here: the same lost lines. Said
             # only if no write has said it (a file that filled up between the last write and close).
             if not self._failed:
-                raise PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
-                                   "free space or pass another --jsonl") from None
+                raise self._write_error(exc) from None
+
+    def _write_error(self, exc: OSError) -> PublishError:
+        return PublishError(f"cannot write JSONL to {self._name}: {exc.strerror or exc}; "
+                            "free space or pass another --jsonl")
 
     def __enter__(self) -> JsonlPublisher:
         return self
