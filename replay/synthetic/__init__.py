@@ -60,20 +60,21 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
     return path, frames
 
 
-def _check_kept(paths: list[Path], frames: int) -> None:
-    """A drive kept from an earlier run must be the drive asked for: the name fixes the seed, and
-    the frame count is checked (a set asked for with 20 frames must not be 10-frame drives)."""
+def _kept(paths: list[Path], frames: int) -> set[Path]:
+    """The drives kept from an earlier run. Each must be the drive asked for: the name fixes the
+    seed, and the frame count is checked (a set asked for with 20 frames must not be 10-frame drives)."""
     from replay.native import frame_count
 
-    for path in paths:
-        if path.exists():
-            found = frame_count(path)
-            if found != frames:
-                held = f"{found} frames" if found is not None else "an unfinished log"
-                raise ValidationError(
-                    f"{path} is kept from an earlier run but holds {held}, not {frames}: pass another "
-                    "folder, or delete the folder's drives to make them again"
-                )
+    kept = {path for path in paths if path.exists()}
+    for path in sorted(kept):
+        found = frame_count(path)
+        if found != frames:
+            held = f"{found} frames" if found is not None else "an unfinished log"
+            raise ValidationError(
+                f"{path} is kept from an earlier run but holds {held}, not {frames}: pass another "
+                "folder, or delete the folder's drives to make them again"
+            )
+    return kept
 
 
 def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames: int, seed: int,
@@ -94,9 +95,9 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
-    _check_kept(paths, frames)
+    kept = _kept(paths, frames)
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
-            for i, p in enumerate(paths) if not p.exists()]
+            for i, p in enumerate(paths) if p not in kept]
     bar = Progress("synth", total=drives * frames, unit="frames", enabled=None if progress else False)
     bar.skip((drives - len(todo)) * frames)  # kept from an earlier run: not part of the rate
     try:
