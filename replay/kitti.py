@@ -97,10 +97,14 @@ def parse_timestamps_ns(text: str, name: str = "timestamps.txt") -> np.ndarray:
         raise LogError(f"{name}: not a valid date/time: {exc}") from None
 
 
+UTC_OFFSET_LIMIT_H = 14  # the widest of the world's time zones (Kiribati, +14)
+
+
 def utc_offset_ns(utc_offset_h: float) -> int:
     """An offset in hours as integer ns (fractional hours allowed: India is +5.5)."""
-    if not (isinstance(utc_offset_h, int | float) and math.isfinite(utc_offset_h) and -14 <= utc_offset_h <= 14):
-        raise LogError(f"UTC offset: expected hours within [-14, 14], got {utc_offset_h!r}")
+    lim = UTC_OFFSET_LIMIT_H
+    if not (isinstance(utc_offset_h, int | float) and math.isfinite(utc_offset_h) and -lim <= utc_offset_h <= lim):
+        raise LogError(f"UTC offset: expected hours within [-{lim}, {lim}], got {utc_offset_h!r}")
     return round(utc_offset_h * 3600) * 1_000_000_000
 
 

@@ -82,26 +82,47 @@ def _int_in(lo: int, hi: int | None = None):
 def _float_in(lo: float, hi: float = math.inf, *, lo_included: bool = False):
     """An argparse type: a finite number in (``lo``, ``hi``] (``[lo, hi]`` with ``lo_included``).
     nan and inf are typos here, never meant (a nan budget never ends)."""
-    if hi == math.inf:
-        what = f"a finite number {'>=' if lo_included else '>'} {lo:g}"
-    else:
-        what = f"a number in {'[' if lo_included else '('}{lo:g}, {hi:g}]"
+    from rig.config import describe_range, in_range
+
+    what = f"a finite number {describe_range(lo, hi, lo_included)}"
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and (lo <= value if lo_included else lo < value) and value <= hi):
+        if not in_range(value, lo, hi, lo_included):
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
         return value
+    return parse
+
+
+def _config_type(section: str, key: str):
+    """An argparse type for a flag that sets a config option: the option's own type and range
+    (rig/config.py), so a flag and a file accept the same values, 0 for "unset" included."""
+    from rig.config import DEFAULTS, ConfigError, check_option
+
+    convert = type(DEFAULTS[section][key])
+
+    def parse(text: str):
+        try:
+            return check_option(section, key, convert(text))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {convert.__name__}, got {text!r}") from None
+        except ConfigError as exc:
+            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
     return parse
 
 
 _positive_int = _int_in(1)
 _nonneg_int = _int_in(0)
 _positive_float = _float_in(0.0)
-_UTC_OFFSET = _float_in(-24.0, 24.0, lo_included=True)
+
+
+def _utc_offset_type(text: str) -> float:
+    from replay.kitti import UTC_OFFSET_LIMIT_H
+
+    return _float_in(-UTC_OFFSET_LIMIT_H, UTC_OFFSET_LIMIT_H, lo_included=True)(text)
 
 
 def _load_model(model_dir: str | None):
@@ -823,21 +844,25 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("source options")
     g.add_argument("--calibration", metavar="FILE",
                    help="OpenCV calibration (YAML/JSON/XML: camera_matrix, image_width, image_height)")
-    # 0 is "unset" here as in the config file ([source]), so a flag can unset what a file set.
-    g.add_argument("--hfov-deg", type=_float_in(0.0, 179.0, lo_included=True), metavar="DEG",
+    # Each flag takes its [source] option's type and range: 0 is "unset" as in the file, so a
+    # flag can unset what a file set.
+    g.add_argument("--hfov-deg", type=_config_type("source", "hfov_deg"), metavar="DEG",
                    help="or the camera's horizontal field of view (0: unset)")
-    g.add_argument("--width", type=_nonneg_int, help="requested frame width (opencv device, oak; 0: its own)")
-    g.add_argument("--height", type=_nonneg_int, help="requested frame height (opencv device, oak; 0: its own)")
-    g.add_argument("--fps", type=_positive_float, help="requested frame rate (opencv device, oak)")
-    g.add_argument("--source-baud", type=_positive_int, metavar="BAUD",
+    g.add_argument("--width", type=_config_type("source", "width"),
+                   help="requested frame width (opencv device, oak; 0: its own)")
+    g.add_argument("--height", type=_config_type("source", "height"),
+                   help="requested frame height (opencv device, oak; 0: its own)")
+    g.add_argument("--fps", type=_config_type("source", "fps"),
+                   help="requested frame rate (opencv device, oak; 0: its own)")
+    g.add_argument("--source-baud", type=_config_type("source", "baud"), metavar="BAUD",
                    help="baud rate of an nmea: port (default 115200)")
-    g.add_argument("--max-gap-s", type=_positive_float, metavar="S",
+    g.add_argument("--max-gap-s", type=_config_type("source", "max_gap_s"), metavar="S",
                    help="nmea: no heading interpolated across a longer gap between samples (default 1.5)")
-    g.add_argument("--max-age-s", type=_positive_float, metavar="S",
+    g.add_argument("--max-age-s", type=_config_type("source", "max_age_s"), metavar="S",
                    help="nmea: a frame waits at most this long for the heading after it (default 1.5)")
-    g.add_argument("--heading-latency-s", type=_float_in(0.0, lo_included=True), metavar="S",
+    g.add_argument("--heading-latency-s", type=_config_type("source", "heading_latency_s"), metavar="S",
                    help="nmea: the heading device's output latency, subtracted from its times (default 0)")
-    g.add_argument("--declination-deg", type=_float_in(-180.0, 180.0, lo_included=True), metavar="DEG",
+    g.add_argument("--declination-deg", type=_config_type("source", "declination_deg"), metavar="DEG",
                    help="oak-imu: magnetic declination, east positive (makes the heading true north)")
 
 
@@ -874,7 +899,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="choose each window's frames from the last S seconds (default 4)")
     _output_flags(p)
     p.add_argument("--realtime", action="store_true", help="pace by the log's timestamps instead of full speed")
-    p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
+    p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
@@ -939,7 +964,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=_positive_float, default=4.0, metavar="S",
                    help="choose each window's frames from the last S seconds (default 4)")
-    p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
+    p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
@@ -967,7 +992,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_nonneg_int, default=0, help="initialisation and sampling seed (default 0)")
     p.add_argument("--threads", type=_positive_int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
-    p.add_argument("--utc-offset", type=_UTC_OFFSET, metavar="HOURS",
+    p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
     p.add_argument("--init", metavar="MODEL_DIR",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
@@ -71,38 +72,46 @@ CHOICES = {
 
 # The range of each number: (lowest, highest, lowest allowed itself?). Checked where the option is
 # read (a file or the command line), so `sunrig config --print` and every command refuse the same
-# values, before any device opens. 0 (and nan for declination_deg) is "unset" where its comment
-# says so (TOML has no null).
+# values, before any device opens. 0 is "unset" where its comment says so, and so is nan where it
+# is the default (TOML has no null).
 _INF = float("inf")
+POSITIVE = (0.0, _INF, False)
+NON_NEGATIVE = (0.0, _INF, True)
 RANGES: dict[tuple[str, str], tuple[float, float, bool]] = {
     ("source", "hfov_deg"): (0.0, 179.0, True),
-    ("source", "width"): (0, _INF, True),
-    ("source", "height"): (0, _INF, True),
-    ("source", "fps"): (0.0, _INF, True),
-    ("source", "baud"): (0, _INF, False),
-    ("source", "max_gap_s"): (0.0, _INF, False),
-    ("source", "max_age_s"): (0.0, _INF, False),
-    ("source", "heading_latency_s"): (0.0, _INF, True),
+    ("source", "width"): NON_NEGATIVE,
+    ("source", "height"): NON_NEGATIVE,
+    ("source", "fps"): NON_NEGATIVE,
+    ("source", "baud"): POSITIVE,
+    ("source", "max_gap_s"): POSITIVE,
+    ("source", "max_age_s"): POSITIVE,
+    ("source", "heading_latency_s"): NON_NEGATIVE,
     ("source", "declination_deg"): (-180.0, 180.0, True),
-    ("estimator", "seed"): (0, _INF, True),
-    ("window", "span_s"): (0.0, _INF, False),
+    ("estimator", "seed"): NON_NEGATIVE,
+    ("window", "span_s"): POSITIVE,
     ("window", "yaw_scale_deg"): (0.0, 180.0, False),
-    ("rig", "queue_size"): (0, _INF, False),
-    ("rig", "ring_capacity"): (0, _INF, False),
-    ("rig", "ring_max_age_s"): (0.0, _INF, False),
-    ("rig", "status_every_s"): (0.0, _INF, False),
-    ("output", "baud"): (0, _INF, False),
+    ("rig", "queue_size"): POSITIVE,
+    ("rig", "ring_capacity"): POSITIVE,
+    ("rig", "ring_max_age_s"): POSITIVE,
+    ("rig", "status_every_s"): POSITIVE,
+    ("output", "baud"): POSITIVE,
 }
 
 
-def _in_range(section: str, key: str, value: float) -> bool:
-    lo, hi, lo_ok = RANGES[(section, key)]
-    if value != value:  # nan: only where it means "unset"
-        return (section, key) == ("source", "declination_deg")
-    return (lo <= value if lo_ok else lo < value) and value <= hi and value != _INF
+def describe_range(lo: float, hi: float, lo_included: bool) -> str:
+    """``>= 0``, ``> 0`` or ``in [0, 179]``: how an error says what was expected."""
+    if hi == _INF:
+        return f"{'>=' if lo_included else '>'} {lo:g}"
+    return f"in {'[' if lo_included else '('}{lo:g}, {hi:g}]"
 
 
-def _check(section: str, key: str, value: Any) -> Any:
+def in_range(value: float, lo: float, hi: float, lo_included: bool) -> bool:
+    """A finite ``value`` within the range (inf is never meant: a budget that never ends)."""
+    return math.isfinite(value) and (lo <= value if lo_included else lo < value) and value <= hi
+
+
+def check_option(section: str, key: str, value: Any) -> Any:
+    """``value`` for ``[section] key``, checked against its type, choices and range (ConfigError)."""
     default = DEFAULTS[section][key]
     expected = type(default)
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
@@ -114,11 +123,11 @@ def _check(section: str, key: str, value: Any) -> Any:
     choices = CHOICES.get((section, key))
     if choices and value not in choices:
         raise ConfigError(f"[{section}] {key}: expected one of {', '.join(choices)}, got {value!r}")
-    if (section, key) in RANGES and not _in_range(section, key, value):
-        lo, hi, lo_ok = RANGES[(section, key)]
-        what = f"{'>=' if lo_ok else '>'} {lo:g}" if hi == _INF else f"in {'[' if lo_ok else '('}{lo:g}, {hi:g}]"
+    bounds = RANGES.get((section, key))
+    unset = expected is float and math.isnan(default) and math.isnan(value)
+    if bounds is not None and not unset and not in_range(value, *bounds):
         kind = "an integer" if expected is int else "a finite number"
-        raise ConfigError(f"[{section}] {key}: expected {kind} {what}, got {value!r}")
+        raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {value!r}")
     return value
 
 
@@ -155,7 +164,7 @@ def merge(cfg: dict[str, dict[str, Any]], raw: Mapping[str, Any], where: str = "
                     f"{where}: unknown option [{section}] {key}; known: {', '.join(DEFAULTS[section])}"
                 )
             try:
-                cfg[section][key] = _check(section, key, value)
+                cfg[section][key] = check_option(section, key, value)
             except ConfigError as exc:
                 raise ConfigError(f"{where}: {exc}") from None  # which file (or the command line)
     return cfg
