@@ -292,19 +292,23 @@ def test_a_second_signal_lets_the_outputs_close_and_a_third_quits(monkeypatch, c
     assert "signal once more to quit at once" in capfd.readouterr().err  # written to fd 2 (rig/stopping.py)
 
 
-def test_an_output_the_machine_refuses_is_a_user_error_not_a_bug(monkeypatch):
+@pytest.mark.skipif(not (os.path.exists("/dev/full") and os.access("/dev", os.W_OK)),
+                    reason="needs /dev/full in a writable /dev (else --json is refused before the run)")
+def test_a_full_disk_found_after_a_whole_evaluation_is_one_line():
+    from replay.sources import DEMO_LOG
+
+    res = run_cli("eval", str(DEMO_LOG), "--quiet", "--json", "/dev/full")
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert res.stderr.strip().splitlines() == [
+        "sunrig: error: No space left on device; free space on that disk, or write elsewhere"]
+
+
+def test_an_output_the_machine_refuses_is_a_user_error_not_a_bug(monkeypatch, capsys):
     # A full disk or a path that turns out unwritable only when written (after a whole evaluation)
     # is the user's to fix: one line, exit 2, never "internal error" (which asks for a bug report).
     import errno
 
     import rig.cli
-    from replay.sources import DEMO_LOG
-
-    if os.path.exists("/dev/full") and os.access("/dev", os.W_OK):  # (else refused before: /dev not writable)
-        res = run_cli("eval", str(DEMO_LOG), "--quiet", "--json", "/dev/full")
-        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
-        assert res.stderr.strip().splitlines() == [
-            "sunrig: error: No space left on device; free space on that disk, or write elsewhere"]
 
     def fails_with(exc):
         def cmd(args):
@@ -314,6 +318,13 @@ def test_an_output_the_machine_refuses_is_a_user_error_not_a_bug(monkeypatch):
     denied = PermissionError(errno.EPERM, "Operation not permitted", "/sys/m")
     monkeypatch.setattr(rig.cli, "cmd_sun", fails_with(denied))
     assert rig.cli.main(["sun"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "sunrig: error: /sys/m: Operation not permitted; check the path is right and writable"]
+    full = OSError(errno.ENOSPC, "No space left on device")  # a write's: no file name
+    monkeypatch.setattr(rig.cli, "cmd_sun", fails_with(full))
+    assert rig.cli.main(["sun"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "sunrig: error: No space left on device; free space on that disk, or write elsewhere"]
     monkeypatch.setattr(rig.cli, "cmd_sun", fails_with(OSError("a bug of ours, with no errno")))
     assert rig.cli.main(["sun"]) == 1
     # A file of sunrig's own that is missing is a broken install or a bug, whatever its errno.

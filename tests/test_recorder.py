@@ -4,7 +4,6 @@ import logging
 import os
 import shutil
 import threading
-import time
 from datetime import UTC, datetime
 
 import pytest
@@ -13,6 +12,7 @@ from replay.native import LogWriter, read_estimates, read_frames
 from rig.recorder import RecorderPublisher, RecordingRefused, check_recording_path, open_recording
 from tests.test_native_log import make_frames
 from tests.test_protocol import make_estimate
+from tests.test_publishers import wait_until
 
 START = datetime(2026, 11, 23, 3, 15, 0, 400_000, tzinfo=UTC)
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -172,27 +172,27 @@ def test_a_recorder_write_that_fails_is_counted_not_raised(tmp_path):
     assert [d["seq"] for d in read_estimates(tmp_path / "full.mcap")] == [0, 2]
 
 
-def stall_estimate_writes(rec: RecorderPublisher) -> tuple[threading.Event, threading.Event]:
-    """FAKE stalled disk: each estimate write waits (up to 10 s, a guard, not a timing) until the
-    returned ``release`` is set; ``entered`` is set once the writer is inside one."""
-    real = rec._writer.write_estimate
+def stall_estimate_writes(monkeypatch) -> tuple[threading.Event, threading.Event]:
+    """FAKE stalled disk: every LogWriter's estimate writes wait (up to 10 s, a guard, not a
+    timing) until the returned ``release`` is set; ``entered`` is set once a writer is inside one."""
+    real = LogWriter.write_estimate
     entered, release = threading.Event(), threading.Event()
 
-    def stuck(est):
+    def stuck(self, est):
         entered.set()
         release.wait(10.0)
-        real(est)
+        real(self, est)
 
-    rec._writer.write_estimate = stuck
+    monkeypatch.setattr(LogWriter, "write_estimate", stuck)
     return entered, release
 
 
-def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_path):
+def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_path, monkeypatch):
     # The recorder never stalls capture or the estimator: while the disk is stuck its queue (2 here)
     # keeps the newest estimates and counts the ones it let go. Seq 0 is in the stuck write; of
     # 1..5 the queue ends holding 4 and 5, so 3 are dropped.
     rec = RecorderPublisher(LogWriter(tmp_path / "slow.mcap"), queue_size=2)
-    entered, release = stall_estimate_writes(rec)
+    entered, release = stall_estimate_writes(monkeypatch)
     rec.publish(make_estimate(10.0, 20.0, seq=0))
     assert entered.wait(10.0)
     for seq in range(1, 6):
@@ -203,12 +203,12 @@ def test_a_recorder_behind_a_stalled_disk_drops_the_oldest_and_counts_them(tmp_p
     assert [d["seq"] for d in read_estimates(tmp_path / "slow.mcap")] == [0, 4, 5]
 
 
-def test_a_recorder_stuck_past_close_finishes_its_file_when_the_disk_answers(tmp_path, caplog):
+def test_a_recorder_stuck_past_close_finishes_its_file_when_the_disk_answers(tmp_path, caplog, monkeypatch):
     # The rig's shutdown must not wait on a dead disk, nor close the log under a write in progress
     # (two threads in one MCAP writer): the writer thread finishes the file when the write returns,
     # so the recording keeps every queued estimate and its summary.
     rec = RecorderPublisher(LogWriter(tmp_path / "late.mcap"), join_timeout_s=0.05)
-    entered, release = stall_estimate_writes(rec)
+    entered, release = stall_estimate_writes(monkeypatch)
     for seq in range(3):
         rec.publish(make_estimate(10.0, 20.0, seq=seq))
     assert entered.wait(10.0)
@@ -217,10 +217,7 @@ def test_a_recorder_stuck_past_close_finishes_its_file_when_the_disk_answers(tmp
     assert not rec._writer.closed and any("stuck in a write" in r.getMessage() for r in caplog.records)
     assert rec.stuck and not rec.finished
     release.set()
-    for _ in range(1000):  # a guard of 10 s, not a timing
-        if rec._writer.closed:
-            break
-        time.sleep(0.01)
+    wait_until(lambda: rec._writer.closed, "the writer thread to finish the log")
     assert rec._writer.closed and rec.stats()["written"] == 3 and rec.finished and not rec.stuck
     assert [d["seq"] for d in read_estimates(tmp_path / "late.mcap")] == [0, 1, 2]
     assert (tmp_path / "late.mcap").read_bytes().endswith(MCAP_MAGIC)  # finished: a footer and its magic
@@ -232,18 +229,12 @@ def test_a_run_whose_recording_is_stuck_at_the_end_says_it_is_unfinished(tmp_pat
     from replay.sources import DEMO_LOG
     from rig.cli import main
 
-    release = threading.Event()
-    real = LogWriter.write_estimate
-
-    def stalled(self, est):
-        release.wait(10.0)  # FAKE dead disk; a guard, not a timing: released at the end
-        real(self, est)
+    _, release = stall_estimate_writes(monkeypatch)
 
     class QuickToGiveUp(rig.recorder.RecorderPublisher):
         def __init__(self, writer, **kw):
             super().__init__(writer, join_timeout_s=0.05, **kw)
 
-    monkeypatch.setattr(LogWriter, "write_estimate", stalled)
     monkeypatch.setattr(rig.recorder, "RecorderPublisher", QuickToGiveUp)
     out = tmp_path / "rec.mcap"
     try:
