@@ -11,6 +11,16 @@ import pytest
 
 from estimator.evaluate import EvalResult, error_summary
 from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_SPREAD_HIGH, FLAG_VALID
+from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+
+
+def noise_drive(n: int, ref: HeadingRef = HeadingRef.TRUE) -> list:
+    """``n`` frames of noise turning 7 deg a frame, with a true sun: enough for the tiny model."""
+    k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(2)
+    return [Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8), intrinsics=k,
+                  attitude=Attitude(math.radians(7.0 * i), ref), sun_enu_truth=[0.0, 0.8, 0.6])
+            for i in range(n)]
 
 
 def test_error_summary_numbers():
@@ -154,19 +164,10 @@ def test_windows_without_a_true_heading_are_counted_not_graded(tiny_model_dir):
     from estimator.estimator import SunEstimator
     from estimator.evaluate import evaluate
     from estimator.runtime import OnnxModel
-    from rig.types import Attitude, Frame, HeadingRef, Intrinsics
     from rig.window import SpreadWindowPolicy
 
-    k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
-    rng = np.random.default_rng(2)
-
-    def drive(ref):
-        for i in range(10):
-            yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8),
-                        intrinsics=k, attitude=Attitude(math.radians(7.0 * i), ref), sun_enu_truth=[0.0, 0.8, 0.6])
-
     estimator = SunEstimator(OnnxModel.load(tiny_model_dir))
-    result = evaluate([("rel", drive(HeadingRef.RELATIVE)), ("true", drive(HeadingRef.TRUE))], estimator,
+    result = evaluate([("rel", noise_drive(10, HeadingRef.RELATIVE)), ("true", noise_drive(10))], estimator,
                       SpreadWindowPolicy(8, 4.0), aggregators=["transformer"])
     # Full windows from the 8th frame on: 3 per drive. Only the TRUE drive's are graded.
     assert result.windows_without_truth == 3 and result.window_logs == ["true"] * 3
@@ -221,14 +222,9 @@ def test_a_given_status_rule_decides_the_flags(tiny_model_dir):
     from estimator.evaluate import evaluate
     from estimator.runtime import OnnxModel
     from rig.protocol import FLAG_PARTIAL_WINDOW, StatusRule
-    from rig.types import Attitude, Frame, HeadingRef, Intrinsics
     from rig.window import SpreadWindowPolicy
 
-    k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
-    rng = np.random.default_rng(2)
-    frames = [Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8), intrinsics=k,
-                    attitude=Attitude(math.radians(7.0 * i), HeadingRef.TRUE), sun_enu_truth=[0.0, 0.8, 0.6])
-              for i in range(8)]
+    frames = noise_drive(8)
     # A second log without the true sun: its full window is counted, not scored.
     untrue = [dataclasses.replace(f, sun_enu_truth=None) for f in frames]
     result = evaluate([("d0", frames), ("d1", untrue)], SunEstimator(OnnxModel.load(tiny_model_dir)),

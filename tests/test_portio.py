@@ -107,7 +107,7 @@ def open_fds() -> int:
 
 
 class DroppingPeer:
-    """A TCP peer (a GNSS bridge, a controller's serial bridge) that accepts a connection, sends
+    """FAKE TCP peer, on real sockets (a GNSS bridge, a controller's serial bridge): accepts a connection, sends
     ``greeting``, reads for a moment and drops it, over and over: a link that keeps going away."""
 
     def __init__(self, greeting: bytes = b"") -> None:

@@ -680,9 +680,9 @@ def test_a_background_publisher_closes_what_it_runs_and_sentences_are_counted():
     bg.close()
     assert inner.stats() == {"published": 2, "written": 2}
     assert len(text.getvalue().splitlines()) == 2
+    jsonl = JsonlPublisher(io.StringIO())
+    BackgroundPublisher(jsonl).close()
     with pytest.raises(PublishError, match="closed JSONL"):
-        jsonl = JsonlPublisher(io.StringIO())
-        BackgroundPublisher(jsonl).close()
         jsonl.publish(make_estimate(10.0, 20.0))
 
 

@@ -172,7 +172,12 @@ def test_a_camera_that_fails_to_open_closes_the_heading_port_opened_before_it(mo
 
 
 class _FakeOakConfig:
-    width, height = 640, 400  # drivers.oak.OakConfig's defaults, which _open_oak reads
+    """FAKE drivers.oak.OakConfig (no OAK here): keeps the fields it is given."""
+
+    from drivers.oak import OakConfig as _Real
+
+    width, height = _Real.width, _Real.height  # the real defaults, which _open_oak reads
+    del _Real
 
     def __init__(self, **fields):
         self.fields = fields
@@ -180,8 +185,8 @@ class _FakeOakConfig:
 
 @pytest.fixture
 def fake_oak(monkeypatch):
-    """Installs a drivers.oak whose OakCamera records the OakConfig fields it was given (its
-    stats()), or raises ``fake.error`` when set."""
+    """FAKE OAK driver (no OAK device can run here): installs a drivers.oak whose OakCamera
+    records the OakConfig fields it was given (its stats()), or raises ``fake.error`` when set."""
     import types
 
     module = types.ModuleType("drivers.oak")
