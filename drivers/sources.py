@@ -91,20 +91,28 @@ def parse_heading(spec: str) -> HeadingSpec:
 def check_pair(camera: CameraSpec, heading: HeadingSpec) -> None:
     """Refuse the combinations that cannot work, saying what to pass instead."""
     if heading.kind == "oak-imu" and camera.kind != "oak":
-        # What else works depends on the camera: a recording's frames cannot pair with a live port.
-        others = "log, visual or none" if camera.kind == "file" else (
-            "visual or none" if _is_video_file(camera) else "nmea:PORT, visual or none")
         raise SourceError(f"--heading oak-imu is the OAK's own IMU: use it with --camera oak, or pass "
-                          f"--heading {others} for --camera {camera}")
+                          f"--heading {_headings_for(camera)} for --camera {camera}")
     if heading.kind == "log" and camera.kind != "file":
         raise SourceError(f"--heading log is a log's recorded heading: --camera {camera} has none; pass "
-                          + ("--heading oak-imu, " if camera.kind == "oak" else "--heading ")
-                          + "nmea:PORT, visual or none")
+                          f"--heading {_headings_for(camera)}")
     if heading.kind == "nmea" and (camera.kind == "file" or _is_video_file(camera)):
         # A recording's frames carry the times of the session (or file) that made them: a
         # compass read now cannot be matched to them.
         raise SourceError(f"--camera {camera} replays a recording; a live --heading nmea: cannot be matched to "
-                          "its times; use --heading " + ("log, " if camera.kind == "file" else "") + "visual or none")
+                          f"its times; use --heading {_headings_for(camera)}")
+
+
+def _headings_for(camera: CameraSpec) -> str:
+    """The headings that work with ``camera``, as a refusal suggests them: the OAK's IMU only on an
+    OAK, a log's heading only from a log, a live port only with a live camera."""
+    names = ["oak-imu"] if camera.kind == "oak" else []
+    if camera.kind == "file":
+        names.append("log")
+    elif not _is_video_file(camera):
+        names.append("nmea:PORT")
+    names.append("visual")
+    return ", ".join(names) + " or none"
 
 
 def _is_video_file(camera: CameraSpec) -> bool:

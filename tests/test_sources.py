@@ -89,7 +89,8 @@ def test_combinations_that_cannot_work(camera, heading, match):
 
 @pytest.mark.parametrize(("camera", "heading"), [
     ("opencv:0", "oak-imu"), ("file:x.mcap", "oak-imu"), ("opencv:clip.avi", "oak-imu"),
-    ("opencv:0", "log"), ("oak", "log"), ("file:x.mcap", "nmea:/dev/ttyUSB0"), ("opencv:clip.avi", "nmea:COM3"),
+    ("opencv:0", "log"), ("oak", "log"), ("opencv:clip.avi", "log"), ("file:x.mcap", "nmea:/dev/ttyUSB0"),
+    ("opencv:clip.avi", "nmea:COM3"),
 ])
 def test_every_heading_a_refusal_suggests_works_with_that_camera(camera, heading):
     # The way out must be a way out: a refusal for a file: camera once suggested nmea:PORT, which
