@@ -523,8 +523,12 @@ class QueuedWriter(Generic[T]):
         """The reader went away (a broken pipe): nothing more can be written."""
         return self._gone.is_set()
 
-    def put(self, item: T) -> None:
+    def put(self, item: T) -> bool:
+        """Queue ``item``; False (and nothing queued) once closed: no writer would take it."""
+        if self._stop.is_set():
+            return False
         self._queue.put(item)
+        return True
 
     def stats(self) -> dict[str, Any]:
         return {"dropped": self._queue.dropped, "pending": len(self._queue), "errors": self._errors.count,

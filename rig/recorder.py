@@ -110,12 +110,11 @@ class RecorderPublisher:
             self._write, writer.close, what=f"recorder {self.path}", max_pending=queue_size)
 
     def record_frame(self, frame: Frame) -> None:
-        if self.record_frames and not self._worker.closed:
-            self._worker.put(frame)
+        if self.record_frames:
+            self._worker.put(frame)  # (nothing, once closed)
 
     def publish(self, est: SunEstimate) -> None:
-        if not self._worker.closed:
-            self._worker.put(est)
+        self._worker.put(est)
 
     def _write(self, item: Frame | SunEstimate) -> None:
         if isinstance(item, Frame):
