@@ -50,6 +50,19 @@ def test_time_apart_is_counted_in_spans():
     assert [f.frame.seq for f in SpreadWindowPolicy(2, 4.0).select(ring)] == [1, 2]
 
 
+def test_yaw_scale_is_the_turn_that_counts_as_much_as_one_span():
+    # The oldest frame is one span back at the same heading (distance 1); the middle one a quarter
+    # span back, turned 20 deg. At a 10 deg scale that turn is two spans (distance ~2.02) and wins;
+    # at 45 deg it is 0.44 of a span (distance ~0.51) and the oldest wins.
+    ring = [feats(0, 0.0, yaw=0.0), feats(1, 3.0, yaw=np.radians(20.0)), feats(2, 4.0, yaw=0.0)]
+
+    def pick(scale_deg):
+        return [f.frame.seq for f in SpreadWindowPolicy(2, 4.0, np.radians(scale_deg)).select(ring)]
+
+    assert pick(10.0) == [1, 2]
+    assert pick(45.0) == [0, 2]
+
+
 def test_headings_apart_wrap_through_north():
     # 357.1 deg and 2.9 deg are 5.7 deg apart across north: the oldest frame nearly repeats the
     # newest, and the one turned to 34 deg is the more different view.
@@ -93,3 +106,10 @@ def test_bad_policy():
         SpreadWindowPolicy(0, 1.0)
     with pytest.raises(ValidationError):
         SpreadWindowPolicy(8, 0.0)
+    with pytest.raises(ValidationError):
+        SpreadWindowPolicy(8, 1.0, yaw_scale_rad=0.0)
+
+
+def test_smallest_policy_is_the_newest_frame_alone():
+    ring = [feats(i, i * 0.1) for i in range(5)]
+    assert [f.frame.seq for f in SpreadWindowPolicy(1, 1.0).select(ring)] == [4]
