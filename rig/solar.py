@@ -440,11 +440,6 @@ def delta_t_approx_s(decimal_year) -> np.ndarray:
     return out
 
 
-def decimal_year(utc) -> np.ndarray:
-    """Year + fraction (Julian years of 365.25 days from J2000), enough for Delta T's polynomials."""
-    return 2000.0 + (julian_day(utc) - _J2000) / 365.25
-
-
 # ------------------------------------------------------------------------------------------
 # The algorithm, step by step (degrees, as the report)
 
@@ -520,9 +515,12 @@ def spa_steps(utc, lat_deg, lon_deg, elevation_m=0.0, pressure_hpa=DEFAULT_PRESS
         dt_s = delta_t_approx_s(2000.0 + (jd - _J2000) / 365.25)
     else:
         dt_s = _check_range("delta_t", delta_t_s, -8000.0, 8000.0, "s")
-    if np.any(~((jd >= _JD_MIN) & (jd <= _JD_MAX))):
-        raise ValidationError(f"time: expected within the years -2000..6000 (the algorithm's range), got JD "
-                              f"{np.ravel(jd)[~((np.ravel(jd) >= _JD_MIN) & (np.ravel(jd) <= _JD_MAX))][0]:.1f}")
+    outside = ~((jd >= _JD_MIN) & (jd <= _JD_MAX))
+    if np.any(outside):
+        # Said as a time, not a Julian day: at a limit, JD's decimals would hide which side it is on.
+        first_s = round((float(np.ravel(jd)[np.ravel(outside)][0]) - _JD_UNIX_EPOCH) * 86_400.0)
+        raise ValidationError(f"time: expected within the years -2000..6000 (the algorithm's range), got "
+                              f"{np.datetime64(first_s, 's')}Z")
 
     s: dict[str, np.ndarray] = {"JD": jd}
     # 3.1: Julian ephemeris day and centuries/millennia from J2000.
