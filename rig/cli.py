@@ -139,7 +139,8 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
 
     ``live``: the stream outputs (JSONL, NMEA on stdout) write in threads of their own, so a
     reader that stops reading cannot stall the rig; offline they write in the caller's thread,
-    where waiting for a slow reader loses nothing."""
+    where waiting for a slow reader loses nothing. Offline the serial port likewise waits for its
+    writer rather than replace an unsent estimate (newest wins only live)."""
     from rig.publishers import BackgroundPublisher, JsonlPublisher, SentencePublisher, SerialPublisher
 
     def stream(p):
@@ -148,7 +149,7 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
     pubs: list = []
     try:
         if serial:
-            pubs.append(SerialPublisher(serial, format=fmt, baudrate=baud, status_rule=rule))
+            pubs.append(SerialPublisher(serial, format=fmt, baudrate=baud, status_rule=rule, wait_for_writer=not live))
         elif nmea_stdout:
             pubs.append(stream(SentencePublisher(sys.stdout, status_rule=rule)))
         if jsonl:
@@ -249,6 +250,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         interrupted = True  # what was replayed is written: say how far it got, as eval does
     finally:
         _close_all(pubs)
+    from rig.publishers import publisher_name
+
+    lost = _report_output_losses({publisher_name(p): p.stats() for p in pubs})
     summary = f"{stats.frames} frames, {stats.windows - stats.windows_failed} estimates"
     if interrupted:
         summary = f"interrupted after {summary}"
@@ -268,7 +272,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         summary += " (log truncated: replayed up to its last complete chunk)"
     if not args.quiet:
         progress.close(summary)
-    return STOP.exit_code() if interrupted else 0  # as for any Ctrl-C, with the work so far written
+    return STOP.exit_code() if interrupted else lost  # as for any Ctrl-C, with the work so far written
 
 
 def _effective_config(args: argparse.Namespace) -> dict:
@@ -428,22 +432,29 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
         print(f"sunrig: error: the recording {recorder.path} is unfinished ({why}); its complete chunks "
               f"still replay (sunrig replay {recorder.path})", file=sys.stderr)
         return EXIT_USER_ERROR
-    return _report_output_losses(stats)
+    return _report_output_losses(stats.publishers)
 
 
-def _report_output_losses(stats) -> int:
-    """One line per output that failed to write estimates; exit 2 if one wrote none at all (a
-    full disk, a dead link): the run went on for the other outputs, but its user must know."""
+def _report_output_losses(publishers: dict[str, dict]) -> int:
+    """One line per output that failed to write estimates or dropped some (by name, its
+    ``stats()``); exit 2 if one wrote none at all (a full disk, a dead link): the run went on for
+    the other outputs, but its user must know."""
     from rig.publishers import failed_writes
 
     code = 0
-    for name, st in stats.publishers.items():
+    for name, st in publishers.items():
         failed = failed_writes(st)
-        if not failed:
+        dropped = sum(int(v) for k, v in st.items() if k.startswith("dropped") and isinstance(v, int))
+        if not failed and not dropped:
             continue
         written = int(st.get("written") or 0)
-        print(f"sunrig: {name}: {failed} estimates failed to write, {written} written "
-              f"(last error: {st.get('last_error') or 'see the log above'})", file=sys.stderr)
+        if failed:
+            print(f"sunrig: {name}: {failed} estimates failed to write, {written} written "
+                  f"(last error: {st.get('last_error') or 'see the log above'})", file=sys.stderr)
+        if dropped:
+            # A slow or stalled reader, not a broken output: the status line counted them too.
+            print(f"sunrig: {name}: {dropped} estimates dropped because its reader did not keep up, "
+                  f"{written} written", file=sys.stderr)
         if written == 0:
             code = EXIT_USER_ERROR
     return code

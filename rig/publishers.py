@@ -148,6 +148,11 @@ class SerialPublisher:
     one whose write failed in ``write_errors``. After a timeout or an error the writer closes the
     port and reopens it after a backoff that doubles from ``backoff_s[0]`` to ``backoff_s[1]``:
     from the URL when it was given one, else with ``port.open()``.
+
+    ``wait_for_writer``: for a replay, which has no deadline. ``publish()`` then waits, at most two
+    write timeouts and only while the port is open, for the writer to take the previous message
+    instead of replacing it: a replay at full speed reaches the controller whole, and a stalled
+    or lost link slows it, never stops it. A live rig must not wait (the default).
     """
 
     def __init__(
@@ -160,6 +165,7 @@ class SerialPublisher:
         status_rule: StatusRule = DEFAULT_STATUS_RULE,
         backoff_s: tuple[float, float] = (0.1, 2.0),
         join_timeout_s: float = 2.0,
+        wait_for_writer: bool = False,
     ) -> None:
         if format not in FORMATS:
             raise PublishError(f"unknown serial format {format!r}: expected one of {sorted(FORMATS)}")
@@ -173,6 +179,7 @@ class SerialPublisher:
         self._baudrate = baudrate
         self._write_timeout_s = float(write_timeout_s)
         self._join_timeout_s = join_timeout_s
+        self._wait_for_writer = wait_for_writer
         if isinstance(port, str):
             self._url: str | None = port
             self._port = open_serial(port, baudrate, self._write_timeout_s)
@@ -206,11 +213,17 @@ class SerialPublisher:
         with self._cond:
             if self._stop.is_set():
                 raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
+            if self._wait_for_writer:
+                self._cond.wait_for(self._slot_free_or_link_down, timeout=2 * self._write_timeout_s)
             if self._slot is not None:
                 self._counts["dropped_overwritten"] += 1
             self._slot = message
             self._counts["published"] += 1
-            self._cond.notify()
+            self._cond.notify_all()  # the writer; with wait_for_writer, publishers wait here too
+
+    def _slot_free_or_link_down(self) -> bool:
+        port = self._port
+        return self._slot is None or self._stop.is_set() or port is None or not port.is_open
 
     def stats(self) -> dict[str, Any]:
         """Counters and state. ``published`` = ``written`` + the three kinds of drop + ``pending``
@@ -256,18 +269,30 @@ class SerialPublisher:
                     self._backoff.reset()
                 else:
                     self._backoff.wait(self._stop)  # let a stalled reader drain, or a device come back
+            self._send_last()
         finally:
             self._close_port()
+
+    def _send_last(self) -> None:
+        """At close, send the message still in the mailbox (the last estimate of a replay, the
+        newest of a live run) if the port is open: one write, cut short by a full buffer."""
+        with self._cond:
+            if self._slot is None or self._port is None or not self._port.is_open:
+                return
+            message, self._slot = self._slot, None
+            self._in_flight = True
+        self._write(message)
 
     def _take(self) -> bytes | None:
         """The newest message, waiting at most a bounded time so a stop is seen promptly."""
         with self._cond:
             if self._slot is None and not self._stop.is_set():
                 self._cond.wait(0.5)
-            if self._stop.is_set():  # closing: leave it pending rather than delay close() by a write
+            if self._stop.is_set():  # closing: _send_last() has the last word
                 return None
             message, self._slot = self._slot, None
             self._in_flight = message is not None
+            self._cond.notify_all()  # a publish() waiting for the slot (wait_for_writer)
         return message
 
     def _write(self, message: bytes) -> bool:

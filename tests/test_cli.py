@@ -180,6 +180,30 @@ def test_run_file_camera_to_loop_serial_jsonl_and_record(tmp_path, tiny_model_di
     assert dropped + no_heading + bad_exposure + late + estimates + skipped + failed == frames, res.stderr
 
 
+@pytest.mark.torch
+@pytest.mark.parametrize("fmt", ["nmea", "binary"])
+def test_replay_at_full_speed_reaches_a_serial_controller_whole(tmp_path, tiny_model_dir, fmt):
+    """A replay has no deadline: its serial port waits for the writer instead of replacing an
+    unsent estimate (newest wins is for the live rig), and the last one is sent at close. The
+    controller gets what the JSONL holds, every one, in order, over a real pty."""
+    from rig.protocol import BinaryFrameReader, NmeaLineReader
+    from tests.test_publishers import MasterReader, Pty, wait_until
+
+    pty, out = Pty(), tmp_path / "est.jsonl"
+    reader = MasterReader(pty.master, NmeaLineReader() if fmt == "nmea" else BinaryFrameReader())
+    try:
+        res = run_cli("replay", "--model", str(tiny_model_dir), "--serial", pty.name, "--format", fmt,
+                      "--jsonl", str(out))
+        assert res.returncode == 0, res.stderr
+        rows = [json.loads(line) for line in out.read_text().splitlines()]
+        wait_until(lambda: len(reader.snapshot()) >= len(rows), "the controller to read every estimate")
+    finally:
+        reader.stop()
+        pty.close()
+    assert [m["seq"] for m in reader.snapshot()] == [r["seq"] for r in rows] and len(rows) >= 30
+    assert "dropped" not in res.stderr, res.stderr
+
+
 def signalled_after_three_estimates(args, jsonl, signum) -> tuple[int, str]:
     """Run `sunrig ARGS` (paced: the 4-s demo drive), send ``signum`` once its JSONL has three
     lines (about 3 s of the drive left), and return its exit code and stderr."""

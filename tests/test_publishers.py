@@ -273,6 +273,88 @@ def test_publish_never_waits_for_a_stuck_write(pty):
         pub.close()
 
 
+def test_waiting_for_the_writer_loses_nothing_to_a_burst(pty):
+    """wait_for_writer (a replay): a burst that newest-wins would mostly overwrite reaches the
+    reader whole and in order, the last one sent by close()."""
+    reader = MasterReader(pty.master, NmeaLineReader())
+    pub = SerialPublisher(pty.name, format="nmea", wait_for_writer=True)
+    try:
+        within(HANG_GUARD_S, lambda: [pub.publish(make_estimate(30, 20, seq=k)) for k in range(300)])
+        within(HANG_GUARD_S, pub.close)
+        stats = pub.stats()
+        assert stats["written"] == stats["published"] == 300 and stats["dropped_overwritten"] == 0
+        wait_until(lambda: len(reader.snapshot()) == 300, "the reader to get every sentence")
+        assert [m["seq"] for m in reader.snapshot()] == list(range(300))
+    finally:
+        reader.stop()
+        pub.close()
+
+
+def test_waiting_for_the_writer_is_bounded_when_nobody_reads(pty):
+    """A stalled reader slows a replay's publish() (while the writer times out, closes and
+    reopens the port); it never stops it, and every message is accounted for."""
+    pty.fill()
+    pub = SerialPublisher(pty.name, format="nmea", write_timeout_s=0.05, backoff_s=(0.01, 0.1),
+                          wait_for_writer=True)
+    try:
+        within(HANG_GUARD_S, lambda: [pub.publish(make_estimate(30, 20, seq=k)) for k in range(20)])
+        within(HANG_GUARD_S, pub.close)
+        stats = pub.stats()
+        assert stats["dropped_write_timeout"] >= 1  # (a reopen discards the stale output: room again)
+        assert accounted(stats) == stats["published"] == 20
+    finally:
+        pub.close()
+
+
+def test_waiting_for_a_writer_stuck_below_python_is_bounded():
+    """A write hung in a wedged driver never frees the mailbox: each publish() of a replay waits
+    about two write timeouts, then replaces the unsent message as a live rig would."""
+    port = HungDriverPort()
+    pub = SerialPublisher(port, format="nmea", write_timeout_s=0.05, join_timeout_s=0.2, wait_for_writer=True)
+    try:
+        pub.publish(make_estimate(5, 5, seq=0))
+        wait_until(lambda: pub.stats()["in_flight"] == 1, "the writer to enter the hung write")
+        within(HANG_GUARD_S, lambda: [pub.publish(make_estimate(5, 5, seq=k)) for k in range(1, 11)])
+        stats = pub.stats()
+        assert stats["dropped_overwritten"] == 9 and stats["pending"] == 1 and stats["in_flight"] == 1
+    finally:
+        port.release.set()
+        pub.close()
+
+
+class GatedPort(LoopSerial):
+    """FAKE serial port: a loop:// port whose write() waits until ``cancel_write()`` (which the
+    publisher's close() calls) and then completes: a write that returns just as the rig stops."""
+
+    def __init__(self) -> None:
+        super().__init__("loop://")
+        self.gate = threading.Event()
+
+    def write(self, data: bytes) -> int:
+        self.gate.wait(HANG_GUARD_S)
+        return super().write(data)
+
+    def cancel_write(self) -> None:
+        self.gate.set()
+
+
+def test_close_sends_the_message_left_in_the_mailbox():
+    """The last estimate of a replay (or the newest of a stopping rig) is not left unsent."""
+    port = GatedPort()
+    pub = SerialPublisher(port, format="nmea")
+    try:
+        pub.publish(make_estimate(5, 5, seq=0))
+        wait_until(lambda: pub.stats()["in_flight"] == 1, "the writer to enter the write")
+        pub.publish(make_estimate(5, 5, seq=1))
+        assert pub.stats()["pending"] == 1
+        within(HANG_GUARD_S, pub.close)
+        stats = pub.stats()
+        assert stats["written"] == stats["published"] == 2 and stats["pending"] == 0
+    finally:
+        port.gate.set()
+        pub.close()
+
+
 def test_stalled_reader_drops_are_counted_and_sentences_flow_again_when_it_reads(pty):
     pub = SerialPublisher(pty.name, format="nmea", write_timeout_s=0.05, backoff_s=(0.01, 0.1))
     reader = None
@@ -428,7 +510,7 @@ def test_loop_url_string_is_opened_and_closed_by_the_publisher():
 
 
 class HungDriverPort(LoopSerial):
-    """A port whose write() hangs below Python until released (a wedged USB driver)."""
+    """FAKE serial port: a loop:// port whose write() hangs until released (a wedged USB driver)."""
 
     def __init__(self) -> None:
         super().__init__("loop://")
