@@ -115,6 +115,17 @@ def _open_error(name: str, exc: Exception) -> PublishError:
 
 # How often the writer retries a full kernel buffer: the line drains 4 KB in 0.36 s at 115200 baud.
 _FULL_BUFFER_POLL_S = 0.005
+# At close, how long the port's own buffer may take to send what it holds: 0.5 s is a 4 KiB
+# kernel buffer at 115200 baud, several seconds of estimates at any rate the rig publishes.
+_CLOSE_DRAIN_S = 0.5
+
+
+def _unsent_bytes(port: serial.SerialBase) -> int:
+    """Bytes the port holds unsent (TIOCOUTQ); 0 where it cannot say (socket://, loop://)."""
+    try:
+        return int(port.out_waiting)
+    except (AttributeError, NotImplementedError):
+        return 0
 
 
 def _plain_posix_fd(port: serial.SerialBase) -> int | None:
@@ -270,6 +281,7 @@ class SerialPublisher:
                 else:
                     self._backoff.wait(self._stop)  # let a stalled reader drain, or a device come back
             self._send_last()
+            self._close_port(drain_s=_CLOSE_DRAIN_S)  # a normal close: what was written is sent
         finally:
             self._close_port()
 
@@ -347,14 +359,22 @@ class SerialPublisher:
             if self._stop.wait(_FULL_BUFFER_POLL_S):
                 raise serial.SerialTimeoutException("Write abandoned: the publisher is closing")
 
-    def _close_port(self) -> None:
+    def _close_port(self, drain_s: float = 0.0) -> None:
+        """Close the port. After a failed write (``drain_s`` 0) what it holds is stale and is
+        discarded; at a normal close it first gets up to ``drain_s`` to send it."""
         port = self._port
         if port is None or not port.is_open:
             return
         try:
-            # A close with unsent data waits for it to drain (up to closing_wait, 30 s by
-            # default on Linux UARTs); the data is stale anyway, so discard it first.
-            port.reset_output_buffer()
+            # A close with unsent data waits for it to drain (up to closing_wait, 30 s by default
+            # on Linux UARTs), so what is still unsent after the drain is discarded. Only what the
+            # port reports as unsent: a pty reports 0, and a flush there would drop bytes its
+            # reader has not read yet.
+            deadline = time.monotonic() + drain_s
+            while _unsent_bytes(port) and time.monotonic() < deadline:
+                time.sleep(_FULL_BUFFER_POLL_S)
+            if drain_s == 0 or _unsent_bytes(port):
+                port.reset_output_buffer()
         except PORT_ERRORS:
             pass
         try:
