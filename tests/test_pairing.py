@@ -57,6 +57,14 @@ def test_interpolates_between_the_samples_around_the_frame():
     assert interp.counts["interpolated"] == 2 and interp.counts["exact"] == 1
 
 
+def test_the_weight_is_the_fraction_of_the_samples_interval():
+    # A 10 Hz heading source: a frame 25 ms after a sample is a quarter of the way to the next.
+    interp = HeadingInterpolator(max_gap_s=0.5, max_age_s=1.0)
+    samples = [sample(20.0, 40.0), sample(20.1, 44.0), sample(20.2, 48.0)]
+    assert deg(interp.at(samples, 20.025)) == pytest.approx(41.0, abs=1e-6)
+    assert deg(interp.at(samples, 20.175)) == pytest.approx(47.0, abs=1e-6)
+
+
 def test_pitch_and_roll_are_interpolated_only_when_both_samples_have_them():
     att = interpolate(sample(0, 0, pitch_deg=2.0, roll_deg=-4.0), sample(1, 0, pitch_deg=4.0, roll_deg=0.0), 0.5)
     assert math.degrees(att.pitch_rad) == pytest.approx(3.0) and math.degrees(att.roll_rad) == pytest.approx(-2.0)
