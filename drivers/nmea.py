@@ -430,7 +430,7 @@ def decode_sentence(sentence: Sentence) -> Message | None:
     or a field that cannot be what it claims (out of range, not a number, bad hemisphere).
     """
     kind, f = sentence.kind, sentence.fields
-    if kind == "PASHR" and f and not f[0][:1].isdigit():
+    if kind == "PASHR" and f and f[0] and not f[0][:1].isdigit():
         return None  # Ashtech's own PASHR,POS / PASHR,ATT / ... family: another sentence entirely
     need = _MIN_FIELDS.get(kind)
     if need is None:
