@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from collections.abc import Callable
 from typing import Generic, TypeVar
 
 from rig.errors import ValidationError
@@ -78,7 +77,6 @@ class FrameRing:
         self.max_age_s = max_age_s
         self._frames: deque[FrameFeatures] = deque()
         self._lock = threading.Lock()
-        self.pushed = 0
         self.evicted = 0
         self.out_of_order = 0
         self.restarts = 0
@@ -99,7 +97,6 @@ class FrameRing:
                 self._frames.clear()
                 self.restarts += 1
             self._frames.append(feats)
-            self.pushed += 1
             newest = feats.frame.t_mono_s
             while len(self._frames) > self.capacity or newest - self._frames[0].frame.t_mono_s > self.max_age_s:
                 self._frames.popleft()
@@ -110,9 +107,6 @@ class FrameRing:
         """A copy of the held frames, oldest first, for the window policy to choose from."""
         with self._lock:
             return list(self._frames)
-
-    def select(self, policy: Callable[[list[FrameFeatures]], list[FrameFeatures]]) -> list[FrameFeatures]:
-        return policy(self.snapshot())
 
     def __len__(self) -> int:
         with self._lock:

@@ -29,6 +29,17 @@ def test_frames_wait_for_their_time_scaled_by_speed():
     assert p.reanchors == 0
 
 
+def test_a_frame_exactly_the_jump_limit_off_schedule_keeps_the_schedule():
+    # "More than max_jump_s" re-anchors; the limit itself does not. A sub-second limit is valid
+    # (the live rig passes its ring_max_age_s, any positive number).
+    p = Pacer(max_jump_s=0.5)
+    assert p.delay_s(frame(0, 0.0), now_s=0.0) == 0.0
+    assert p.delay_s(frame(1, 0.5), now_s=0.0) == 0.5  # due exactly the limit ahead: wait for it
+    assert p.delay_s(frame(2, 0.75), now_s=1.25) == 0.0  # exactly the limit behind: late, no re-anchor
+    assert p.delay_s(frame(3, 1.0), now_s=1.25) == 0.0  # still on the first schedule: late
+    assert p.reanchors == 0
+
+
 def test_a_jump_either_way_re_anchors_instead_of_sleeping_or_rushing(caplog):
     p = Pacer(max_jump_s=10.0)
     p.delay_s(frame(0, 0.0), now_s=0.0)
@@ -40,7 +51,8 @@ def test_a_jump_either_way_re_anchors_instead_of_sleeping_or_rushing(caplog):
         assert p.delay_s(frame(5, 3600.4), now_s=30.0) == pytest.approx(0.1)  # no rush after it
     assert p.reanchors == 2
     messages = [r.getMessage() for r in caplog.records]
-    assert "+3600.0 s from the frame before it" in messages[0] and "fell behind" in messages[1]
+    assert "+3600.0 s from the frame before it" in messages[0]
+    assert "the replay is 29.6 s off" in messages[1] and "fell behind" in messages[1]
 
 
 def test_one_glitched_stamp_is_two_jumps_of_the_recording_not_a_replay_behind(caplog):

@@ -43,6 +43,20 @@ def test_queue_get_times_out_and_close_wakes_waiters():
     assert not waiter.is_alive() and got == [None]
 
 
+def test_queue_get_waits_only_when_empty_and_open():
+    # An item waiting, or a closed queue, is answered at once: a get that waited out its timeout
+    # there would stall every consumer (and a publisher's drain at shutdown) by a poll interval.
+    q = DropOldestQueue(2)
+    waits = []
+    real_wait = q._cond.wait
+    q._cond.wait = lambda timeout=None: waits.append(timeout) or real_wait(timeout)
+    q.put("a")
+    assert q.get(2.0) == "a" and waits == []
+    q.put("b")
+    q.close()
+    assert q.get(2.0) == "b" and q.get(2.0) is None and waits == []
+
+
 def test_queue_memory_is_flat_under_overload():
     q = DropOldestQueue(4)
     for i in range(10_000):
@@ -58,6 +72,22 @@ def test_ring_bounded_by_count_and_age():
     assert ring.evicted == 3
     ring.push(feats(8, 5.0))  # a gap: everything older than 1 s goes
     assert [f.frame.seq for f in ring.snapshot()] == [8]
+
+
+def test_ring_keeps_a_frame_exactly_max_age_older_than_the_newest():
+    # "At most max_age_s older than the newest": the edge itself stays.
+    ring = FrameRing(capacity=10, max_age_s=1.0)
+    for i, t in enumerate([0.0, 0.5, 1.0]):
+        ring.push(feats(i, t))
+    assert [f.frame.seq for f in ring.snapshot()] == [0, 1, 2] and ring.evicted == 0
+    ring.push(feats(3, 1.5))
+    assert [f.frame.seq for f in ring.snapshot()] == [1, 2, 3] and ring.evicted == 1
+
+
+def test_ring_of_one_holds_the_newest_frame():
+    ring = FrameRing(capacity=1)
+    assert ring.push(feats(0, 0.0)) and ring.push(feats(1, 0.1))
+    assert [f.frame.seq for f in ring.snapshot()] == [1] and ring.evicted == 1
 
 
 def test_ring_refuses_late_frames():
@@ -86,8 +116,22 @@ def test_ring_starts_again_after_a_clock_jump():
     assert not ring.push(feats(6, 0.45)) and ring.out_of_order == 1 and ring.restarts == 1
 
 
+def test_ring_tells_a_late_frame_from_a_clock_jump_by_how_far_behind_the_newest_it_is():
+    # Stamps as a monotonic clock gives them (seconds since boot), not near zero.
+    ring = FrameRing(capacity=10, max_age_s=4.0)
+    assert ring.push(feats(0, 1000.0))
+    assert not ring.push(feats(1, 999.5))  # half a second late
+    assert not ring.push(feats(2, 996.0))  # exactly max_age_s behind: still late, not a jump
+    assert ring.out_of_order == 2 and ring.restarts == 0 and len(ring) == 1
+    assert ring.push(feats(3, 995.5))  # more than max_age_s behind: the clock jumped
+    assert ring.restarts == 1 and [f.frame.seq for f in ring.snapshot()] == [3]
+
+
 def test_bad_sizes():
     with pytest.raises(ValidationError):
         DropOldestQueue(0)
     with pytest.raises(ValidationError):
         FrameRing(capacity=0)
+    for max_age_s in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValidationError):
+            FrameRing(max_age_s=max_age_s)
