@@ -1,12 +1,13 @@
 """Configuration: TOML covers every option, flags override, mistakes are named."""
 
+import inspect
 import json
 import math
 import tomllib
 
 import pytest
 
-from rig.config import DEFAULTS, ConfigError, dump_toml, load_config, merge, override
+from rig.config import DEFAULTS, ConfigError, check_option, dump_toml, load_config, merge, override
 
 
 def _same(a, b):
@@ -76,6 +77,10 @@ def test_file_then_flags(tmp_path):
         ("[source]\nhfov_deg = -1.0\n", "[source] hfov_deg: expected a finite number in [0, 179]"),
         ("[source]\ndeclination_deg = inf\n", "[source] declination_deg: expected a finite number in [-180, 180]"),
         ("[rig]\nring_max_age_s = inf\n", "[rig] ring_max_age_s: expected a finite number > 0, got inf"),
+        ("[source]\nhfov_deg = 179.5\n", "[source] hfov_deg: expected a finite number in [0, 179], got 179.5"),
+        # A top-level value that is no option of any section is an unknown section, not misplaced.
+        ("bogus = 1\n", "unknown section [bogus]"),
+        ("camera = 'oak'\n", "camera is outside any section; put it under [source]"),
     ],
 )
 def test_mistakes_are_named(tmp_path, text, message):
@@ -109,6 +114,21 @@ def test_defaults_are_those_of_what_they_configure():
     assert DEFAULTS["window"]["span_s"] == window.span_s
     assert DEFAULTS["window"]["yaw_scale_deg"] == pytest.approx(math.degrees(window.yaw_scale_rad))
 
+    from drivers.gnss import DEFAULT_BAUD
+    from drivers.pairing import HeadingInterpolator
+    from estimator.estimator import SunEstimator
+    from rig.publishers import SerialPublisher
+    from rig.recorder import RecorderPublisher
+
+    def default(fn, name):
+        return inspect.signature(fn).parameters[name].default
+
+    assert DEFAULTS["source"]["baud"] == DEFAULT_BAUD
+    assert DEFAULTS["source"]["heading_latency_s"] == default(HeadingInterpolator, "latency_s")
+    assert DEFAULTS["estimator"]["seed"] == default(SunEstimator, "seed")
+    assert DEFAULTS["output"]["baud"] == default(SerialPublisher, "baudrate")
+    assert DEFAULTS["output"]["record_frames"] == default(RecorderPublisher, "record_frames")
+
 
 def test_an_existing_recording_is_refused_by_default():
     # A drive cannot be recorded again (rig/recorder.py): replacing a recording must be asked for.
@@ -122,6 +142,9 @@ def test_unset_values_and_every_default_are_in_range(tmp_path):
     path.write_text("[source]\nhfov_deg = 0.0\nwidth = 0\nfps = 0.0\ndeclination_deg = nan\n")
     cfg = load_config(path)
     assert math.isnan(cfg["source"]["declination_deg"]) and cfg["source"]["width"] == 0
+    assert math.isnan(check_option("source", "declination_deg", None))  # a flag left unset
+    path.write_text("[source]\nhfov_deg = 179.0\ndeclination_deg = -180.0\n")  # the ends of closed ranges
+    assert load_config(path)["source"]["hfov_deg"] == 179.0
     merge(load_config(), DEFAULTS, where="defaults")  # every default through the same checks
 
 
