@@ -129,13 +129,20 @@ class ModelContract:
     @property
     def trained_sun_elevation_deg(self) -> tuple[float, float] | None:
         """The lowest and highest true sun of the training data (deg above the horizon), which
-        ``sunrig train`` records; None for a contract without it (an older or a hand-made model)."""
+        ``sunrig train`` records; None for a contract without it (an older or a hand-made model).
+
+        A fine-tuned model's training data includes that of the model it started from (``init``):
+        its weights began as that model's, and a few hundred steps on one's own drives do not
+        unlearn the suns it saw. Without this, a model fine-tuned on drives with the sun at 15 deg
+        flagged every sun above 20 deg as beyond its training."""
         data = self.training.get("data")
-        rng = data.get("sun_elevation_deg") if isinstance(data, dict) else None
-        if (isinstance(rng, list | tuple) and len(rng) == 2
-                and all(isinstance(x, int | float) and -90.0 <= x <= 90.0 for x in rng) and rng[0] <= rng[1]):
-            return float(rng[0]), float(rng[1])
-        return None
+        init = self.training.get("init")
+        ranges = [r for r in (_elevation_range(data.get("sun_elevation_deg") if isinstance(data, dict) else None),
+                              _elevation_range(init.get("sun_elevation_deg") if isinstance(init, dict) else None))
+                  if r is not None]
+        if not ranges:
+            return None
+        return min(r[0] for r in ranges), max(r[1] for r in ranges)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
@@ -185,3 +192,11 @@ def input_affine(input_norm: dict[str, Any]) -> tuple[bool, list[float], list[fl
     gain = [scale / s for s in std]
     offset = [-m / s for m, s in zip(mean, std, strict=True)]
     return swap, gain, offset
+
+
+def _elevation_range(rng: Any) -> tuple[float, float] | None:
+    """A recorded ``[lowest, highest]`` sun elevation (deg), or None when it is not one."""
+    if (isinstance(rng, list | tuple) and len(rng) == 2
+            and all(isinstance(x, int | float) and -90.0 <= x <= 90.0 for x in rng) and rng[0] <= rng[1]):
+        return float(rng[0]), float(rng[1])
+    return None

@@ -48,7 +48,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
+from estimator.contract import BACKBONE_FILE, PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
 from estimator.crops import crop_side_px
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
@@ -141,6 +141,8 @@ def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float,
         drive = load_drive(list(read_frames(Path(path))), Path(path).name, crop_size, crop_fov_rad)
         if drive is not None:
             drives.append(drive)
+        elif len(paths) > 1:  # said once, at the end, when none is usable
+            log.warning("%s: no frame with both a TRUE heading and the true sun; not trained on", path)
         if progress:
             progress(i + 1, len(paths))
     if not drives:
@@ -284,9 +286,12 @@ class Schedule:
 
     def lr_at(self, step: int, total: int, cfg: TrainConfig) -> float:
         peak = self.start_lr or cfg.lr
-        if self.start_step == 0 and step < cfg.warmup_steps:
-            return peak * (step + 1) / cfg.warmup_steps
-        begin = max(self.start_step, cfg.warmup_steps if self.start_step == 0 else 0)
+        # At most a tenth of the run: a 150-step fine-tune would otherwise end still warming up,
+        # never reaching its --lr.
+        warmup = max(1, min(cfg.warmup_steps, total // 10))
+        if self.start_step == 0 and step < warmup:
+            return peak * (step + 1) / warmup
+        begin = max(self.start_step, warmup if self.start_step == 0 else 0)
         frac = min(1.0, max(0.0, (step - begin) / max(1, total - begin)))
         floor = LR_FLOOR * cfg.lr
         return floor + (peak - floor) * 0.5 * (1.0 + math.cos(math.pi * frac))
@@ -381,13 +386,19 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
                               f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
     net_cfg = nets.PRESETS[cfg.preset]
-    # Checked before minutes of loading data; loaded only if there is no checkpoint to resume.
-    init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init else None
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out_dir / CHECKPOINT
+    state = _resumable_state(out_dir, cfg)
+    # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
+    init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
+    explicit_crops = cfg.crops_per_frame != 0
+    if state is not None and run_finished(state, cfg) and (out_dir / BACKBONE_FILE).is_file():
+        log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
+        return out_dir
+    # What a fine-tune started from, read once at its start: the folder may be gone by the export.
+    init_info = (state or {}).get("init_info") or (_init_provenance(Path(cfg.init)) if cfg.init else None)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    ckpt_path = out_dir / CHECKPOINT
     fov = math.radians(cfg.crop_fov_deg)
 
     t_load = time.monotonic()
@@ -405,28 +416,15 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # fused: one kernel over all parameters instead of a loop of small ops (7 vs 13 ms a step
     # for the fast preset on this machine); same update, same state dict for resumes.
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
-    if init_weights is not None and not ckpt_path.exists():
+    if init_weights is not None and state is None:
         _load_npz(init_weights, backbone, aggregator)
         log.info("starting from the weights of %s", cfg.init)
     step, elapsed_s = 0, 0.0
     schedule = Schedule(minutes=cfg.minutes)
     drive_err = None
     rng = np.random.default_rng(cfg.seed)
-    if ckpt_path.exists():
-        state = torch.load(ckpt_path, weights_only=False)
-        if state["config"]["preset"] != cfg.preset:
-            raise ValidationError(
-                f"{ckpt_path} was trained with preset {state['config']['preset']!r}, not {cfg.preset!r}; "
-                "pass the same preset or another --out"
-            )
-        trained_crops = state["config"]["crops_per_frame"]  # saved resolved, never 0
-        if cfg.crops_per_frame not in (0, trained_crops):
-            # The contract records one crop count for the whole run; a resume must keep it.
-            raise ValidationError(
-                f"{ckpt_path} was trained with {trained_crops} crops per frame, not {cfg.crops_per_frame}; "
-                "pass the same --crops or another --out"
-            )
-        cfg = replace(cfg, crops_per_frame=trained_crops)
+    if state is not None:
+        cfg = replace(cfg, crops_per_frame=state["config"]["crops_per_frame"])  # saved resolved, never 0
         backbone.load_state_dict(state["backbone"])
         aggregator.load_state_dict(state["aggregator"])
         opt.load_state_dict(state["optimizer"])
@@ -463,6 +461,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     est_total = cfg.max_steps or unknown_total
     backbone.train()
     aggregator.train()
+    out_dir.mkdir(parents=True, exist_ok=True)  # only now: a run refused or stopped while loading leaves no folder
     start = time.monotonic() - elapsed_s
     start_step = step  # where this session began: a resumed run's earlier steps are not its rate
     last_ckpt = time.monotonic()
@@ -476,7 +475,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "config": asdict(cfg),
             "data_counts": {"drives": len(drives), "frames": n_frames, "sun_elevation_deg": sun_range_deg},
             "err_deg_ema": None if ema_err is None else round(ema_err, 2),
-            "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(),
+            "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(), "init_info": init_info,
         }
 
     try:
@@ -555,7 +554,62 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # (a second snapshot after a slow save reads a later clock).
     final = state_dict()
     _save_checkpoint(ckpt_path, final)
-    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, final, out_dir)
+    # A fine-tuned model runs as the model it started from (the shipped one: 8 crops a frame,
+    # though trained with 4), unless --crops said otherwise.
+    run_crops = 0 if explicit_crops or not init_info else int(init_info.get("crops_per_frame") or 0)
+    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, final, out_dir,
+                   run_crops_per_frame=run_crops)
+
+
+# What makes a run itself: resuming with any of these changed would make a contract that lies
+# about how its model was trained.
+_RUN_IDENTITY = {"preset": "--preset", "init": "--init", "lr": "--lr", "batch_windows": "--batch", "seed": "--seed"}
+
+
+def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
+    """The checkpoint of the run in ``out_dir`` when ``cfg`` resumes it; None for a new run in a
+    new or empty folder. Anything else is refused before data loads: a folder holding another
+    run, a model or logs would be overwritten or mixed with this run."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValidationError(f"--out {out_dir} is a file; pass a folder for the model (it is made if missing)")
+    ckpt_path = out_dir / CHECKPOINT
+    if not ckpt_path.is_file():
+        held = sorted(p.name for p in out_dir.iterdir() if p.name != METRICS) if out_dir.is_dir() else []
+        if held:
+            shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
+            raise ValidationError(f"--out {out_dir} already holds files ({shown}) and no training run; pass a new "
+                                  "or empty folder: a model or logs there would be overwritten")
+        return None
+    state = torch.load(ckpt_path, weights_only=False)
+    was = state["config"]
+    differs = [f"{flag} {was.get(key)!r}, not {getattr(cfg, key)!r}" for key, flag in _RUN_IDENTITY.items()
+               if key in was and was[key] != getattr(cfg, key)]
+    if cfg.crops_per_frame not in (0, was["crops_per_frame"]):  # 0: the run's own
+        differs.append(f"--crops {was['crops_per_frame']}, not {cfg.crops_per_frame}")
+    old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
+    if old_data and new_data and old_data != new_data:
+        differs.append(f"logs with fingerprint {old_data}, not {new_data}")
+    if differs:
+        raise ValidationError(f"--out {out_dir} holds a run with {'; '.join(differs)}. To resume it, run its own "
+                              f"command (`{was.get('command') or 'see its checkpoint'}`); for a new run pass "
+                              "another --out")
+    return state
+
+
+def run_finished(state: dict[str, Any], cfg: TrainConfig) -> bool:
+    """Whether a checkpoint's run has reached the end ``cfg`` asks for (its steps, or its minutes)."""
+    if cfg.max_steps:
+        return state["step"] >= cfg.max_steps
+    return state["elapsed_s"] >= cfg.minutes * 60.0
+
+
+def checkpoint_progress(out_dir: Path) -> tuple[int, float] | None:
+    """(steps, minutes) trained by the run in ``out_dir``, or None when there is none."""
+    path = Path(out_dir) / CHECKPOINT
+    if not path.is_file():
+        return None
+    state = torch.load(path, weights_only=False)
+    return int(state["step"]), float(state["elapsed_s"]) / 60.0
 
 
 def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path,
@@ -576,7 +630,7 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
         "final_train_err_deg_ema": state.get("err_deg_ema"),
     }
     if cfg.init:
-        training["init"] = _init_provenance(Path(cfg.init))
+        training["init"] = state.get("init_info") or _init_provenance(Path(cfg.init))
     if export_command:
         training["export_command"] = export_command
     contract = nets.PRESETS[cfg.preset].contract(
@@ -637,8 +691,11 @@ def _init_provenance(model_dir: Path) -> dict[str, Any]:
     except SunrigError as exc:  # moved or deleted since the run started
         return {"dir": str(model_dir), "unavailable": str(exc)}
     t = start.contract.training
+    sun_range = start.contract.trained_sun_elevation_deg  # its own chain's, for the status rule
     return {"dir": str(model_dir), "model_id": start.model_id,
-            **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None}}
+            **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None},
+            **({"sun_elevation_deg": list(sun_range)} if sun_range else {}),
+            "crops_per_frame": start.contract.crops_per_frame}
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: int = 0,

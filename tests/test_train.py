@@ -3,6 +3,7 @@ model the runtime loads with its recipe in the contract. (Whether it learns the 
 `sunrig eval` on held-out drives, docs/model.md, not here.)"""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -29,29 +30,34 @@ from estimator.train import (  # noqa: E402
 )
 
 
-def _frames(n, seed, truth=True):
+def _frames(n, seed, truth=True, sun_enu=(0.0, 0.6, 0.8)):
     rng = np.random.default_rng(seed)
     k = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
     return [
         Frame(t_mono_s=0.5 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), dtype=np.uint8), intrinsics=k,
               attitude=Attitude(math.radians(30.0 * i), HeadingRef.TRUE),
-              sun_enu_truth=[0.0, 0.6, 0.8] if truth else None)
+              sun_enu_truth=list(sun_enu) if truth else None)
         for i in range(n)
     ]
 
 
-@pytest.fixture
-def logs(tmp_path):
+def _write_logs(folder, n_drives, **frame_kw):
     from replay.native import LogWriter
 
+    folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for d in range(3):
-        p = tmp_path / f"drive_{d}.mcap"
+    for d in range(n_drives):
+        p = folder / f"drive_{d}.mcap"
         with LogWriter(p) as w:
-            for f in _frames(10, d):
+            for f in _frames(10, d, **frame_kw):
                 w.write_frame(f)
         paths.append(p)
     return paths
+
+
+@pytest.fixture
+def logs(tmp_path):
+    return _write_logs(tmp_path, 3)  # the sun 53.1 deg up
 
 
 def test_drive_is_prescaled_so_a_crop_is_a_slice():
@@ -311,3 +317,76 @@ def test_a_minutes_budget_on_a_shared_cpu_is_warned_about(logs, tmp_path, monkey
         train(logs, tmp_path / "m", cfg)
     busy = [r for r in caplog.records if "using the CPU" in r.getMessage()]
     assert len(busy) == (1 if warned else 0)  # once per run, however many checkpoints
+
+
+def test_a_short_run_warms_up_in_a_tenth_of_it():
+    # A 150-step fine-tune with the recipe's 300 warmup steps would end still warming up.
+    cfg = TrainConfig(lr=1e-4, warmup_steps=300)
+    lrs = [Schedule().lr_at(s, 150, cfg) for s in range(151)]
+    assert lrs[14] == pytest.approx(1e-4) and max(lrs) == pytest.approx(1e-4)
+    assert Schedule().lr_at(14, 10**9, cfg) == pytest.approx(1e-4 * 15 / 300)  # a long run keeps its 300
+
+
+def test_a_fine_tune_keeps_the_suns_and_the_crop_count_of_the_model_it_started_from(logs, tmp_path):
+    from estimator.runtime import OnnxModel
+    from estimator.train import export_checkpoint
+
+    first = train(logs, tmp_path / "first", TrainConfig(preset="tiny", max_steps=2, batch_windows=1))
+    start = export_checkpoint(first, tmp_path / "start", run_crops_per_frame=6)  # runs with 6, as shipped runs 8
+    low_sun = _write_logs(tmp_path / "own", 2, sun_enu=(0.0, 0.96, 0.28))  # 16.3 deg up
+    tune = TrainConfig(preset="tiny", max_steps=2, batch_windows=1, init=str(start))
+    tuned = train(low_sun, tmp_path / "tuned", tune)
+    contract = OnnxModel.load(tuned).contract
+    assert contract.training["data"]["sun_elevation_deg"] == [16.3, 16.3]  # its own drives
+    assert contract.trained_sun_elevation_deg == (16.3, 53.1)  # and the suns its start had seen
+    assert contract.crops_per_frame == 6
+    explicit = train(low_sun, tmp_path / "explicit", TrainConfig(preset="tiny", max_steps=2, batch_windows=1,
+                                                                   crops_per_frame=3, init=str(start)))
+    assert OnnxModel.load(explicit).contract.crops_per_frame == 3
+    # The start's range is read when the run starts: a start folder gone by the export loses nothing.
+    import shutil
+
+    again = train(low_sun, tmp_path / "again", replace(tune, max_steps=1))
+    shutil.rmtree(start)
+    train(low_sun, again, tune)
+    assert OnnxModel.load(again).contract.trained_sun_elevation_deg == (16.3, 53.1)
+
+
+def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
+    cfg = TrainConfig(preset="tiny", max_steps=1, batch_windows=1, lr=3e-4)
+    a_file = tmp_path / "clip.mp4"
+    a_file.write_bytes(b"video")
+    with pytest.raises(ValidationError, match="is a file"):
+        train(logs, a_file, cfg)
+    # A folder of logs, or a model without a run: overwriting it would lose what it holds.
+    with pytest.raises(ValidationError, match=r"already holds files \(clip.mp4, drive_0.mcap, drive_1.mcap, \.\.\.\)"):
+        train(logs, logs[0].parent, cfg)
+    out = tmp_path / "run"
+    train(logs, out, cfg)
+    (out / CHECKPOINT).rename(tmp_path / "kept.pt")
+    with pytest.raises(ValidationError, match="backbone.onnx.*no training run"):
+        train(logs, out, cfg)
+    (tmp_path / "kept.pt").rename(out / CHECKPOINT)
+    # Another run's folder: resuming it with another rate, seed or data would make a contract that lies.
+    with pytest.raises(ValidationError, match=r"--lr 0.0003, not 0.001.*--seed 0, not 5.*another --out"):
+        train(logs, out, replace(cfg, max_steps=2, lr=1e-3, seed=5))
+    out_on_data = tmp_path / "run_on_data"
+    train(logs, out_on_data, replace(cfg, data={"fingerprint": data_fingerprint(logs)}))
+    with pytest.raises(ValidationError, match="logs with fingerprint"):
+        train(logs[:2], out_on_data, replace(cfg, max_steps=2, data={"fingerprint": data_fingerprint(logs[:2])}))
+
+
+def test_a_refused_run_leaves_no_folder(tmp_path):
+    no_truth = _write_logs(tmp_path / "logs", 1, truth=False)
+    with pytest.raises(TrainingDataError):
+        train(no_truth, tmp_path / "new", TrainConfig(preset="tiny", max_steps=1, batch_windows=1))
+    assert not (tmp_path / "new").exists()
+
+
+def test_a_finished_run_is_not_exported_again(logs, tmp_path):
+    cfg = TrainConfig(preset="tiny", max_steps=2, batch_windows=1)
+    out = train(logs, tmp_path / "m", cfg)
+    contract = (out / "backbone.onnx").read_bytes()  # the contract is in its metadata
+    stamp = (out / "backbone.onnx").stat().st_mtime_ns
+    assert train(logs, out, cfg) == out
+    assert (out / "backbone.onnx").read_bytes() == contract and (out / "backbone.onnx").stat().st_mtime_ns == stamp
