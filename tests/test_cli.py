@@ -546,13 +546,26 @@ def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(
     assert res.returncode == 0, res.stderr
     assert OnnxModel.load(tmp_path / "m").contract.crops_per_frame == 6
     res = run_cli(*args, "--steps", "2", "--crops", "4")
-    assert res.returncode == 2 and "6 crops per frame" in res.stderr and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "--crops 6, not 4" in res.stderr and "Traceback" not in res.stderr
     res = run_cli(*args, "--steps", "2")  # no --crops: the resume keeps its run's 6
     assert res.returncode == 0, res.stderr
     assert OnnxModel.load(tmp_path / "m").contract.training["steps"] == 2
     res = run_cli(*args[:3], str(tmp_path / "other"), *args[4:], "--steps", "1", "--crops", "0")
     assert res.returncode == 2 and "--crops: expected a positive integer" in res.stderr
     assert "Traceback" not in res.stderr and not (tmp_path / "other").exists()
+
+
+def test_train_says_when_it_resumes_a_run_and_when_there_is_nothing_left_to_train(tmp_path):
+    from replay.sources import DEMO_LOG
+
+    args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--batch", "1"]
+    res = run_cli(*args, "--steps", "1")
+    assert res.returncode == 0 and "resuming" not in res.stderr, res.stderr
+    res = run_cli(*args, "--steps", "2")
+    assert res.returncode == 0 and f"resuming the run in {tmp_path / 'm'} at step 1" in res.stderr, res.stderr
+    res = run_cli(*args, "--steps", "2")
+    assert res.returncode == 0, res.stderr
+    assert "already reached its end; nothing to train (pass a larger --steps" in res.stderr
 
 
 def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
