@@ -130,9 +130,13 @@ class OnnxModel:
         paths = {name: root / name for name in (BACKBONE_FILE, AGGREGATOR_FILE)}
         missing = [name for name, p in paths.items() if not p.is_file()]
         if missing:
+            if (root / "checkpoint.pt").is_file():  # estimator.train.CHECKPOINT (torch is not imported here)
+                raise ModelError(f"{root} holds a training run that has not exported its model yet; export it as it "
+                                 f"stands with `sunrig train --out {root} --export-only DIR` and pass --model DIR, "
+                                 "or let the run finish")
             raise ModelError(
                 f"model folder {str(root)!r} lacks {' and '.join(missing)}; a model folder holds "
-                f"{BACKBONE_FILE} and {AGGREGATOR_FILE} as written by estimator.export.export_model"
+                f"{BACKBONE_FILE} and {AGGREGATOR_FILE} as written by `sunrig train`"
             )
         opts = session_options(intra_op_threads)
         blobs = {name: p.read_bytes() for name, p in paths.items()}

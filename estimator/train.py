@@ -656,15 +656,21 @@ def check_init(model_dir: Path, net_cfg: nets.NetConfig) -> Path:
     from estimator.runtime import OnnxModel
 
     path = Path(model_dir) / WEIGHTS
+    if not Path(model_dir).is_dir():
+        raise ValidationError(f"--init {model_dir} does not exist; pass a model folder written by `sunrig train`, "
+                              "e.g. the shipped model's")
     if not path.is_file():
         raise ValidationError(f"--init {model_dir}: no {WEIGHTS} there; pass a model folder written by `sunrig train` "
                               "(the shipped model has one)")
-    arch = OnnxModel.load(model_dir).contract.architecture
+    contract = OnnxModel.load(model_dir).contract
+    arch = contract.architecture
     if arch != net_cfg.architecture():
         diff = sorted(k for k in set(arch) | set(net_cfg.architecture())
                       if arch.get(k) != net_cfg.architecture().get(k))
+        preset = (contract.training.get("recipe") or {}).get("preset")
+        which = f"--preset {preset}" if preset in nets.PRESETS else "the preset it was trained with"
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
-                              "pass the preset it was trained with")
+                              f"pass {which}")
     return path
 
 

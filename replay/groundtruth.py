@@ -122,9 +122,10 @@ class GroundTruthSource:
                 if ref not in warned:
                     warned.add(ref)
                     logger.warning(
-                        "frames with a %s heading get no ground truth: the sun's true-north direction cannot "
+                        "%s: frames with a %s heading get no ground truth: the sun's true-north direction cannot "
                         "grade or train estimates in a %s world frame (record a TRUE heading for that)",
-                        ref.value, "magnetic-north" if ref == HeadingRef.MAGNETIC else "start-heading")
+                        getattr(self.source, "path", None) or "the log", ref.value,
+                        "magnetic-north" if ref == HeadingRef.MAGNETIC else "start-heading")
                 yield frame if frame.sun_enu_truth is None else dataclasses.replace(frame, sun_enu_truth=None)
                 continue
             if frame.sun_enu_truth is not None:

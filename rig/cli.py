@@ -651,8 +651,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if result.interrupted:
         lines.insert(0, f"interrupted after {len(result.window_logs)} windows in {len(result.logs)} logs begun; "
                         "the JSON and figures hold those")
+    nothing = "no full window with ground truth in these logs"
+    if result.frames_without_heading:  # frames with truth but no heading make no window to grade
+        nothing += f": {result.frames_without_heading} of the {result.frames} frames have no heading"
     if not args.quiet:
-        progress.close("; ".join(lines) if lines else "no full window with ground truth in these logs")
+        progress.close("; ".join(lines) if lines else nothing)
     if result.interrupted:
         return STOP.exit_code()  # as for any Ctrl-C, but with the work so far written
     if not lines:

@@ -67,6 +67,20 @@ def _write_log(path, n=12):
     return path
 
 
+def test_eval_of_logs_with_no_window_to_grade_says_why(tmp_path):
+    from replay.native import LogWriter
+
+    log = tmp_path / "no_heading.mcap"
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    with LogWriter(log) as w:  # the true sun on every frame, but no heading
+        for i in range(12):
+            w.write_frame(Frame(t_mono_s=0.2 * i, seq=i, image_bgr=np.full((80, 128, 3), 100, np.uint8),
+                                intrinsics=intr, sun_enu_truth=[0.6, 0.0, 0.8]))
+    res = run_cli("eval", str(log), "--json", str(tmp_path / "e.json"))
+    assert res.returncode == 2, res.stderr
+    assert "no full window with ground truth in these logs: 12 of the 12 frames have no heading" in res.stderr
+
+
 def test_replay_without_model_says_pass_model(tmp_path, monkeypatch):
     log = _write_log(tmp_path / "a.mcap")
     res = run_cli("replay", str(log), "--model", str(tmp_path / "no-such-model"))
@@ -521,7 +535,8 @@ def test_config_print_merges_file_and_flags(tmp_path):
 def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
     from replay.sources import DEMO_LOG
 
-    for init, needle in ((tmp_path, "no weights.npz"), (None, "architecture differs")):
+    for init, needle in ((tmp_path, "no weights.npz"), (tmp_path / "gone", "gone does not exist"),
+                         (None, "; pass --preset fast")):  # the shipped model's preset, by name
         # The shipped model is the fast preset: --init it into a tiny run is refused by name.
         args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--steps", "1", "--quiet"]
         if init is not None:

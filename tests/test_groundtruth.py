@@ -144,10 +144,12 @@ def test_a_frames_own_truth_is_dropped_with_a_magnetic_or_relative_heading(caplo
     assert len(warned) == 2 and "relative" in warned[0] and "magnetic" in warned[1]  # once per reference
 
 
-def test_open_frames_drops_the_truth_of_a_log_recorded_with_a_relative_heading(tmp_path):
+def test_open_frames_drops_the_truth_of_a_log_recorded_with_a_relative_heading(tmp_path, caplog):
     path = tmp_path / "visual.mcap"
     with LogWriter(path) as w:
         for f in list(open_log(DEMO_LOG))[:4]:
             w.write_frame(dataclasses.replace(f, attitude=Attitude(0.1 * f.seq, HeadingRef.RELATIVE)))
     assert all(f.sun_enu_truth is not None for f in open_frames(path, ground_truth=False))
-    assert all(f.sun_enu_truth is None for f in open_frames(path))
+    with caplog.at_level(logging.WARNING, logger="replay.groundtruth"):
+        assert all(f.sun_enu_truth is None for f in open_frames(path))
+    assert [r.getMessage().split(": ")[0] for r in caplog.records] == [str(path)]  # which log, when many are read

@@ -276,6 +276,9 @@ def test_refuses_a_folder_without_graphs(tmp_path):
     (tmp_path / BACKBONE_FILE).write_bytes(b"")
     message = refusal(ModelError, tmp_path)
     assert "lacks aggregator.onnx" in message
+    (tmp_path / "checkpoint.pt").write_bytes(b"")  # an interrupted `sunrig train --out` folder
+    message = refusal(ModelError, tmp_path)
+    assert f"sunrig train --out {tmp_path} --export-only DIR" in message and "--model DIR" in message
 
 
 def test_refuses_random_bytes(tmp_path):
