@@ -18,10 +18,19 @@ from rig.window import SpreadWindowPolicy
 INTR = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
 RNG = np.random.default_rng(0)
 TEXTURED = RNG.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
-# Grey bands one sample stride high alternating 100 and 104: the gate's sample (every stride-th
-# row) sees luma 100, 104, 100, ... with standard deviation 2 (variance 4), whatever the stride.
-BANDED = np.empty((10 * SAMPLE_STRIDE_PX, 128, 3), np.uint8)
-BANDED[:] = np.where(np.arange(10 * SAMPLE_STRIDE_PX) // SAMPLE_STRIDE_PX % 2, 104, 100)[:, None, None]
+
+
+def _bands(lo, hi):
+    """Grey bands one sample stride high alternating ``lo`` and ``hi``: the gate's sample (every
+    stride-th row) sees luma lo, hi, lo, ... (grey's luma is its level: the weights sum to 1), so
+    mean (lo + hi) / 2 and standard deviation (hi - lo) / 2, whatever the stride."""
+    image = np.empty((10 * SAMPLE_STRIDE_PX, 128, 3), np.uint8)
+    image[:] = np.where(np.arange(10 * SAMPLE_STRIDE_PX) // SAMPLE_STRIDE_PX % 2, hi, lo)[:, None, None]
+    return image
+
+
+# Luma 100, 104, 100, ...: standard deviation 2 (variance 4).
+BANDED = _bands(100, 104)
 
 
 def test_luminance_uses_bt601_weights_in_bgr_order():
@@ -43,6 +52,27 @@ def test_luminance_uses_bt601_weights_in_bgr_order():
 ])
 def test_gate_names_why_a_frame_cannot_show_the_sun(image, reason):
     assert DEFAULT_EXPOSURE_GATE.rejects(image) == reason
+
+
+@pytest.mark.parametrize(("lo", "hi", "reason"), [
+    (6, 26, None),  # mean 16: not darker than min_mean 16
+    (5, 25, "dark"),  # mean 15
+    (230, 250, None),  # mean 240: not brighter than max_mean 240
+    (231, 251, "bright"),  # mean 241
+    (125, 131, None),  # standard deviation 3: not flatter than min_std 3
+    (126, 130, "flat"),  # standard deviation 2
+])
+def test_a_frame_at_a_threshold_passes_one_past_it_does_not(lo, hi, reason):
+    image = _bands(lo, hi)
+    assert luminance_stats(image) == ((lo + hi) / 2, (hi - lo) / 2)
+    assert DEFAULT_EXPOSURE_GATE.rejects(image) == reason
+
+
+def test_the_widest_gate_is_valid_and_passes_every_frame():
+    # The limits 0 <= min_mean, max_mean <= 255 and min_std >= 0 are inclusive: this gate is open.
+    gate = ExposureGate(min_mean=0.0, max_mean=255.0, min_std=0.0)
+    for level in (0, 128, 255):
+        assert gate.rejects(np.full((80, 128, 3), level, np.uint8)) is None
 
 
 def test_gate_thresholds_are_checked():

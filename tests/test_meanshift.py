@@ -58,10 +58,15 @@ def test_mode_is_a_fixed_point_of_the_kernel_mean():
 
 
 def test_a_narrow_bandwidth_does_not_overflow():
-    # kappa = 1 / (1 deg)^2 ~ 3300: exp(kappa * cos) would overflow; the kernel is shifted by -1.
-    u = _cluster(np.random.default_rng(0), enu_from_az_el(1.0, 0.5), 10, 0.01)
+    # kappa = 1 / (1 deg)^2 ~ 3300: exp(kappa * cos) would overflow; the kernel is shifted by -1, so
+    # a mode's own samples weigh about exp(0) = 1 and the densities of the modes stay comparable:
+    # the bigger cluster, 10 deg from the smaller one listed first, still wins.
+    rng = np.random.default_rng(0)
+    small, big = enu_from_az_el(1.0, 0.5), enu_from_az_el(1.0 + math.radians(10.0) / math.cos(0.5), 0.5)
+    u = np.concatenate([_cluster(rng, small, 4, 0.002), _cluster(rng, big, 10, 0.002)])
     mode = meanshift_sphere(u, bandwidth_rad=math.radians(1.0))
     assert np.isfinite(mode).all() and np.linalg.norm(mode) == pytest.approx(1.0)
+    assert math.degrees(float(angle_between(mode, big))) < 0.5
 
 
 def test_outliers_are_removed_around_the_medoid_before_the_mode():
@@ -89,6 +94,9 @@ def test_identical_samples_are_their_own_mode():
         # (deg from the pole, azimuth deg); the pole is the medoid. Distances 0, 10..14, 30, 40:
         # median 12.5, MAD 2.0, so the limit is 12.5 + 3 * 1.4826 * 2.0 = 21.4 deg.
         ([(0, 0), (10, 0), (11, 90), (12, 180), (13, 270), (14, 45), (30, 135), (40, 225)], [True] * 6 + [False] * 2),
+        # Distances 0, 9..12, 19, 21: median 11, MAD 2 (deviations 0, 1, 1, 2, 8, 10, 11), so the limit
+        # is 11 + 3 * 1.4826 * 2 = 19.9 deg: 19 deg (4 MADs past the median) is in, 21 deg (5) is out.
+        ([(0, 0), (9, 0), (10, 90), (11, 180), (12, 270), (19, 45), (21, 225)], [True] * 6 + [False]),
         # A tight cluster makes the MAD limit a fraction of a degree: the 15 deg floor keeps 12 deg.
         ([(0, 0), (0.01, 0), (0.02, 0), (0.03, 0), (0.04, 0), (12, 0)], [True] * 6),
     ],
@@ -101,6 +109,14 @@ def test_inlier_limit_is_three_scaled_mads_past_the_median_never_below_the_floor
 def test_remove_outliers_keeps_at_least_the_medoid():
     units = normalize(np.random.default_rng(2).normal(size=(6, 3)))
     assert remove_outliers(units).sum() >= 1
+
+
+def test_a_sample_at_the_limit_is_an_inlier():
+    # With both radii 0 the limit is 0 deg: only the medoid (the pole) and its duplicate, at
+    # distance exactly 0, are within it.
+    samples = [(0, 0), (0, 0), (10, 0), (11, 90), (12, 180)]
+    u = np.array([enu_from_az_el(math.radians(az), math.radians(90 - d)) for d, az in samples])
+    assert remove_outliers(u, outlier_rad=0.0, floor_rad=0.0).tolist() == [True, True, False, False, False]
 
 
 @pytest.mark.parametrize("n", [1, 2, 32])
