@@ -221,9 +221,16 @@ def test_replay_at_full_speed_reaches_a_serial_controller_whole(tmp_path, tiny_m
 def signalled_after_three_estimates(args, jsonl, signum) -> tuple[int, str]:
     """Run `sunrig ARGS` (paced: the 4-s demo drive), send ``signum`` once its JSONL has three
     lines (about 3 s of the drive left), and return its exit code and stderr."""
+    import signal
     import time
 
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *args],
+    def as_in_a_terminal() -> None:
+        # A suite run under nohup (or by a runner that ignores SIGHUP) passes the ignored SIGHUP
+        # on, and the rig rightly keeps it ignored: the rig under test gets the default.
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *args], preexec_fn=as_in_a_terminal,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60.0  # a guard, not a timing
