@@ -321,6 +321,37 @@ def test_close_leaves_what_was_written_for_the_reader(pty, fmt):
         pub.close()
 
 
+class UartPort(LoopSerial):
+    """FAKE serial port: a loop:// port that reports bytes still unsent (``out_waiting``, a UART's
+    TIOCOUTQ), as a UART whose reader holds the line with flow control does. ``drained_after``
+    polls it reports 0; ``flushes`` counts ``reset_output_buffer()`` calls."""
+
+    def __init__(self, drained_after: int | None) -> None:
+        self.drained_after, self.polls = drained_after, 0
+        super().__init__("loop://")  # (opening the port resets its buffers: not counted)
+        self.flushes = 0
+
+    @property
+    def out_waiting(self) -> int:
+        self.polls += 1
+        return 0 if self.drained_after is not None and self.polls > self.drained_after else 64
+
+    def reset_output_buffer(self) -> None:
+        self.flushes = getattr(self, "flushes", 0) + 1
+        super().reset_output_buffer()
+
+
+@pytest.mark.parametrize(("drained_after", "flushed"), [(3, 0), (None, 1)])
+def test_a_normal_close_lets_the_uart_send_what_it_holds_and_discards_only_what_it_cannot(drained_after, flushed):
+    """A line that drains is closed with nothing discarded; one still holding bytes after the
+    drain time is flushed, so that the close does not wait up to 30 s (closing_wait) for it."""
+    port = UartPort(drained_after)
+    pub = SerialPublisher(port, format="nmea")
+    publish_and_wait(pub, make_estimate(5, 5), 0)
+    within(HANG_GUARD_S, pub.close)
+    assert port.flushes == flushed and port.polls > (drained_after or 1) and not port.is_open
+
+
 def test_waiting_for_the_writer_is_bounded_when_nobody_reads(pty):
     """A stalled reader slows a replay's publish() (while the writer times out, closes and
     reopens the port); it never stops it, and every message is accounted for."""
