@@ -74,6 +74,9 @@ def test_sample_rejects_bad_sizes():
         sample_crop_boxes(KITTI, 0, 100, np.random.default_rng(0))
     with pytest.raises(ValidationError, match="crop side"):
         spread_crop_boxes(KITTI, 4, 400, np.random.default_rng(0))
+    # The smallest valid ones: one crop of one pixel, and one crop as tall as the image.
+    assert sample_crop_boxes(KITTI, 1, 1, np.random.default_rng(0)).shape == (1, 4)
+    assert spread_crop_boxes(KITTI, 1, KITTI.height, np.random.default_rng(0))[0, 3] == KITTI.height
 
 
 def test_crop_angles_centre_zero_edges_half_fov():
@@ -111,10 +114,12 @@ def test_crop_then_reproject_round_trip():
 def test_cut_crops_content_and_resize():
     img = np.zeros((375, 1242, 3), np.uint8)
     img[:, :, 2] = np.arange(1242, dtype=np.uint16)[None, :] % 256  # red ramp along x
+    img[:, :, 1] = np.arange(375, dtype=np.uint16)[:, None] % 256  # green ramp along y
     boxes = np.array([[100, 10, 224, 224], [0, 0, 64, 64]])
     crops = cut_crops(img, boxes, 112)
     assert crops.shape == (2, 112, 112, 3) and crops.dtype == np.uint8
-    # INTER_AREA halves the ramp: crop 0 starts at x=100 and spans 224 px.
+    # INTER_AREA halves the ramps: crop 0 starts at x=100, y=10 and spans 224 px each way.
     assert abs(int(crops[0, 0, 0, 2]) - 100) <= 1 and abs(int(crops[0, 0, -1, 2]) - 322 % 256) <= 1
+    assert abs(int(crops[0, 0, 0, 1]) - 10) <= 1 and abs(int(crops[0, -1, 0, 1]) - 232) <= 1
     same = cut_crops(img, np.array([[5, 5, 112, 112]]), 112)
     assert (same[0] == img[5:117, 5:117]).all()
