@@ -124,6 +124,32 @@ def test_quaternion_round_trip_and_batched():
     np.testing.assert_allclose(rotation_from_quat(quat_multiply(a, b)), mats[0] @ mats[1], atol=EXACT_F64)
 
 
+def test_quat_from_rotation_half_turns_and_the_positive_real_part():
+    """Half turns (trace -1) need Shepperd's other branches; whichever branch computes it, the
+    result is the one of q and -q with w >= 0, as documented."""
+    c100, s100 = math.cos(math.radians(100.0)), math.sin(math.radians(100.0))
+    cases = [
+        (0.0, 1.0, 0.0, 0.0),  # half turn about x: R = diag(1, -1, -1)
+        (0.0, 0.0, 1.0, 0.0),  # about y: diag(-1, 1, -1)
+        (0.0, 0.0, 0.0, 1.0),  # about z: diag(-1, -1, 1)
+        (0.1, 1e-7, math.sqrt(0.99), 0.0),  # 168.5 deg about y, a hair off: dividing by 4|x| loses digits
+        (0.25, 0.6, 0.0, -0.75),  # 150 deg about an axis in the x-z plane: y = 0, never divide by 4|y|
+        (-0.25, 0.6, 0.0, -0.75),
+        (c100, s100, 0.0, 0.0),  # 200 deg about x: w = cos 100 deg < 0, so -q comes back
+        (c100, 0.0, s100, 0.0),
+        (c100, 0.0, 0.0, s100),
+        (0.8, 0.0, 0.6, 0.0),  # 73.7 deg about y: the trace branch
+    ]
+    for q in cases:
+        q = np.array(q) / np.linalg.norm(q)
+        got = quat_from_rotation(rotation_from_quat(q))
+        want = -q if q[0] < 0 else q
+        if q[0] == 0.0:  # a half turn: q and -q both have w = 0, either will do
+            want = want if got @ want > 0 else -want
+        assert got[0] >= 0.0, q
+        np.testing.assert_allclose(got, want, atol=EXACT_F64)
+
+
 # --- golden IMU quaternions (worked by hand) ----------------------------------------------------
 # A rotation vector q is sensor_world_from_imu with the world ENU (BNO08x = Android convention).
 # OAK-D Pro mount: IMU x = camera down, y = camera right, z = camera backward.
@@ -193,6 +219,11 @@ def test_declination_east_positive_and_wraps():
     [
         ("BNO086", "auto", ImuMode.ROTATION_VECTOR),
         ("BNO085", "auto", ImuMode.ROTATION_VECTOR),
+        ("BNO080", "auto", ImuMode.ROTATION_VECTOR),
+        ("BNO08X", "auto", ImuMode.ROTATION_VECTOR),
+        ("BNO080", "game_rotation_vector", ImuMode.GAME_ROTATION_VECTOR),  # every BNO08x has both
+        ("BNO085", "game_rotation_vector", ImuMode.GAME_ROTATION_VECTOR),
+        ("BNO08X", "game_rotation_vector", ImuMode.GAME_ROTATION_VECTOR),
         ("bno086", "game_rotation_vector", ImuMode.GAME_ROTATION_VECTOR),
         ("BNO086", "gyro", ImuMode.GYRO),
         ("BMI270", "auto", ImuMode.GYRO),
@@ -247,6 +278,21 @@ def test_gravity_mismatch_checks_the_world_frame():
     assert math.isnan(gravity_mismatch_rad(q, (0.0, 0.0, 0.0)))
 
 
+def test_gravity_mismatch_is_the_angle_between_the_two_ups():
+    """docs/oak.md, check 1, for any orientation: 0 when the rotation vector's up is the
+    accelerometer's, 180 deg for a NED world, 0 for NWU (it differs only in yaw); in between, the
+    angle between the two."""
+    q = (0.5, 0.5, 0.5, -0.5)  # OAK-D Pro level, looking north: up is IMU -x, east is IMU +y
+    c30, s30 = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    assert deg(gravity_mismatch_rad(q, (-9.81 * c30, 9.81 * s30, 0.0))) == pytest.approx(30.0, abs=1e-9)
+    rng = np.random.default_rng(3)
+    for qr in rng.normal(size=(20, 4)):
+        accel = 9.81 * rotation_from_quat(qr).T @ np.array([0.0, 0.0, 1.0])  # +g along up, IMU axes
+        assert gravity_mismatch_rad(qr, accel) < 1e-6
+        assert abs(gravity_mismatch_rad(qr, accel, ENU_FROM_SENSOR_WORLD["ned"]) - math.pi) < 1e-6
+        assert gravity_mismatch_rad(qr, accel, ENU_FROM_SENSOR_WORLD["nwu"]) < 1e-6
+
+
 def test_tracker_gravity_check_is_smoothed_and_only_at_rest():
     tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, sensor_world="ned")
     q = (0.5, 0.5, 0.5, -0.5)  # read as NED, the up this implies is the accelerometer's down
@@ -260,6 +306,11 @@ def test_tracker_gravity_check_is_smoothed_and_only_at_rest():
     tr.add_accelerometer(1.0, (0.0, 9.81, 0.0))  # one sample 90 deg off moves it by 5% of the way only
     tr.add_rotation_vector(1.0, q)
     assert deg(tr.gravity_mismatch_rad) == pytest.approx(175.5, abs=1e-6)
+    # "At rest" allows for an accelerometer's scale error: 2% low is still checked (here: agrees).
+    tr = AttitudeTracker(ImuMode.GAME_ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO)
+    tr.add_accelerometer(0.0, (-0.98 * 9.80665, 0.0, 0.0))
+    tr.add_rotation_vector(0.0, q)
+    assert tr.gravity_mismatch_rad == pytest.approx(0.0, abs=1e-9)
 
 
 # --- the buffer -------------------------------------------------------------------------------
@@ -318,6 +369,57 @@ def test_slerp_endpoints_and_midpoint():
     assert heading_of(slerp(a, b, 0.5)) == pytest.approx(45.0, abs=1e-9)
 
 
+def test_slerp_follows_the_arc_at_every_fraction():
+    """Not only the midpoint: a quarter of the way from heading 0 to 90 is 22.5, also when q1 comes
+    in the other hemisphere; two equal orientations (an IMU at rest) interpolate to themselves."""
+    a, b = q_heading(0.0), q_heading(90.0)
+    for q1 in (b, -b):
+        for f, want in ((0.25, 22.5), (0.75, 67.5)):
+            q = slerp(a, q1, f)
+            assert np.linalg.norm(q) == pytest.approx(1.0, abs=EXACT_F64)
+            assert heading_of(q) == pytest.approx(want, abs=1e-9)
+    rest = np.array([0.5, 0.5, 0.5, -0.5])  # exactly unit: q . q = 1
+    np.testing.assert_allclose(slerp(rest, rest, 0.3), rest, atol=EXACT_F64)
+
+
+def test_buffer_refuses_bounds_that_cannot_hold_a_bracket():
+    OrientationBuffer(history_s=0.5, capacity=2, max_gap_s=0.01)  # two samples bracket a time
+    for kwargs in ({"history_s": 0.0}, {"capacity": 1}, {"max_gap_s": 0.0}):
+        with pytest.raises(ValidationError, match="OrientationBuffer"):
+            OrientationBuffer(**kwargs)
+
+
+def test_buffer_limits_are_inclusive():
+    """Pruned are samples *older* than history_s before the newest, refused are brackets *more*
+    than max_gap_s apart (docs/oak.md): exactly at either limit is kept and interpolated."""
+    buf = OrientationBuffer(history_s=1.0, max_gap_s=1.0)
+    assert buf.newest_t is None and buf.oldest_t is None
+    assert buf.add(3.0, q_heading(10.0)) is True
+    assert buf.add(4.0, q_heading(30.0)) is True
+    assert (buf.oldest_t, buf.newest_t, len(buf)) == (3.0, 4.0, 2)
+    q, reason = buf.at(3.5)
+    assert reason == OK and heading_of(q) == pytest.approx(20.0, abs=1e-6)
+    assert buf.add(4.0, q_heading(30.0)) is False  # not newer than the newest
+    buf.add(4.25, q_heading(30.0))
+    buf.add(4.5, q_heading(30.0))  # 3.0 is now 1.5 s older than the newest: pruned
+    assert (buf.oldest_t, buf.newest_t, len(buf)) == (4.0, 4.5, 3)
+
+
+def test_buffer_interpolates_between_the_two_samples_around_the_time():
+    """Among many samples the lookup uses the pair that brackets the time, never a wider one:
+    headings that zigzag would show it."""
+    hs = [100.0, 140.0, 110.0, 150.0, 120.0, 160.0, 130.0, 170.0, 140.0]
+    ts = [10.0 + 0.01 * k for k in range(len(hs))]
+    buf = OrientationBuffer()
+    for t, h in zip(ts, hs, strict=True):
+        buf.add(t, q_heading(h))
+    for k in range(len(hs) - 1):
+        q, reason = buf.at(0.5 * (ts[k] + ts[k + 1]))
+        assert reason == OK and heading_of(q) == pytest.approx(0.5 * (hs[k] + hs[k + 1]), abs=1e-6), k
+        q, reason = buf.at(ts[k])
+        assert reason == OK and heading_of(q) == pytest.approx(hs[k], abs=1e-9), k
+
+
 # --- the tracker --------------------------------------------------------------------------------
 
 
@@ -338,8 +440,11 @@ def test_tracker_rotation_vector_magnetic_then_true():
 
 def test_tracker_skips_inaccurate_rotation_vectors():
     tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, max_accuracy_rad=math.radians(30))
-    assert not tr.add_rotation_vector(1.0, q_heading(0.0), accuracy_rad=math.pi)  # BNO: "uncalibrated"
+    assert tr.add_rotation_vector(1.0, q_heading(0.0), accuracy_rad=math.pi) is False  # BNO: "uncalibrated"
     assert tr.counts["inaccurate"] == 1 and tr.attitude_at(1.0) == (None, NO_IMU_YET)
+    # Only reports *worse* than the limit are refused: one exactly at it is used.
+    assert tr.add_rotation_vector(2.0, q_heading(0.0), accuracy_rad=math.radians(30)) is True
+    assert tr.counts["inaccurate"] == 1 and tr.attitude_at(2.0)[1] == OK
 
 
 def test_tracker_game_rotation_vector_is_relative_to_its_first_report():
@@ -358,6 +463,52 @@ def test_tracker_vertical_optical_axis_has_no_heading():
     tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO)
     tr.add_rotation_vector(0.0, quat_from_rotation(world_from_cam(0.3, math.radians(89.9)) @ CAM_FROM_IMU_OAK_D_PRO))
     assert tr.attitude_at(0.0) == (None, VERTICAL)
+    # docs/oak.md: "within 1 deg of vertical" has none; 1.5 deg off vertical still has one.
+    tr.add_rotation_vector(1.0, quat_from_rotation(world_from_cam(0.3, math.radians(89.5)) @ CAM_FROM_IMU_OAK_D_PRO))
+    assert tr.attitude_at(1.0) == (None, VERTICAL)
+    tr.add_rotation_vector(2.0, quat_from_rotation(world_from_cam(0.3, math.radians(88.5)) @ CAM_FROM_IMU_OAK_D_PRO))
+    att, reason = tr.attitude_at(2.0)
+    assert reason == OK and att.heading_rad == pytest.approx(0.3, abs=1e-9)
+    assert deg(att.pitch_rad) == pytest.approx(88.5, abs=1e-9)
+
+
+def test_tracker_keeps_at_most_4096_imu_samples():
+    """docs/oak.md: the orientation buffer holds at most 4096 samples, the oldest dropped and counted."""
+    tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, history_s=10.0)
+    q = q_heading(45.0)
+    for k in range(4097):  # 1 kHz for 4.1 s, all within the history
+        tr.add_rotation_vector(k * 0.001, q)
+    assert len(tr.buffer) == 4096 and tr.buffer.counts["overflow"] == 1 and tr.buffer.oldest_t == 0.001
+
+
+def test_tracker_declination_is_within_half_a_turn():
+    for ok in (math.pi, -math.pi, 0.0):
+        AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, declination_rad=ok)
+    for bad in (4.0, -4.0, math.nan, math.inf):
+        with pytest.raises(ValidationError, match="declination"):
+            AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, declination_rad=bad)
+
+
+def test_tracker_counts_every_report_and_ignores_the_other_kind():
+    """What stats()["imu_counts"] shows; the add_* methods say whether the report was used."""
+    q = q_heading(10.0)
+    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D_PRO)
+    assert tr.add_rotation_vector(0.0, q) is False  # gyro mode: no rotation vectors
+    tr.add_accelerometer(0.0, (-9.81, 0.0, 0.0))
+    assert tr.add_gyro(0.0, np.zeros(3)) is True
+    assert tr.add_gyro(0.0, np.zeros(3)) is False  # not newer
+    assert tr.counts == {"rotation_vectors": 0, "gyro_reports": 2, "accel_reports": 1, "inaccurate": 0,
+                         "ignored": 1}
+    tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO)
+    assert tr.add_gyro(0.0, np.zeros(3)) is False  # fusion mode: no gyro
+    tr.add_accelerometer(1.0, (-9.81, 0.0, 0.0))
+    tr.add_accelerometer(1.01, (-9.81, 0.0, 0.0))
+    assert tr.add_rotation_vector(1.0, q) is True
+    assert tr.add_rotation_vector(1.0, q) is False  # not newer: dropped by the buffer
+    assert tr.add_rotation_vector(1.1, q, accuracy_rad=math.pi) is False
+    assert tr.counts == {"rotation_vectors": 3, "gyro_reports": 0, "accel_reports": 2, "inaccurate": 1,
+                         "ignored": 1}
+    assert tr.buffer.counts == {"added": 1, "out_of_order": 1, "overflow": 0}
 
 
 # --- gyro integration ----------------------------------------------------------------------------
@@ -406,3 +557,94 @@ def test_gyro_counts_gaps_and_ignores_old_samples():
     assert integ.update(1.0, np.zeros(3)) is None
     integ.update(1.5, np.zeros(3))
     assert integ.counts == {"gyro_steps": 1, "gyro_gaps": 1, "gyro_out_of_order": 1}
+
+
+def test_gyro_gap_is_a_step_longer_than_a_tenth_of_a_second():
+    """docs/oak.md: a gap *longer* than 0.1 s between gyro reports is counted."""
+    integ = GyroIntegrator(CAM_FROM_IMU_OAK_D_PRO)
+    for t in (0.0, 0.1, 0.22):  # steps of 0.1 s (not a gap) and 0.12 s (a gap)
+        integ.update(t, np.zeros(3))
+    assert integ.counts == {"gyro_steps": 2, "gyro_gaps": 1, "gyro_out_of_order": 0}
+
+
+@pytest.mark.parametrize(
+    ("w_cam", "want_deg"),
+    [
+        ((0.0, 1.0, 0.0), (30.0, 0.0, 0.0)),  # about the camera's down axis: clockwise, heading grows
+        ((1.0, 0.0, 0.0), (0.0, 30.0, 0.0)),  # about its right axis: nose up
+        ((0.0, 0.0, 1.0), (0.0, 0.0, 30.0)),  # about the optical axis: right side down
+    ],
+)
+def test_tracker_gyro_integrates_body_rates_about_each_axis(w_cam, want_deg):
+    """Gyro rates are body rates in IMU axes; on the OAK-D (IMU x down, y left, z forward) the
+    three camera axes are three different IMU axes. Without an accelerometer the integrator starts
+    level and looking at its own north (relative 0). A constant rate about a fixed body axis
+    integrates exactly, even in 1.5 deg steps (20 Hz)."""
+    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D)
+    assert not tr.gyro.initialized
+    w_imu = CAM_FROM_IMU_OAK_D.T @ (math.radians(30.0) * np.array(w_cam))
+    for k in range(21):  # 1 s
+        assert tr.add_gyro(k * 0.05, w_imu) is True
+        assert tr.gyro.initialized
+    att, reason = tr.attitude_at(1.0)
+    assert reason == OK and tr.counts["gyro_reports"] == 21
+    assert ang_diff(att.heading_rad, math.radians(want_deg[0])) < ANGLE_RAD_F64
+    assert abs(att.pitch_rad - math.radians(want_deg[1])) < ANGLE_RAD_F64
+    assert abs(att.roll_rad - math.radians(want_deg[2])) < ANGLE_RAD_F64
+
+
+def test_gyro_first_sample_looks_north_with_the_tilt_of_gravity():
+    """GyroIntegrator's world is z up from the accelerometer, and its north is where the optical
+    axis points at the first sample: the first orientation is heading 0 with the true pitch and roll."""
+    for mount in (CAM_FROM_IMU_OAK_D, CAM_FROM_IMU_OAK_D_PRO):
+        world_from_imu = world_from_cam(math.radians(123.0), math.radians(20.0), math.radians(-10.0)) @ mount
+        accel = world_from_imu.T @ np.array([0.0, 0.0, 9.81])
+        q = GyroIntegrator(mount).update(0.0, np.zeros(3), accel)
+        np.testing.assert_allclose(world_from_cam_of_imu(q, mount),
+                                   world_from_cam(0.0, math.radians(20.0), math.radians(-10.0)), atol=1e-9)
+
+
+def test_gyro_starts_even_when_the_camera_looks_straight_up_or_down():
+    """A vertical optical axis has no heading to call north; any will do, but it must be a rotation.
+    Also for an IMU whose x axis is the optical axis."""
+    x_forward = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # IMU x fwd, y right, z down
+    for mount in (CAM_FROM_IMU_OAK_D, CAM_FROM_IMU_OAK_D_PRO, x_forward):
+        for sign in (1.0, -1.0):  # looking up: gravity's up is the optical axis; looking down: minus it
+            accel = sign * 9.81 * (mount.T @ np.array([0.0, 0.0, 1.0]))
+            q = GyroIntegrator(mount).update(0.0, np.zeros(3), accel)
+            _, p, _ = attitude_from_world_from_cam(world_from_cam_of_imu(q, mount))
+            assert np.all(np.isfinite(q)) and p == pytest.approx(sign * math.pi / 2, abs=1e-9)
+
+
+def test_tracker_gyro_tilt_converges_at_the_documented_gain():
+    """docs/oak.md: a Mahony proportional term of gain 0.5/s pulls the estimated up towards the
+    accelerometer's. With a tilt error e it turns the estimate at 0.5 sin(e) rad/s, so
+    tan(e/2) = tan(e0/2) exp(-0.5 t): started level, with the accelerometer saying 10 deg nose up,
+    after 2 s the pitch is 10 deg - 2 atan(tan(5 deg) / e). The heading does not move."""
+    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D_PRO)  # the driver's gain: the default
+    g_up = np.array([0.0, 0.0, 9.81])
+    tr.add_accelerometer(0.0, level_pro_imu(0.0).T @ g_up)
+    tr.add_gyro(0.0, np.zeros(3))
+    pitched = world_from_cam(0.0, math.radians(10.0)) @ CAM_FROM_IMU_OAK_D_PRO
+    for k in range(1, 201):  # 2 s at 100 Hz
+        tr.add_accelerometer(k * 0.01, pitched.T @ g_up)
+        tr.add_gyro(k * 0.01, np.zeros(3))
+    att, _ = tr.attitude_at(2.0)
+    want = math.radians(10.0) - 2.0 * math.atan(math.tan(math.radians(5.0)) * math.exp(-1.0))
+    assert abs(att.pitch_rad - want) < GYRO_RAD, deg(att.pitch_rad)
+    assert ang_diff(att.heading_rad, 0.0) < GYRO_RAD and abs(att.roll_rad) < GYRO_RAD
+
+
+def test_gyro_tilt_correction_only_within_ten_percent_of_g():
+    """docs/oak.md: the accelerometer holds the tilt only while its magnitude is within 10% of g
+    (not while accelerating hard): 8% low still pulls, 12% high does not."""
+    level = level_pro_imu(0.0)
+    pitched = world_from_cam(0.0, math.radians(10.0)) @ CAM_FROM_IMU_OAK_D_PRO
+    g_up = np.array([0.0, 0.0, 9.80665])
+    for scale, moves in ((0.92, True), (1.12, False)):
+        integ = GyroIntegrator(CAM_FROM_IMU_OAK_D_PRO, tilt_gain=1.0)
+        integ.update(0.0, np.zeros(3), level.T @ g_up)
+        for k in range(1, 101):
+            q = integ.update(k * 0.01, np.zeros(3), scale * (pitched.T @ g_up))
+        _, p, _ = attitude_from_world_from_cam(world_from_cam_of_imu(q, CAM_FROM_IMU_OAK_D_PRO))
+        assert (deg(p) > 5.0) if moves else (abs(p) < EXACT_F64), (scale, deg(p))
