@@ -250,9 +250,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
         interrupted = True  # what was replayed is written: say how far it got, as eval does
     finally:
         _close_all(pubs)
-    from rig.publishers import publisher_name
-
-    lost = _report_output_losses({publisher_name(p): p.stats() for p in pubs})
     summary = f"{stats.frames} frames, {stats.windows - stats.windows_failed} estimates"
     if interrupted:
         summary = f"interrupted after {summary}"
@@ -272,6 +269,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         summary += " (log truncated: replayed up to its last complete chunk)"
     if not args.quiet:
         progress.close(summary)
+    from rig.publishers import publisher_name
+
+    lost = _report_output_losses({publisher_name(p): p.stats() for p in pubs})  # below the progress line
     return STOP.exit_code() if interrupted else lost  # as for any Ctrl-C, with the work so far written
 
 

@@ -116,8 +116,13 @@ def _open_error(name: str, exc: Exception) -> PublishError:
 # How often the writer retries a full kernel buffer: the line drains 4 KB in 0.36 s at 115200 baud.
 _FULL_BUFFER_POLL_S = 0.005
 # At close, how long the port's own buffer may take to send what it holds: 0.5 s is a 4 KiB
-# kernel buffer at 115200 baud, several seconds of estimates at any rate the rig publishes.
+# kernel buffer at 115200 baud, or 6 sentences at 9600 (more than the rig leaves there when its
+# reader keeps up; a stalled reader's backlog is stale anyway).
 _CLOSE_DRAIN_S = 0.5
+# wait_for_writer: how long publish() waits for the writer to take the previous message, at
+# least. The writer takes it as soon as its write ends (within write_timeout_s); the rest is for
+# a busy machine that schedules the writer thread late.
+_WAIT_FOR_WRITER_MIN_S = 1.0
 
 
 def _unsent_bytes(port: serial.SerialBase) -> int:
@@ -160,9 +165,9 @@ class SerialPublisher:
     port and reopens it after a backoff that doubles from ``backoff_s[0]`` to ``backoff_s[1]``:
     from the URL when it was given one, else with ``port.open()``.
 
-    ``wait_for_writer``: for a replay, which has no deadline. ``publish()`` then waits, at most two
-    write timeouts and only while the port is open, for the writer to take the previous message
-    instead of replacing it: a replay at full speed reaches the controller whole, and a stalled
+    ``wait_for_writer``: for a replay, which has no deadline. ``publish()`` then waits (at most two
+    write timeouts or 1 s, and only while the port is open) for the writer to take the previous
+    message instead of replacing it: a replay at full speed reaches the controller whole, and a stalled
     or lost link slows it, never stops it. A live rig must not wait (the default).
     """
 
@@ -225,7 +230,10 @@ class SerialPublisher:
             if self._stop.is_set():
                 raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
             if self._wait_for_writer:
-                self._cond.wait_for(self._slot_free_or_link_down, timeout=2 * self._write_timeout_s)
+                self._cond.wait_for(self._slot_free_or_link_down,
+                                    timeout=max(2 * self._write_timeout_s, _WAIT_FOR_WRITER_MIN_S))
+                if self._stop.is_set():  # closed while waiting
+                    raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
             if self._slot is not None:
                 self._counts["dropped_overwritten"] += 1
             self._slot = message
@@ -234,7 +242,8 @@ class SerialPublisher:
 
     def _slot_free_or_link_down(self) -> bool:
         port = self._port
-        return self._slot is None or self._stop.is_set() or port is None or not port.is_open
+        return (self._slot is None or self._stop.is_set() or port is None or not port.is_open
+                or not self._thread.is_alive())
 
     def stats(self) -> dict[str, Any]:
         """Counters and state. ``published`` = ``written`` + the three kinds of drop + ``pending``
@@ -255,8 +264,13 @@ class SerialPublisher:
         even when a write is stuck (the writer thread then closes the port when its write returns)."""
         if not begin_stop(self._cond, self._stop):
             return
-        # cancel_write wakes a pyserial write() waiting in select() (ports not written by _write_fd).
-        join_worker(self._thread, self._join_timeout_s, getattr(self._port, "cancel_write", None), log,
+        # First let the writer finish on its own: the last message and the drain take at most a
+        # write timeout and _CLOSE_DRAIN_S. Only a writer still stuck then gets cancel_write(),
+        # which wakes a pyserial write() waiting in select() (ports not written by _write_fd) but
+        # also makes one that already wrote return 0, a message sent yet counted as dropped.
+        first_s = min(self._join_timeout_s / 2, self._write_timeout_s + _CLOSE_DRAIN_S + 0.5)
+        self._thread.join(first_s)
+        join_worker(self._thread, self._join_timeout_s - first_s, getattr(self._port, "cancel_write", None), log,
                     f"serial writer for {self._name}")
 
     def __enter__(self) -> SerialPublisher:
@@ -382,6 +396,8 @@ class SerialPublisher:
         except PORT_ERRORS:
             pass
         self._resync = True
+        with self._cond:
+            self._cond.notify_all()  # a publish() waiting for the writer: the link is down
 
     def _reopen(self) -> bool:
         """Open the port again: a fresh one from the URL, else the given object. False if not yet."""

@@ -321,6 +321,24 @@ def test_close_leaves_what_was_written_for_the_reader(pty, fmt):
         pub.close()
 
 
+def test_a_pyserial_written_port_sends_and_counts_the_last_message_at_close(pty):
+    """spy:// (and socket://) ports are written by pyserial's own write(). close() used to call
+    its cancel_write() at once, so the last write sent its bytes yet returned 0: delivered, counted
+    as dropped, and the port flushed as after a failure."""
+    reader = MasterReader(pty.master, NmeaLineReader())
+    pub = SerialPublisher(f"spy://{pty.name}?file=/dev/null", format="nmea", wait_for_writer=True)
+    try:
+        for k in range(5):
+            pub.publish(make_estimate(30, 20, seq=k))
+        within(HANG_GUARD_S, pub.close)
+        stats = pub.stats()
+        assert stats["written"] == 5 and stats["dropped_write_timeout"] == 0, stats
+        wait_until(lambda: len(reader.snapshot()) == 5, "the reader to get all five")
+    finally:
+        reader.stop()
+        pub.close()
+
+
 class UartPort(LoopSerial):
     """FAKE serial port: a loop:// port that reports bytes still unsent (``out_waiting``, a UART's
     TIOCOUTQ), as a UART whose reader holds the line with flow control does. ``drained_after``
