@@ -137,8 +137,14 @@ class ModelContract:
         flagged every sun above 20 deg as beyond its training."""
         data = self.training.get("data")
         init = self.training.get("init")
+        init_range = None
+        if isinstance(init, dict):
+            # The start's own chain (recorded since session 11), else its training data's range.
+            init_data = init.get("data")
+            init_range = init.get("sun_elevation_deg") or (
+                init_data.get("sun_elevation_deg") if isinstance(init_data, dict) else None)
         ranges = [r for r in (_elevation_range(data.get("sun_elevation_deg") if isinstance(data, dict) else None),
-                              _elevation_range(init.get("sun_elevation_deg") if isinstance(init, dict) else None))
+                              _elevation_range(init_range))
                   if r is not None]
         if not ranges:
             return None

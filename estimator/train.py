@@ -48,7 +48,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from estimator.contract import BACKBONE_FILE, PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
+from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
 from estimator.crops import crop_side_px
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
@@ -286,9 +286,10 @@ class Schedule:
 
     def lr_at(self, step: int, total: int, cfg: TrainConfig) -> float:
         peak = self.start_lr or cfg.lr
-        # At most a tenth of the run: a 150-step fine-tune would otherwise end still warming up,
-        # never reaching its --lr.
-        warmup = max(1, min(cfg.warmup_steps, total // 10))
+        # At most a tenth of a --steps run: a 150-step fine-tune would otherwise end still warming
+        # up, never reaching its --lr. (A --minutes run learns its length only after 20 steps; a
+        # warmup fixed from that would jump there.)
+        warmup = max(1, min(cfg.warmup_steps, cfg.max_steps // 10)) if cfg.max_steps else cfg.warmup_steps
         if self.start_step == 0 and step < warmup:
             return peak * (step + 1) / warmup
         begin = max(self.start_step, warmup if self.start_step == 0 else 0)
@@ -391,12 +392,22 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     state = _resumable_state(out_dir, cfg)
     # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
     init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
-    explicit_crops = cfg.crops_per_frame != 0
-    if state is not None and run_finished(state, cfg) and (out_dir / BACKBONE_FILE).is_file():
-        log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
-        return out_dir
+    if state is not None:
+        if progress:
+            progress({"phase": "resume", "step": state["step"], "minutes": state["elapsed_s"] / 60.0})
+        if run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
+            log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
+            if progress:
+                progress({"phase": "finished", "step": state["step"]})
+            return out_dir
     # What a fine-tune started from, read once at its start: the folder may be gone by the export.
     init_info = (state or {}).get("init_info") or (_init_provenance(Path(cfg.init)) if cfg.init else None)
+    # How the model will run: as its start did (the shipped model: 8 crops a frame, though trained
+    # with 4), unless --crops said; fixed at the run's start, so a resume or --export-only keeps it.
+    if state is not None:
+        run_crops = int(state.get("run_crops_per_frame") or 0)
+    else:
+        run_crops = 0 if cfg.crops_per_frame or not init_info else int(init_info.get("crops_per_frame") or 0)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     fov = math.radians(cfg.crop_fov_deg)
@@ -432,8 +443,10 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         schedule = Schedule(**state.get("schedule", {"minutes": state["config"]["minutes"]}))
-        if not cfg.max_steps and cfg.minutes != schedule.minutes:
-            # A new budget: a new cosine segment from where the rate stands now.
+        budget_changed = (cfg.max_steps != state["config"].get("max_steps") if cfg.max_steps
+                          else cfg.minutes != schedule.minutes)
+        if budget_changed:
+            # A new budget: a new cosine segment from where the rate stands now, never back up.
             schedule = Schedule(start_step=step, start_lr=opt.param_groups[0]["lr"], minutes=cfg.minutes)
         drive_err = state.get("drive_err_deg")
         log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
@@ -462,6 +475,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     backbone.train()
     aggregator.train()
     out_dir.mkdir(parents=True, exist_ok=True)  # only now: a run refused or stopped while loading leaves no folder
+    if state is None:
+        (out_dir / METRICS).unlink(missing_ok=True)  # a killed run's, from before its first checkpoint
     start = time.monotonic() - elapsed_s
     start_step = step  # where this session began: a resumed run's earlier steps are not its rate
     last_ckpt = time.monotonic()
@@ -476,6 +491,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "data_counts": {"drives": len(drives), "frames": n_frames, "sun_elevation_deg": sun_range_deg},
             "err_deg_ema": None if ema_err is None else round(ema_err, 2),
             "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(), "init_info": init_info,
+            "run_crops_per_frame": run_crops,
         }
 
     try:
@@ -554,16 +570,13 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # (a second snapshot after a slow save reads a later clock).
     final = state_dict()
     _save_checkpoint(ckpt_path, final)
-    # A fine-tuned model runs as the model it started from (the shipped one: 8 crops a frame,
-    # though trained with 4), unless --crops said otherwise.
-    run_crops = 0 if explicit_crops or not init_info else int(init_info.get("crops_per_frame") or 0)
-    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, final, out_dir,
-                   run_crops_per_frame=run_crops)
+    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, final, out_dir)
 
 
 # What makes a run itself: resuming with any of these changed would make a contract that lies
 # about how its model was trained.
-_RUN_IDENTITY = {"preset": "--preset", "init": "--init", "lr": "--lr", "batch_windows": "--batch", "seed": "--seed"}
+_RUN_IDENTITY = {"preset": "--preset", "lr": "--lr", "batch_windows": "--batch", "seed": "--seed",
+                 "hard_share": "--hard-share"}
 
 
 def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
@@ -574,7 +587,9 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
         raise ValidationError(f"--out {out_dir} is a file; pass a folder for the model (it is made if missing)")
     ckpt_path = out_dir / CHECKPOINT
     if not ckpt_path.is_file():
-        held = sorted(p.name for p in out_dir.iterdir() if p.name != METRICS) if out_dir.is_dir() else []
+        # Not held: a killed run's metrics, or the hidden sibling of a checkpoint it was writing.
+        held = sorted(p.name for p in out_dir.iterdir()
+                      if p.name != METRICS and not p.name.startswith(".")) if out_dir.is_dir() else []
         if held:
             shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
             raise ValidationError(f"--out {out_dir} already holds files ({shown}) and no training run; pass a new "
@@ -584,6 +599,9 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     was = state["config"]
     differs = [f"{flag} {was.get(key)!r}, not {getattr(cfg, key)!r}" for key, flag in _RUN_IDENTITY.items()
                if key in was and was[key] != getattr(cfg, key)]
+    if (was.get("init") or "") != cfg.init and not (was.get("init") and cfg.init
+                                                     and Path(was["init"]).resolve() == Path(cfg.init).resolve()):
+        differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")
     if cfg.crops_per_frame not in (0, was["crops_per_frame"]):  # 0: the run's own
         differs.append(f"--crops {was['crops_per_frame']}, not {cfg.crops_per_frame}")
     old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
@@ -603,22 +621,26 @@ def run_finished(state: dict[str, Any], cfg: TrainConfig) -> bool:
     return state["elapsed_s"] >= cfg.minutes * 60.0
 
 
-def checkpoint_progress(out_dir: Path) -> tuple[int, float] | None:
-    """(steps, minutes) trained by the run in ``out_dir``, or None when there is none."""
-    path = Path(out_dir) / CHECKPOINT
-    if not path.is_file():
+def _exported_step(out_dir: Path) -> int | None:
+    """The step of the model exported in ``out_dir`` (its contract's), or None if there is none
+    that loads: a finished run whose export is missing, stale or broken is exported again."""
+    from estimator.runtime import OnnxModel
+
+    try:
+        return int(OnnxModel.load(out_dir).contract.training.get("steps"))
+    except (SunrigError, TypeError, ValueError):
         return None
-    state = torch.load(path, weights_only=False)
-    return int(state["step"]), float(state["elapsed_s"]) / 60.0
 
 
 def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path,
             run_crops_per_frame: int = 0, export_command: str = "") -> Path:
     """The two graphs with a contract that records the recipe, the data and how far training got.
 
-    The contract's ``crops_per_frame`` is what the runtime feeds the model: the training count
-    unless ``run_crops_per_frame`` says otherwise (the recipe keeps the training count).
+    The contract's ``crops_per_frame`` is what the runtime feeds the model: ``run_crops_per_frame``
+    if given, else the run's own (a fine-tune's start's, recorded in the checkpoint), else the
+    training count (the recipe keeps it).
     """
+    run_crops_per_frame = run_crops_per_frame or int(state.get("run_crops_per_frame") or 0)
     training = {
         "trained": True,
         "command": cfg.command,

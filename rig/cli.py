@@ -667,7 +667,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from rig.errors import require_torch
 
     require_torch()
-    from estimator.train import TrainConfig, checkpoint_progress, command_line, data_fingerprint, run_finished, train
+    from estimator.train import TrainConfig, command_line, data_fingerprint, train
 
     if args.export_only:
         from estimator.train import export_checkpoint
@@ -699,8 +699,20 @@ def cmd_train(args: argparse.Namespace) -> int:
     loading = Progress("train: loading", unit="logs", enabled=enabled)
     steps: Progress | None = None
 
+    finished = False
+
     def on_progress(p: dict) -> None:
-        nonlocal steps
+        nonlocal steps, finished
+        if p["phase"] == "resume":
+            # The same command resumes a run (by design: a killed run loses nothing); say so, as
+            # it continues a run rather than start one.
+            if not args.quiet:
+                print(f"train: resuming the run in {args.out} at step {p['step']} ({p['minutes']:.1f} min "
+                      "trained); for a new run pass another --out", file=sys.stderr)
+            return
+        if p["phase"] == "finished":
+            finished = True
+            return
         if p["phase"] == "load":
             loading.total = p["total"]
             loading.update(p["done"])
@@ -717,17 +729,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     from replay.sources import utc_offset_default
 
-    # The same command resumes a run (by design: a killed run loses nothing); say so, as it
-    # continues a run rather than start one.
-    done = checkpoint_progress(Path(args.out)) if Path(args.out).is_dir() else None
-    if done and not args.quiet:
-        print(f"train: resuming the run in {args.out} at step {done[0]} ({done[1]:.1f} min trained); for a new "
-              "run pass another --out", file=sys.stderr)
     with utc_offset_default(args.utc_offset):  # train() opens the logs itself
         out = train(paths, Path(args.out), cfg, progress=on_progress)
     (steps or loading).close()
     if not args.quiet:
-        if steps is None and done and run_finished({"step": done[0], "elapsed_s": done[1] * 60.0}, cfg):
+        if finished:
             more = "--steps" if args.steps else "--minutes"
             print(f"train: the run in {out} already reached its end; nothing to train (pass a larger {more} to "
                   "train it further)", file=sys.stderr)

@@ -321,10 +321,25 @@ def test_a_minutes_budget_on_a_shared_cpu_is_warned_about(logs, tmp_path, monkey
 
 def test_a_short_run_warms_up_in_a_tenth_of_it():
     # A 150-step fine-tune with the recipe's 300 warmup steps would end still warming up.
-    cfg = TrainConfig(lr=1e-4, warmup_steps=300)
+    cfg = TrainConfig(lr=1e-4, warmup_steps=300, max_steps=150)
     lrs = [Schedule().lr_at(s, 150, cfg) for s in range(151)]
     assert lrs[14] == pytest.approx(1e-4) and max(lrs) == pytest.approx(1e-4)
-    assert Schedule().lr_at(14, 10**9, cfg) == pytest.approx(1e-4 * 15 / 300)  # a long run keeps its 300
+    # A --minutes run keeps its 300, also once its length is known (no jump at step 20).
+    minutes = TrainConfig(lr=1e-4, warmup_steps=300, minutes=2.0)
+    assert [Schedule().lr_at(s, total, minutes) for s, total in ((19, 10**9), (20, 200))] == pytest.approx(
+        [1e-4 * 20 / 300, 1e-4 * 21 / 300])
+
+
+def test_more_steps_for_a_finished_run_decay_from_where_it_stopped(logs, tmp_path):
+    out = tmp_path / "m"
+    cfg = TrainConfig(preset="tiny", max_steps=20, batch_windows=1, lr=1e-3, warmup_steps=2)
+    train(logs, out, cfg)
+    lr_end = Schedule().lr_at(19, 20, cfg)
+    train(logs, out, replace(cfg, max_steps=40))
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    # A new segment from the rate it stopped at (the old one's end), not the old cosine stretched
+    # over 40 steps, which would lift the rate back to about half the peak.
+    assert state["schedule"]["start_step"] == 20 and state["schedule"]["start_lr"] == pytest.approx(lr_end)
 
 
 def test_a_fine_tune_keeps_the_suns_and_the_crop_count_of_the_model_it_started_from(logs, tmp_path):
@@ -340,6 +355,10 @@ def test_a_fine_tune_keeps_the_suns_and_the_crop_count_of_the_model_it_started_f
     assert contract.training["data"]["sun_elevation_deg"] == [16.3, 16.3]  # its own drives
     assert contract.trained_sun_elevation_deg == (16.3, 53.1)  # and the suns its start had seen
     assert contract.crops_per_frame == 6
+    assert OnnxModel.load(export_checkpoint(tuned, tmp_path / "exported")).contract.crops_per_frame == 6
+    # A model fine-tuned before the start's range was recorded at the top of `init` still unions it.
+    old = replace(contract, training={**contract.training, "init": {"data": {"sun_elevation_deg": [40.0, 60.0]}}})
+    assert old.trained_sun_elevation_deg == (16.3, 60.0)
     explicit = train(low_sun, tmp_path / "explicit", TrainConfig(preset="tiny", max_steps=2, batch_windows=1,
                                                                    crops_per_frame=3, init=str(start)))
     assert OnnxModel.load(explicit).contract.crops_per_frame == 3
