@@ -27,6 +27,7 @@ from estimator.contract import (
     BACKBONE_FILE,
     BACKBONE_INPUT,
     BACKBONE_OUTPUT,
+    CHECKPOINT,
     CHECKSUMS_FILE,
     CONTRACT_VERSION,
     METADATA_CONTRACT_KEY,
@@ -130,7 +131,7 @@ class OnnxModel:
         paths = {name: root / name for name in (BACKBONE_FILE, AGGREGATOR_FILE)}
         missing = [name for name, p in paths.items() if not p.is_file()]
         if missing:
-            if (root / "checkpoint.pt").is_file():  # estimator.train.CHECKPOINT (torch is not imported here)
+            if (root / CHECKPOINT).is_file():
                 raise ModelError(f"{root} holds a training run that has not exported its model yet; export it as it "
                                  f"stands with `sunrig train --out {root} --export-only DIR` and pass --model DIR, "
                                  "or let the run finish")

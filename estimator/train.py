@@ -48,7 +48,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
+from estimator.contract import CHECKPOINT, PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
 from estimator.crops import crop_side_px
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
@@ -60,7 +60,6 @@ from estimator import nets  # noqa: E402  (needs torch, checked just above)
 from estimator.export import export_model  # noqa: E402
 
 log = logging.getLogger(__name__)
-CHECKPOINT = "checkpoint.pt"
 # The trained weights beside the exported graphs, as plain arrays (float16, no pickle, ignored by
 # the runtime): what ``--init`` starts a fine-tuning run from. The ONNX graphs cannot serve, since
 # export folds batch-norm into the convolutions.
