@@ -388,15 +388,15 @@ def test_waiting_for_the_writer_is_bounded_when_nobody_reads(pty):
 
 def test_waiting_for_a_writer_stuck_below_python_is_bounded():
     """A write hung in a wedged driver never frees the mailbox: each publish() of a replay waits
-    about two write timeouts, then replaces the unsent message as a live rig would."""
+    its bound (1 s here), then replaces the unsent message as a live rig would."""
     port = HungDriverPort()
     pub = SerialPublisher(port, format="nmea", write_timeout_s=0.05, join_timeout_s=0.2, wait_for_writer=True)
     try:
         pub.publish(make_estimate(5, 5, seq=0))
         wait_until(lambda: pub.stats()["in_flight"] == 1, "the writer to enter the hung write")
-        within(HANG_GUARD_S, lambda: [pub.publish(make_estimate(5, 5, seq=k)) for k in range(1, 11)])
+        within(HANG_GUARD_S, lambda: [pub.publish(make_estimate(5, 5, seq=k)) for k in range(1, 4)])
         stats = pub.stats()
-        assert stats["dropped_overwritten"] == 9 and stats["pending"] == 1 and stats["in_flight"] == 1
+        assert stats["dropped_overwritten"] == 2 and stats["pending"] == 1 and stats["in_flight"] == 1
     finally:
         port.release.set()
         pub.close()
