@@ -402,20 +402,24 @@ def test_waiting_for_a_writer_stuck_below_python_is_bounded():
         pub.close()
 
 
-class GatedPort(LoopSerial):
-    """FAKE serial port: a loop:// port whose write() waits until ``cancel_write()`` (which the
-    publisher's close() calls) and then completes: a write that returns just as the rig stops."""
+class HungDriverPort(LoopSerial):
+    """FAKE serial port: a loop:// port whose write() hangs until released (a wedged USB driver)."""
 
     def __init__(self) -> None:
         super().__init__("loop://")
-        self.gate = threading.Event()
+        self.release = threading.Event()
 
     def write(self, data: bytes) -> int:
-        self.gate.wait(HANG_GUARD_S)
+        self.release.wait(HANG_GUARD_S)
         return super().write(data)
 
+
+class GatedPort(HungDriverPort):
+    """FAKE serial port: a loop:// port whose write() waits until ``cancel_write()`` (which the
+    publisher's close() calls) and then completes: a write that returns just as the rig stops."""
+
     def cancel_write(self) -> None:
-        self.gate.set()
+        self.release.set()
 
 
 def test_close_sends_the_message_left_in_the_mailbox():
@@ -431,7 +435,7 @@ def test_close_sends_the_message_left_in_the_mailbox():
         stats = pub.stats()
         assert stats["written"] == stats["published"] == 2 and stats["pending"] == 0
     finally:
-        port.gate.set()
+        port.release.set()
         pub.close()
 
 
@@ -587,18 +591,6 @@ def test_loop_url_string_is_opened_and_closed_by_the_publisher():
     assert not pub.stats()["port_open"] and not pub.stats()["writer_alive"]
     with pytest.raises(PublishError, match="closed"):
         pub.publish(make_estimate(5, 5))
-
-
-class HungDriverPort(LoopSerial):
-    """FAKE serial port: a loop:// port whose write() hangs until released (a wedged USB driver)."""
-
-    def __init__(self) -> None:
-        super().__init__("loop://")
-        self.release = threading.Event()
-
-    def write(self, data: bytes) -> int:
-        self.release.wait(HANG_GUARD_S)
-        return super().write(data)
 
 
 def test_close_returns_while_the_write_is_stuck_and_the_writer_closes_the_port_later(caplog):
