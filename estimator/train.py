@@ -392,20 +392,20 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
     init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
     if state is not None:
-        if progress:
-            progress({"phase": "resume", "step": state["step"], "minutes": state["elapsed_s"] / 60.0})
         if run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
             log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
             if progress:
                 progress({"phase": "finished", "step": state["step"]})
             return out_dir
+        if progress:
+            progress({"phase": "resume", "step": state["step"], "minutes": state["elapsed_s"] / 60.0})
     # What a fine-tune started from, read once at its start: the folder may be gone by the export.
     init_info = (state or {}).get("init_info") or (_init_provenance(Path(cfg.init)) if cfg.init else None)
     # How the model will run: as its start did (the shipped model: 8 crops a frame, though trained
     # with 4), unless --crops said; fixed at the run's start, so a resume or --export-only keeps it.
-    if state is not None:
-        run_crops = int(state.get("run_crops_per_frame") or 0)
-    else:
+    if state is not None and "run_crops_per_frame" in state:
+        run_crops = int(state["run_crops_per_frame"] or 0)
+    else:  # a new run, or one checkpointed before session 11 recorded it
         run_crops = 0 if cfg.crops_per_frame or not init_info else int(init_info.get("crops_per_frame") or 0)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -442,8 +442,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         schedule = Schedule(**state.get("schedule", {"minutes": state["config"]["minutes"]}))
-        budget_changed = (cfg.max_steps != state["config"].get("max_steps") if cfg.max_steps
-                          else cfg.minutes != schedule.minutes)
+        # Any change of budget: other --steps, other --minutes, or from --steps to --minutes.
+        budget_changed = (cfg.max_steps != state["config"].get("max_steps", 0)
+                          or (not cfg.max_steps and cfg.minutes != schedule.minutes))
         if budget_changed:
             # A new budget: a new cosine segment from where the rate stands now, never back up.
             schedule = Schedule(start_step=step, start_lr=opt.param_groups[0]["lr"], minutes=cfg.minutes)
@@ -729,9 +730,10 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
                       export_command: str = "", log_paths: Sequence[Path] = ()) -> Path:
     """Export the model in ``checkpoint_dir``'s checkpoint as it stands (e.g. while it trains).
 
-    ``run_crops_per_frame`` sets the crops per frame the runtime will feed it (default: as
-    trained). The aggregator takes any number of tokens, and more crops than it was trained with
-    average out more of the luck of where crops land (docs/model.md measures it).
+    ``run_crops_per_frame`` sets the crops per frame the runtime will feed it (default: the
+    run's own, which for a fine-tune is its start's; else as trained). The aggregator takes any
+    number of tokens, and more crops than it was trained with average out more of the luck of
+    where crops land (docs/model.md measures it).
 
     ``log_paths``: the run's training logs, for a checkpoint written before training recorded
     its data's sun elevations (the status rule's limit, :meth:`ModelContract.trained_sun_elevation_deg`).

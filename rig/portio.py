@@ -62,10 +62,11 @@ def begin_stop(cond: threading.Condition, stop: threading.Event) -> bool:
 
 
 def join_worker(thread: threading.Thread, join_timeout_s: float, wake: Callable[[], object] | None,
-                log: logging.Logger, what: str) -> None:
+                log: logging.Logger, what: str, waited_s: float = 0.0) -> None:
     """After the stop event is set: wake the thread's blocking call (``wake``, e.g. pyserial's
     ``cancel_read``), join it for at most ``join_timeout_s`` and, if it is stuck below Python (a
-    driver, a port without a timeout), leave the daemon thread to finish on its own."""
+    driver, a port without a timeout), leave the daemon thread to finish on its own.
+    ``waited_s``: how long the caller already waited for it, for the warning's total."""
     if wake is not None:
         try:
             wake()
@@ -74,4 +75,4 @@ def join_worker(thread: threading.Thread, join_timeout_s: float, wake: Callable[
     thread.join(join_timeout_s)
     if thread.is_alive():
         log.warning("%s did not stop within %.1f s; it releases its device when its call returns",
-                    what, join_timeout_s)
+                    what, waited_s + join_timeout_s)

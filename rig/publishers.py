@@ -271,7 +271,7 @@ class SerialPublisher:
         first_s = min(self._join_timeout_s / 2, self._write_timeout_s + _CLOSE_DRAIN_S + 0.5)
         self._thread.join(first_s)
         join_worker(self._thread, self._join_timeout_s - first_s, getattr(self._port, "cancel_write", None), log,
-                    f"serial writer for {self._name}")
+                    f"serial writer for {self._name}", waited_s=first_s)
 
     def __enter__(self) -> SerialPublisher:
         return self
