@@ -395,6 +395,29 @@ def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
         train(logs[:2], out_on_data, replace(cfg, max_steps=2, data={"fingerprint": data_fingerprint(logs[:2])}))
 
 
+def test_a_run_switched_from_steps_to_minutes_decays_from_where_it_stopped(logs, tmp_path):
+    # The same --minutes as the steps run carried (as the CLI's default does): only --steps went.
+    cfg = TrainConfig(preset="tiny", max_steps=4, batch_windows=1, minutes=0.1)  # 6 s: more than 4 steps take
+    out = train(logs, tmp_path / "m", cfg)
+    train(logs, out, replace(cfg, max_steps=0))
+    assert torch.load(out / CHECKPOINT, weights_only=False)["schedule"]["start_step"] == 4  # not back to warmup
+
+
+def test_a_fine_tune_checkpointed_before_its_crop_count_was_recorded_keeps_its_starts(logs, tmp_path):
+    from estimator.runtime import OnnxModel
+    from estimator.train import export_checkpoint
+
+    first = train(logs, tmp_path / "first", TrainConfig(preset="tiny", max_steps=1, batch_windows=1))
+    start = export_checkpoint(first, tmp_path / "start", run_crops_per_frame=6)
+    tune = TrainConfig(preset="tiny", max_steps=1, batch_windows=1, init=str(start))
+    tuned = train(logs, tmp_path / "tuned", tune)
+    state = torch.load(tuned / CHECKPOINT, weights_only=False)
+    del state["run_crops_per_frame"]  # as an older sunrig wrote it
+    torch.save(state, tuned / CHECKPOINT)
+    train(logs, tuned, replace(tune, max_steps=2))
+    assert OnnxModel.load(tuned).contract.crops_per_frame == 6
+
+
 def test_a_refused_run_leaves_no_folder(tmp_path):
     no_truth = _write_logs(tmp_path / "logs", 1, truth=False)
     with pytest.raises(TrainingDataError):
