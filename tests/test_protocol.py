@@ -459,3 +459,174 @@ def test_binary_leading_delimiter_saves_the_frame_after_a_truncated_one():
     with_lead = BinaryFrameReader().feed(a[:30] + b)
     without_lead = BinaryFrameReader().feed(a[:30] + b[1:])
     assert len(with_lead) == 1 and len(without_lead) == 0
+
+
+# --- documented boundaries: each limit on both sides ------------------------------------------
+
+
+def test_status_rule_limits_are_inclusive():
+    # full_window >= 1: a one-frame window is a legal rule, and one frame fills it.
+    assert StatusRule(full_window=1).flags(make_estimate(100, 30, n_frames=1, utc_ns=None)) == FLAG_VALID
+    # elevation <= max_elevation_deg is valid; 90 deg and 45 deg come back from radians() exactly.
+    assert StatusRule().flags(make_estimate(100, 90.0, utc_ns=None)) == FLAG_VALID
+    rule = StatusRule(max_elevation_deg=45.0)
+    assert rule.flags(make_estimate(100, 45.0, utc_ns=None)) == FLAG_VALID
+    assert rule.flags(make_estimate(100, 45.1, utc_ns=None)) == FLAG_ABOVE_TRAINED
+    # The thresholds' own ranges, [0, 180] and [0, 90], include their ends.
+    for ok in (dict(max_spread_deg=0.0), dict(max_spread_deg=180.0), dict(max_elevation_deg=0.0)):
+        StatusRule(**ok)
+    with pytest.raises(ValidationError, match="max_spread_deg"):
+        StatusRule(max_spread_deg=180.5)
+    with pytest.raises(ValidationError, match="max_elevation_deg"):
+        StatusRule(max_elevation_deg=-0.5)
+
+
+def test_nmea_spread_at_both_ends_of_its_range():
+    fields = encode_nmea(make_estimate(100, 30, spread_deg=0.0)).decode().split("*")[0].split(",")
+    assert fields[10] == "0.0"
+    fields = encode_nmea(make_estimate(100, 30, spread_deg=180.0)).decode().split("*")[0].split(",")
+    assert fields[10] == "180.0"
+
+
+_V1_FIELDS = "1,,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V".split(",")
+_V1_INDEX = {"utc": 1, "el": 4, "e": 5, "n": 6, "u": 7, "brg": 8, "spread": 9}
+
+
+def _v1_with(name: str, text: str) -> bytes:
+    fields = list(_V1_FIELDS)
+    fields[_V1_INDEX[name]] = text
+    return nmea_sentence(fields)
+
+
+@pytest.mark.parametrize(
+    "name, text",
+    [("utc", "125900.00"), ("utc", "235960.99"), ("el", "90.0"), ("el", "-90.0"),
+     ("e", "1.000"), ("e", "-1.000"), ("n", "1.000"), ("n", "-1.000"), ("u", "1.000"), ("u", "-1.000"),
+     ("brg", "179.9"), ("brg", "-180.0"), ("spread", "180.0"), ("spread", "0.0")],
+)
+def test_decode_nmea_accepts_each_range_end(name, text):
+    assert decode_nmea(_v1_with(name, text))  # a dict, no ProtocolError
+
+
+@pytest.mark.parametrize(
+    "name, text",
+    [("utc", "126000.00"), ("utc", "235961.00"), ("el", "90.1"), ("el", "-90.1"),
+     ("e", "1.001"), ("e", "-1.001"), ("n", "1.001"), ("n", "-1.001"), ("u", "1.001"), ("u", "-1.001"),
+     ("brg", "180.0"), ("brg", "-180.1"), ("spread", "180.1")],
+)
+def test_decode_nmea_refuses_one_step_past_each_range_end(name, text):
+    with pytest.raises(ProtocolError) as info:
+        decode_nmea(_v1_with(name, text))
+    assert info.value.reason == "field"
+
+
+def test_decode_nmea_leap_second_and_version_field_edges():
+    got = decode_nmea(_v1_with("utc", "235960.99"))
+    assert got["utc_s_of_day"] == pytest.approx(23 * 3600 + 59 * 60 + 60.99)
+    # No version field at all: a version error (reported as none), not a crash.
+    with pytest.raises(ProtocolError, match="'none'") as info:
+        decode_nmea(nmea_sentence([]))
+    assert info.value.reason == "version"
+    # Version 1 with nothing after it: our version, wrong field count.
+    with pytest.raises(ProtocolError) as info:
+        decode_nmea(nmea_sentence(["1"]))
+    assert info.value.reason == "framing"
+    # A later version, however short, says which version it found.
+    with pytest.raises(ProtocolError, match="'2'") as info:
+        decode_nmea(nmea_sentence(["2"]))
+    assert info.value.reason == "version"
+
+
+def test_decode_binary_four_bytes_is_the_shortest_frame():
+    # 2 payload bytes + CRC: a later version passes the CRC and counts as a version, not malformed.
+    with pytest.raises(ProtocolError) as info:
+        decode_binary(_frame(bytes([2, 1])))
+    assert info.value.reason == "version"
+    with pytest.raises(ProtocolError) as info:  # 3 bytes: too short for a header and CRC
+        decode_binary(_frame(bytes([2])))
+    assert info.value.reason == "framing"
+
+
+def test_binary_payload_utc_zero_and_counts_clamped_to_u16():
+    no_utc = cobs_decode(encode_binary(make_estimate(100, 30, utc_ns=None))[1:-1])
+    assert no_utc[2] & FLAG_HAS_UTC == 0
+    assert struct.unpack_from("<q", no_utc, 16)[0] == 0  # 0 when HAS_UTC is clear
+    base = make_estimate(100, 30)
+    for n_frames, n_tokens, expected in ((65535, 65535, (65535, 65535)), (65536, 10**6, (65535, 65535)),
+                                         (65534, 3, (65534, 3))):
+        est = SunEstimate(t_mono_s=1.0, seq=1, sun_enu=base.sun_enu, heading_rad=0.0, heading_ref="true",
+                          spread_rad=0.1, n_frames=n_frames, n_tokens=n_tokens, aggregator="mean")
+        got = decode_binary(encode_binary(est))
+        assert (got["n_frames"], got["n_tokens"]) == expected
+
+
+def test_nmea_reader_counts_garbage_without_any_sentence_start():
+    reader = NmeaLineReader()
+    assert reader.feed(b"abc\r\nxyz") == []
+    assert reader.counts["garbage_bytes"] == 6  # CR and LF are never garbage
+    # A lone '$' right before a sentence is a cut sentence of one byte.
+    line = encode_nmea(make_estimate(100, 30, seq=77))
+    got = reader.feed(b"$" + line)
+    assert [m["seq"] for m in got] == [77]
+    assert reader.counts["garbage_bytes"] == 7 and reader.counts["malformed"] == 0
+
+
+def test_nmea_reader_drops_82_bytes_without_a_line_end_at_once():
+    reader = NmeaLineReader()
+    reader.feed(b"$" + b"X" * 80)  # 81 bytes: a sentence may still end with its LF
+    assert reader.counts["garbage_bytes"] == 0
+    reader.feed(b"X")  # 82 bytes and no LF: no valid sentence can be this
+    assert reader.counts["garbage_bytes"] == 82
+    line = encode_nmea(make_estimate(100, 30, seq=5))
+    assert [m["seq"] for m in reader.feed(line)] == [5]
+    assert reader.counts["garbage_bytes"] == 82
+
+
+def test_binary_reader_run_limit_is_256_bytes():
+    # Exactly 256 bytes without a delimiter are kept and judged as a frame (0xFF blocks cut short).
+    reader = BinaryFrameReader()
+    reader.feed(b"\xff" * 256)
+    assert reader.counts["garbage_bytes"] == 0
+    reader.feed(b"\x00")
+    assert reader.counts["malformed"] == 1 and reader.counts["garbage_bytes"] == 0
+    # 257 bytes are a run of more than 256: garbage at once, the rest dropped up to the next 0x00.
+    reader = BinaryFrameReader()
+    reader.feed(b"\xff" * 257)
+    assert reader.counts["garbage_bytes"] == 257
+    reader.feed(b"\xff" * 3 + encode_binary(make_estimate(100, 30, seq=9)))
+    assert reader.counts["garbage_bytes"] == 260 and reader.counts["malformed"] == 0
+    assert reader.counts["messages"] == 1
+
+
+def test_binary_reader_started_mid_frame_counts_the_tail_once():
+    a, b = (encode_binary(e) for e in random_estimates(2, seed=13))
+    reader = BinaryFrameReader()
+    assert len(reader.feed(a[1:])) == 1  # a frame without its leading delimiter still decodes
+    reader = BinaryFrameReader()
+    got = reader.feed(a[40:] + b)
+    assert len(got) == 1
+    assert reader.counts["malformed"] + reader.counts["bad_crc"] == 1
+    assert reader.counts["garbage_bytes"] == 0
+
+
+def test_nmea_vector_components_clamp_to_unit_range():
+    # SunEstimate accepts a norm of 1 +- 0.001, so a component may round to 1.001: it is sent as 1.000,
+    # inside the documented -1.000..1.000, and the decoder accepts the sentence.
+    base = make_estimate(100, 30)
+    for enu, expected in (((0.0, 0.0, 1.0009), ["0.000", "0.000", "1.000"]),
+                          ((0.0, -1.0009, 0.0), ["0.000", "-1.000", "0.000"]),
+                          ((-1.0009, 0.0, 0.0), ["-1.000", "0.000", "0.000"])):
+        est = SunEstimate(t_mono_s=1.0, seq=1, sun_enu=enu, heading_rad=0.0, heading_ref="true",
+                          spread_rad=base.spread_rad, n_frames=8, n_tokens=32, aggregator="mean")
+        line = encode_nmea(est)
+        assert line.decode().split(",")[6:9] == expected
+        assert decode_nmea(line)["sun_enu"] == tuple(float(x) for x in expected)
+
+
+def test_nmea_reader_lf_only_line_ends_are_not_garbage():
+    # `sunrig demo` prints sentences with LF only; the reader takes both line ends.
+    estimates = random_estimates(4, seed=14)
+    stream = b"".join(encode_nmea(e)[:-2] + b"\n" for e in estimates)
+    reader = NmeaLineReader()
+    assert [m["seq"] for m in reader.feed(stream)] == [e.seq % 100_000 for e in estimates]
+    assert reader.counts["garbage_bytes"] == 0 and reader.counts["messages"] == len(estimates)
