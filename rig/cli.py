@@ -439,12 +439,11 @@ def _report_output_losses(publishers: dict[str, dict]) -> int:
     """One line per output that failed to write estimates or dropped some (by name, its
     ``stats()``); exit 2 if one wrote none at all (a full disk, a dead link): the run went on for
     the other outputs, but its user must know."""
-    from rig.publishers import failed_writes
+    from rig.pipeline import publisher_losses
 
     code = 0
     for name, st in publishers.items():
-        failed = failed_writes(st)
-        dropped = sum(int(v) for k, v in st.items() if k.startswith("dropped") and isinstance(v, int))
+        dropped, failed = publisher_losses([st])  # as the status line counts them
         if not failed and not dropped:
             continue
         written = int(st.get("written") or 0)
