@@ -227,13 +227,11 @@ class SerialPublisher:
         """Encode ``est`` and leave it for the writer; returns at once, replacing an unsent message."""
         message = self._encode(est, self._rule)
         with self._cond:
-            if self._stop.is_set():
-                raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
-            if self._wait_for_writer:
+            if self._wait_for_writer:  # returns at once when closed: that is one of its conditions
                 self._cond.wait_for(self._slot_free_or_link_down,
                                     timeout=max(2 * self._write_timeout_s, _WAIT_FOR_WRITER_MIN_S))
-                if self._stop.is_set():  # closed while waiting
-                    raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
+            if self._stop.is_set():  # closed before, or while waiting
+                raise PublishError(f"publish() on the closed serial publisher of {self._name}; make a new one")
             if self._slot is not None:
                 self._counts["dropped_overwritten"] += 1
             self._slot = message
@@ -584,12 +582,10 @@ class QueuedWriter(Generic[T]):
         """The reader went away (a broken pipe): nothing more can be written."""
         return self._gone.is_set()
 
-    def put(self, item: T) -> bool:
-        """Queue ``item``; False (and nothing queued) once closed: no writer would take it."""
-        if self._stop.is_set():
-            return False
-        self._queue.put(item)
-        return True
+    def put(self, item: T) -> None:
+        """Queue ``item``; once closed, nothing is queued: no writer would take it."""
+        if not self._stop.is_set():
+            self._queue.put(item)
 
     def stats(self) -> dict[str, Any]:
         return {"dropped": self._queue.dropped, "pending": len(self._queue), "errors": self._errors.count,
