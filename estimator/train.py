@@ -392,7 +392,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
     init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
     if state is not None:
-        if run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
+        if _run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
             log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
             if progress:
                 progress({"phase": "finished", "step": state["step"]})
@@ -614,7 +614,7 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     return state
 
 
-def run_finished(state: dict[str, Any], cfg: TrainConfig) -> bool:
+def _run_finished(state: dict[str, Any], cfg: TrainConfig) -> bool:
     """Whether a checkpoint's run has reached the end ``cfg`` asks for (its steps, or its minutes)."""
     if cfg.max_steps:
         return state["step"] >= cfg.max_steps
