@@ -16,6 +16,7 @@ suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DE
 
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
+                                         [--crops N]
 """
 
 from __future__ import annotations
@@ -40,6 +41,16 @@ def _seeds(text: str) -> list[int]:
     if not seeds or len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"expected distinct comma-separated integers, got {text!r}")
     return seeds
+
+
+def _positive(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return n
 
 
 def elevation_excess(result, trained_max_deg: float | None, band_deg: float = 5.0) -> dict | None:
@@ -68,6 +79,8 @@ def main() -> None:
                     help="crop seeds; every window is estimated once per seed (default 0,1,2)")
     ap.add_argument("--crop-layout", default="spread", choices=("spread", "uniform"),
                     help="where each frame's crops go (default spread, as every command; uniform: the paper's draws)")
+    ap.add_argument("--crops", type=_positive, default=0, metavar="N",
+                    help="crops per frame instead of the model's (its contract's; more costs backbone time per frame)")
     args = ap.parse_args()
 
     from estimator.estimator import SunEstimator
@@ -78,7 +91,7 @@ def main() -> None:
     paths, model = drives_and_model(args)
     pooled, per_seed = None, {}
     for seed in args.seeds:
-        estimator = SunEstimator(model, seed=seed, crop_layout=args.crop_layout)
+        estimator = SunEstimator(model, seed=seed, crop_layout=args.crop_layout, crops_per_frame=args.crops or None)
         policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
         result = evaluate([(p.name, open_frames(p)) for p in paths], estimator, policy)
         per_seed[str(seed)] = {**error_summary(result.errors_deg["transformer"]),
@@ -101,7 +114,7 @@ def main() -> None:
         "data": {"held_out_seed": args.drive_seed, "drives": args.drives, "frames_per_drive": args.frames},
         "crop_layout": args.crop_layout,
         "crop_seeds": args.seeds,
-        "crops_per_frame": model.contract.crops_per_frame,
+        "crops_per_frame": args.crops or model.contract.crops_per_frame,
         "model": {"dir": str(model.model_dir), "id": model.model_id,
                   "training_command": model.contract.training.get("command")},
         **summary,
