@@ -776,7 +776,8 @@ def cmd_gnss(args: argparse.Namespace) -> int:
         reader.close()
         if out is not None:
             out.close()
-    n_lines = out.stats()["written"]
+    # None: Ctrl-C came while the output opened (a FIFO's open waits for its reader), so none was written.
+    n_lines = out.stats()["written"] if out is not None else 0
     if reader.failure:
         raise RuntimeError(f"the GNSS reader thread failed: {reader.failure}")
     stats = reader.stats()

@@ -398,6 +398,34 @@ def test_run_errors_are_one_line(tmp_path):
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, (args, res.stderr)
 
 
+def test_gnss_stopped_while_its_output_opens_ends_with_the_summary(tmp_path, monkeypatch, capsys):
+    # Ctrl-C while the JSONL output is being opened (a FIFO's open waits for its reader) left the
+    # output None, and the summary's out.stats() turned the stop into an AttributeError (mypy found it).
+    import drivers.gnss
+    import rig.cli
+    import rig.publishers
+    from tests.test_gnss_nmea import nmea
+
+    capture = tmp_path / "gnss.log"
+    capture.write_bytes(nmea("GPHDT,33.0,T"))
+    readers = []
+
+    class Reader(drivers.gnss.GnssReader):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            readers.append(self)
+
+    def interrupted_open(*args, **kwargs):
+        assert readers[0].wait_finished(10.0)  # the capture read whole: the counts below are fixed
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(drivers.gnss, "GnssReader", Reader)
+    monkeypatch.setattr(rig.publishers, "JsonlPublisher", interrupted_open)
+    assert rig.cli.main(["gnss", str(capture), "--jsonl", str(tmp_path / "out.jsonl")]) == 0
+    assert "gnss: 0 updates from 1 sentences" in capsys.readouterr().err
+    assert not (tmp_path / "out.jsonl").exists()
+
+
 def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
     import shutil
 
