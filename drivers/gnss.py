@@ -22,7 +22,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import serial
 
@@ -59,7 +59,7 @@ class FileTransport:
         self.port = str(path)
         self.timeout = 0.0
         self.at_eof = False
-        self._file = None
+        self._file: BinaryIO | None = None
         self.open()
 
     @property

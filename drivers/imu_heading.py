@@ -106,8 +106,8 @@ def quat_from_rotation(r) -> np.ndarray:
     else:
         s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
         q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    return quat_normalize(-q if q[0] < 0 else q)
+    q_wxyz = np.array(q)
+    return quat_normalize(-q_wxyz if q_wxyz[0] < 0 else q_wxyz)
 
 
 def quat_multiply(a, b) -> np.ndarray:
@@ -459,6 +459,7 @@ class GyroIntegrator:
         if self._q is None:
             self._q, self._t, self._w = self._initial(accel_imu), float(t_s), w
             return self._q.copy()
+        assert self._t is not None and self._w is not None  # set with _q, above
         dt = float(t_s) - self._t
         if not dt > 0:
             self.counts["gyro_out_of_order"] += 1

@@ -609,11 +609,12 @@ class GnssTracker:
             if not msg.quality or msg.lat_deg is None or msg.lon_deg is None or msg.time_of_day_ns is None:
                 self.counts["no_data"] += 1
                 return None
-            utc = self._dated(msg.time_of_day_ns)
-            if utc is None:
+            utc_ns = self._dated(msg.time_of_day_ns)
+            if utc_ns is None:
                 self.counts["undated"] += 1
                 return None
-            return GnssUpdate(t_mono_s, "GGA", fix=self._fix(utc, msg.lat_deg, msg.lon_deg, msg.alt_msl_m), utc_ns=utc)
+            return GnssUpdate(t_mono_s, "GGA", fix=self._fix(utc_ns, msg.lat_deg, msg.lon_deg, msg.alt_msl_m),
+                              utc_ns=utc_ns)
         if isinstance(msg, Zda):
             if msg.time_of_day_ns is None or msg.date is None:
                 self.counts["no_data"] += 1

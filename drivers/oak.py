@@ -91,9 +91,10 @@ def _dai():
             # Only the first import prints. fd 1 is the whole process's: swapping it again at every
             # session (reconnects while `--jsonl -` streams) would send those estimates to stderr.
             with _stdout_to_stderr():
-                import depthai as dai
+                import depthai
         except ImportError as exc:  # pragma: no cover - depends on the environment
             raise OakError("the OAK driver needs DepthAI v3: pip install 'depthai>=3'") from exc
+        dai = depthai
     if not hasattr(dai.node, "Camera") or not hasattr(dai.node, "ThreadedHostNode"):  # pragma: no cover
         raise OakError(f"the OAK driver needs DepthAI v3, found depthai {dai.__version__}: pip install 'depthai>=3'")
     return dai

@@ -169,7 +169,7 @@ class LiveSource:
                 out[name] = stats()
             elif isinstance(stats, dict):
                 out[name] = dict(stats)
-            elif dataclasses.is_dataclass(stats):
+            elif dataclasses.is_dataclass(stats) and not isinstance(stats, type):
                 out[name] = dataclasses.asdict(stats)
             elif hasattr(part, "as_dict"):
                 out[name] = part.as_dict()
@@ -235,7 +235,7 @@ def open_source(camera: str, heading: str, *, options: SourceOptions | None = No
             interp = HeadingInterpolator(opts.max_gap_s, opts.max_age_s, opts.heading_latency_s)
             pairing = PairingStats(interp)
             parts["pairing"] = pairing
-            extra = {"clock": clock} if clock is not None else {}
+            extra: dict[str, Any] = {"clock": clock} if clock is not None else {}  # else the default
             frames = with_heading(frames, reader, interp, stats=pairing, **extra)
         elif head.kind == "visual":
             frames = _visual(frames, parts)
@@ -286,7 +286,7 @@ class _Reiterable:
 def _open_gnss(head: HeadingSpec, opts: SourceOptions, clock: Callable[[], float] | None) -> Any:
     from drivers.gnss import GnssReader
 
-    extra = {"clock": clock} if clock is not None else {}
+    extra: dict[str, Any] = {"clock": clock} if clock is not None else {}  # else the default
     return GnssReader(head.target, baudrate=opts.baud, **extra)
 
 

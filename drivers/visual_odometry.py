@@ -43,6 +43,7 @@ import dataclasses
 import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -249,6 +250,15 @@ class VisualOdometry:
     STATS = ("frames", "keyframes", "essential", "rotation_only", "still", "prior", "lost", "rejected", "carried",
              "restarts")
 
+    # The tracking state, set by _forget_images and each keyframe.
+    _heading_key: float
+    _key_pts: np.ndarray | None  # (N, 2) in the keyframe, row-aligned with _prev_pts
+    _prev_pts: np.ndarray | None  # the same points in the previous frame
+    _prev_gray: np.ndarray | None
+    _key_count: int
+    _coarse_since_key: float | None
+    _t_prior: np.ndarray | None  # the rig's usual direction of travel (camera frame)
+
     def __init__(self, config: VoConfig | None = None, start_heading_rad: float = 0.0) -> None:
         self.config = config or VoConfig()
         self.stats = dict.fromkeys(self.STATS, 0)
@@ -276,7 +286,8 @@ class VisualOdometry:
         if restart:
             # Another camera mode: nothing tracks across it, and the turn meanwhile is unknown.
             self.stats["restarts"] += 1
-            return self._lose(gray, None)
+            self._lose(gray, None)
+            return None
         if self._prev_gray is None:
             self._new_keyframe(gray, self._last_heading)
             return self._sample(t_mono_s, self._last_heading)
@@ -289,7 +300,8 @@ class VisualOdometry:
 
         tracked = self._track(gray, shift)
         if tracked is None:
-            return self._lose(gray, coarse_step)
+            self._lose(gray, coarse_step)
+            return None
         key_pts, cur_pts = tracked
         parallax = float(np.median(np.linalg.norm(cur_pts - key_pts, axis=1)))
         if parallax < cfg.still_px:
@@ -302,9 +314,11 @@ class VisualOdometry:
                 # would explain is a wrong solution (too few or badly placed points), not a
                 # measurement: refuse it rather than drift by it, and carry the rotation-only turn.
                 self.stats["rejected"] += 1
-                return self._lose(gray, self._heading_key + dpsi_rot - self._last_heading)
+                self._lose(gray, self._heading_key + dpsi_rot - self._last_heading)
+                return None
         if dpsi is None:
-            return self._lose(gray, coarse_step)
+            self._lose(gray, coarse_step)
+            return None
         heading = self._heading_key + dpsi
         if parallax >= cfg.keyframe_parallax_px or len(cur_pts) < cfg.refresh_fraction * self._key_count:
             self._new_keyframe(gray, heading)
@@ -316,12 +330,12 @@ class VisualOdometry:
 
     def _forget_images(self) -> None:
         self._heading_key = self._last_heading
-        self._key_pts: np.ndarray | None = None  # (N, 2) in the keyframe, row-aligned with _prev_pts
-        self._prev_pts: np.ndarray | None = None  # the same points in the previous frame
-        self._prev_gray: np.ndarray | None = None
+        self._key_pts = None
+        self._prev_pts = None
+        self._prev_gray = None
         self._key_count = 0
-        self._coarse_since_key: float | None = 0.0
-        self._t_prior: np.ndarray | None = None  # the rig's usual direction of travel (camera frame)
+        self._coarse_since_key = 0.0
+        self._t_prior = None
 
     def _set_camera(self, intr: Intrinsics) -> None:
         self._intrinsics = intr
@@ -357,7 +371,6 @@ class VisualOdometry:
             self.stats["carried"] += 1
             self._last_heading += carry_rad
         self._new_keyframe(gray, self._last_heading)
-        return None
 
     def _new_keyframe(self, gray: np.ndarray, heading: float) -> None:
         cfg = self.config
@@ -379,7 +392,7 @@ class VisualOdometry:
     def _dominant_shift(self, gray: np.ndarray) -> tuple[float, float] | None:
         """Shift of the whole image since the previous one (phase correlation), or None when the
         correlation peak is weak."""
-        if self._prev_gray.shape != gray.shape:
+        if self._prev_gray is None or self._prev_gray.shape != gray.shape:
             return None
         if self._window is None or self._window.shape != gray.shape:
             self._window = cv2.createHanningWindow(gray.shape[::-1], cv2.CV_32F)
@@ -390,36 +403,39 @@ class VisualOdometry:
     def _track(self, gray: np.ndarray, shift: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray] | None:
         """Keyframe and current positions of the points that track forward and back, or None."""
         cfg = self.config
-        prev = self._prev_pts
-        if prev is None or len(prev) < cfg.min_points:
+        prev, key_pts, prev_gray = self._prev_pts, self._key_pts, self._prev_gray
+        if prev is None or key_pts is None or prev_gray is None or len(prev) < cfg.min_points:
             return None
         p0 = prev.reshape(-1, 1, 2)
-        good, cur = None, None
+        tracks: tuple[np.ndarray, np.ndarray] | None = None  # (good, cur)
         if shift is not None:
             # Start each track at the image's dominant shift: in a sharp turn everything moves
             # tens of pixels, more than the pyramid finds on its own.
-            good, cur = self._lk(gray, p0, p0 + np.asarray(shift, dtype=np.float32))
-        if good is None or good.sum() < cfg.min_points:
+            tracks = self._lk(prev_gray, gray, p0, p0 + np.asarray(shift, dtype=np.float32))
+        if tracks is None or tracks[0].sum() < cfg.min_points:
             # No shift, or it misled the tracker (a repeated pattern can win the correlation).
-            good2, cur2 = self._lk(gray, p0, None)
-            if good is None or good2.sum() > good.sum():
-                good, cur = good2, cur2
+            unguided = self._lk(prev_gray, gray, p0, None)
+            if tracks is None or unguided[0].sum() > tracks[0].sum():
+                tracks = unguided
+        good, cur = tracks
         if good.sum() < cfg.min_points:
             return None
-        return self._key_pts[good], cur[good]
+        return key_pts[good], cur[good]
 
-    def _lk(self, gray: np.ndarray, p0: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def _lk(self, prev_gray: np.ndarray, gray: np.ndarray, p0: np.ndarray,
+            guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Pyramidal Lucas-Kanade from the previous image, checked by tracking back."""
         cfg = self.config
-        lk = {"winSize": (cfg.lk_window_px, cfg.lk_window_px), "maxLevel": cfg.lk_levels,
-              "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
-              "minEigThreshold": cfg.lk_min_eig}
+        lk: dict[str, Any] = {"winSize": (cfg.lk_window_px, cfg.lk_window_px), "maxLevel": cfg.lk_levels,
+                              "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+                              "minEigThreshold": cfg.lk_min_eig}
         if guess is None:
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_gray, gray, p0, None, **lk)
+            # nextPts=None: OpenCV allocates the output (documented); its stubs type it as required.
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, None, **lk)  # type: ignore[call-overload]
         else:
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_gray, gray, p0, guess.astype(np.float32),
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, guess.astype(np.float32),
                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev_gray, p1, None, **lk)
+        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, prev_gray, p1, None, **lk)  # type: ignore[call-overload]
         fb = np.linalg.norm((p0 - p0r).reshape(-1, 2), axis=1)
         h, w = gray.shape
         cur = p1.reshape(-1, 2)

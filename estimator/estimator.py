@@ -24,6 +24,7 @@ from typing import Protocol
 import numpy as np
 
 from estimator.calibration import EstimationError, mean_direction, spread_rad, world_from_tokens
+from estimator.contract import ModelContract
 from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes, spread_crop_boxes
 from estimator.meanshift import meanshift_aggregate
 from rig.errors import ValidationError
@@ -40,7 +41,7 @@ CROP_LAYOUTS = {"spread": spread_crop_boxes, "uniform": sample_crop_boxes}
 class SunModel(Protocol):
     """What the estimator needs of a model (``estimator.runtime.OnnxModel`` is the real one)."""
 
-    contract: object
+    contract: ModelContract
     model_id: str
 
     def embed(self, crops_bgr: np.ndarray) -> np.ndarray: ...
@@ -69,24 +70,26 @@ def window_tokens(window: Sequence[FrameFeatures]) -> WindowTokens:
     """
     if not window:
         raise EstimationError("empty window: at least one frame with a heading is needed")
-    missing = [f.frame.seq for f in window if f.frame.attitude is None]
-    if missing:
+    # Each frame with its attitude, checked present once here for the uses below.
+    with_attitude = [(f, f.frame.attitude) for f in window if f.frame.attitude is not None]
+    if len(with_attitude) < len(window):
+        missing = [f.frame.seq for f in window if f.frame.attitude is None]
         raise EstimationError(f"frames {missing[:5]} have no heading; drop them before forming a window")
-    refs = {f.frame.attitude.reference for f in window}
+    refs = {a.reference for _, a in with_attitude}
     if len(refs) > 1:
         raise EstimationError(f"window mixes heading references {sorted(r.value for r in refs)}")
-    epochs = {f.frame.attitude.epoch for f in window}
+    epochs = {a.epoch for _, a in with_attitude}
     if len(epochs) > 1:
         raise EstimationError(f"window mixes heading epochs {sorted(epochs)}: their zeros differ; "
                               "form windows with rig.window.SpreadWindowPolicy, which keeps one epoch")
     models = {f.model_id for f in window}
     if len(models) > 1:
         raise EstimationError(f"window mixes embeddings of different models {sorted(models)}")
-    newest = max(window, key=lambda f: (f.frame.t_mono_s, f.frame.seq))
-    yaw_ref = newest.frame.attitude.heading_rad
+    newest, newest_attitude = max(with_attitude, key=lambda fa: (fa[0].frame.t_mono_s, fa[0].frame.seq))
+    yaw_ref = newest_attitude.heading_rad
     emb, ang, yaw = [], [], []
-    for f in window:
-        psi = f.frame.attitude.heading_rad
+    for f, attitude in with_attitude:
+        psi = attitude.heading_rad
         emb.append(f.embeddings)
         rel = np.full((f.n_crops, 1), wrap_pi(psi - yaw_ref))
         ang.append(np.concatenate([rel, f.crop_angles_rad], axis=1))
@@ -202,6 +205,7 @@ class SunEstimator:
     def _make_estimate(self, name: str, tokens: WindowTokens, unit: np.ndarray, spread: float,
                        world: np.ndarray) -> SunEstimate:
         frame = tokens.newest.frame
+        assert frame.attitude is not None  # window_tokens() took only frames with a heading
         # The truth is in true-north ENU: it grades only an estimate made in that world. A RELATIVE
         # or MAGNETIC window's world is turned by its start heading or the declination.
         truth = frame.sun_enu_truth if tokens.heading_ref == HeadingRef.TRUE else None

@@ -125,7 +125,7 @@ class EvalResult:
         for name in dict.fromkeys(self.window_logs):  # first-seen order, so ties stay in log order
             s = error_summary(errs[logs == name])
             rows.append({"log": name, **{k: s[k] for k in LOG_KEYS}})
-        return sorted(rows, key=lambda r: -r["max_deg"])
+        return sorted(rows, key=lambda r: -float(r["max_deg"]))
 
     def summary(self) -> dict:
         return {
@@ -182,7 +182,9 @@ def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estima
             result.windows_without_truth += 1
             continue
         for agg, est in estimates.items():
-            result.errors_deg[agg].append(math.degrees(est.error_rad))
+            error_rad = est.error_rad
+            assert error_rad is not None  # one window, one truth: every aggregator's has first's
+            result.errors_deg[agg].append(math.degrees(error_rad))
             result.flags[agg].append(rule.flags(est))
             result.elevation_deg[agg].append(math.degrees(est.elevation_rad))
         result.truth_elevation_deg.append(math.degrees(float(az_el_from_enu(first.truth_enu)[1])))
@@ -229,7 +231,8 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
 
     if result.samples:
         tokens_png = out_png.with_name(out_png.stem + "-tokens" + out_png.suffix)
-        shown = [a for a in ("transformer", "meanshift") if a in result.samples[0]] or list(result.samples[0])
+        preferred: list[str] = [a for a in ("transformer", "meanshift") if a in result.samples[0]]
+        shown = preferred or list(result.samples[0])
         cols = len(result.samples)
         fig, axes = plt.subplots(len(shown), cols, figsize=(2.6 * cols, 2.8 * len(shown)), dpi=110,
                                  subplot_kw={"projection": "polar"}, squeeze=False)

@@ -39,7 +39,9 @@ from estimator.contract import (
 from estimator.nets import TINY, Aggregator, Backbone, NetConfig
 from rig.errors import MissingExtraError, ModelError, ValidationError, require_torch
 
-torch = require_torch()
+require_torch()  # a missing torch names the extra to install
+import torch  # noqa: E402  (imported, not require_torch's value, so mypy knows torch.nn.Module)
+
 try:
     import onnx
 except ImportError as exc:  # pragma: no cover - depends on the environment
@@ -215,7 +217,8 @@ def build_random_nets(config: NetConfig, seed: int) -> tuple[Backbone, Aggregato
     gen = torch.Generator().manual_seed(seed + 1)
     with torch.no_grad():
         for m in (*backbone.modules(), *aggregator.modules()):
-            if isinstance(m, torch.nn.BatchNorm2d):
+            # (None only with track_running_stats=False, which the nets do not use: nothing to set.)
+            if isinstance(m, torch.nn.BatchNorm2d) and m.running_mean is not None and m.running_var is not None:
                 m.running_mean.copy_(0.1 * torch.randn(m.num_features, generator=gen))
                 m.running_var.copy_(0.5 + torch.rand(m.num_features, generator=gen))
             if isinstance(m, torch.nn.BatchNorm2d | torch.nn.LayerNorm):

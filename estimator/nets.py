@@ -19,10 +19,12 @@ from typing import Any
 from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, YAW_INPUT, ModelContract
 from rig.errors import ValidationError, require_torch
 
-torch = require_torch()
-nn = torch.nn
-F = torch.nn.functional
-Tensor = torch.Tensor
+# Imported after the check, not through its return value: mypy needs real imports to type the
+# nn.Module subclasses and Tensor annotations below.
+require_torch()  # a missing torch names the extra to install
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+from torch import Tensor, nn  # noqa: E402
 
 ENCODING_KIND = "cyclic-nested-sine"
 
@@ -56,6 +58,8 @@ class CyclicPositionalEncoding(nn.Module):
     to 3d values and zero-padded to ``width`` so the result can be added to a token.
     ``depth_per_angle`` None means the largest even d that fits: 2 floor(width / 6).
     """
+
+    freq: Tensor  # [d/2] buffer (register_buffer in __init__), declared so it types as a Tensor
 
     def __init__(self, alpha: float, base: float, depth_per_angle: int | None, width: int) -> None:
         super().__init__()

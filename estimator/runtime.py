@@ -269,7 +269,7 @@ def check_expected(
 # --------------------------------------------------------------------------------------------
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 

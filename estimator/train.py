@@ -54,7 +54,8 @@ from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.types import Frame, HeadingRef
 
-torch = require_torch()
+require_torch()  # a missing torch names the extra to install
+import torch  # noqa: E402  (imported, not require_torch's value, so mypy types it)
 
 from estimator import nets  # noqa: E402  (needs torch, checked just above)
 from estimator.export import export_model  # noqa: E402
@@ -117,18 +118,23 @@ def load_drive(frames: Sequence[Frame], name: str, crop_size: int, crop_fov_rad:
     if len(shapes) > 1:
         raise TrainingDataError(f"{name}: frames of different sizes in one drive ({sorted(shapes)}); split the log")
     k, s = usable[0].intrinsics, scales[0]
+    yaw_rad, sun_enu = [], []
+    for f in usable:
+        assert f.attitude is not None and f.sun_enu_truth is not None  # what trainable() checked
+        yaw_rad.append(f.attitude.heading_rad)
+        sun_enu.append(f.sun_enu_truth)
     # Intrinsics scale with the image about the pixel grid's corner (continuous coordinates).
     return Drive(
         name=name,
         images=np.stack(images),
         fx=k.fx * s, fy=k.fy * s, cx=k.cx * s, cy=k.cy * s,
-        yaw_rad=np.array([f.attitude.heading_rad for f in usable]),
-        sun_enu=np.stack([f.sun_enu_truth for f in usable]),
+        yaw_rad=np.array(yaw_rad),
+        sun_enu=np.stack(sun_enu),
     )
 
 
 def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float,
-                read_frames: Callable[[Path], Sequence[Frame]] | None = None,
+                read_frames: Callable[[Path], Iterable[Frame]] | None = None,
                 progress: Callable[[int, int], None] | None = None) -> list[Drive]:
     """Every log as one drive. ``read_frames`` defaults to the native log reader."""
     if read_frames is None:
@@ -228,9 +234,9 @@ class WindowSampler:
                 out.angles[b, rows, 1] = hz[j]
                 out.angles[b, rows, 2] = vt[j]
                 out.yaw[b, rows] = d.yaw_rad[fi] + offset
-            c, sn = math.cos(offset), math.sin(offset)
+            cos_o, sin_o = math.cos(offset), math.sin(offset)
             x, y, z = d.sun_enu[newest]
-            out.truth[b] = (c * x + sn * y, -sn * x + c * y, z)  # world_from_heading(offset)
+            out.truth[b] = (cos_o * x + sin_o * y, -sin_o * x + cos_o * y, z)  # world_from_heading(offset)
             if rng.random() < self.subset_prob:
                 keep = rng.integers(1, t + 1)
                 out.mask[b] = False
@@ -337,7 +343,7 @@ class _Normaliser:
         return x * self.gain + self.offset
 
 
-def _write_atomically(path: Path, write: Callable[[Path], None]) -> None:
+def _write_atomically(path: Path, write: Callable[[Path], object]) -> None:
     """``write`` a hidden sibling, then rename it over ``path``: a kill mid-write leaves the previous
     file intact. The sibling keeps the suffix, which ``np.savez`` would otherwise append."""
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
@@ -462,7 +468,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         sampler.err_deg[:] = drive_err
     bf16 = use_bf16(cfg.precision)
     if bf16:
-        backbone = backbone.to(memory_format=torch.channels_last)
+        # Module.to(memory_format=...) is documented and works; torch's overloads omit it.
+        backbone = backbone.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     log.info("training in %s", "bf16 autocast, channels-last" if bf16 else "float32")
     contract_stub = net_cfg.contract(crops_per_frame=cfg.crops_per_frame,
                                      frames_per_window=cfg.frames_per_window, crop_fov_deg=cfg.crop_fov_deg)
@@ -480,7 +487,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     start = time.monotonic() - elapsed_s
     start_step = step  # where this session began: a resumed run's earlier steps are not its rate
     last_ckpt = time.monotonic()
-    ema_loss, ema_err = None, None
+    ema_loss: float | None = None  # exponential moving averages, from the first step on
+    ema_err: float | None = None
     warned_busy = False
 
     def state_dict() -> dict[str, Any]:
@@ -570,7 +578,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # (a second snapshot after a slow save reads a later clock).
     final = state_dict()
     _save_checkpoint(ckpt_path, final)
-    return _export(backbone.to(memory_format=torch.contiguous_format), aggregator, cfg, final, out_dir)
+    # (memory_format: see the channels_last call above for the ignore)
+    return _export(backbone.to(memory_format=torch.contiguous_format),  # type: ignore[call-overload]
+                   aggregator, cfg, final, out_dir)
 
 
 # What makes a run itself: resuming with any of these changed would make a contract that lies
@@ -627,7 +637,8 @@ def _exported_step(out_dir: Path) -> int | None:
     from estimator.runtime import OnnxModel
 
     try:
-        return int(OnnxModel.load(out_dir).contract.training.get("steps"))
+        steps = OnnxModel.load(out_dir).contract.training.get("steps")
+        return None if steps is None else int(steps)
     except (SunrigError, TypeError, ValueError):
         return None
 

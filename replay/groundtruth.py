@@ -118,6 +118,7 @@ class GroundTruthSource:
                 # Before the source's own truth: a log recorded with another heading (e.g. visual
                 # odometry over a synthetic drive) can still carry its true-north truth.
                 stats.heading_not_true += 1
+                assert frame.attitude is not None  # truth_allowed() passes every frame without one
                 ref = frame.attitude.reference
                 if ref not in warned:
                     warned.add(ref)

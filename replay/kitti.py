@@ -300,7 +300,7 @@ class KittiDrive:
         with np.errstate(invalid="ignore"):  # NaN rows (bad records) compare False, as they should
             self.pose_ok = (np.all(np.isfinite(oxts), axis=1) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
                             & (np.abs(roll) <= np.pi) & (np.abs(pitch) <= np.pi))
-        for i in np.flatnonzero(~self.pose_ok & np.all(np.isfinite(oxts), axis=1)):
+        for i in np.flatnonzero(~self.pose_ok & np.all(np.isfinite(oxts), axis=1)).tolist():
             self._warn(f"{name}/oxts/data/{oxts_files[i].name}: lat/lon/roll/pitch out of range "
                        f"{oxts[i, :5].tolist()}; frame {i} has no heading, position or truth")
         # The timestamps must increase: a step back would break the monotonic clock downstream.

@@ -94,6 +94,9 @@ _DECODE_ERRORS: tuple[type[BaseException], ...] = (
     _ZstdError,
     RuntimeError,
 )
+# What reading a log's summary can raise: a damaged summary section also fails its lookups. (A
+# named tuple, not a starred one in the except: mypy does not accept a starred except tuple.)
+_SUMMARY_ERRORS: tuple[type[BaseException], ...] = (*_DECODE_ERRORS, OSError, KeyError, IndexError)
 # What a damaged message payload makes the decoders below raise.
 _MESSAGE_ERRORS = (DecodeError, ValueError, KeyError, TypeError, IndexError, cv2.error)
 
@@ -337,6 +340,7 @@ def encode_attitude(att: Attitude, seq: int) -> bytes:
 def decode_attitude(data: bytes) -> Attitude:
     d = _loads(data)
     return Attitude(
+        # A null heading_deg (a damaged payload) reaches Attitude's own check, a ValidationError.
         heading_rad=_rad(d["heading_deg"]),  # type: ignore[arg-type]
         reference=d["reference"],
         pitch_rad=_rad(d.get("pitch_deg")),
@@ -473,7 +477,7 @@ class LogWriter:
             )
         self._owns_file = isinstance(target, str | os.PathLike)
         self._detach = False
-        if self._owns_file:
+        if isinstance(target, str | os.PathLike):  # (_owns_file, spelled out so mypy narrows target)
             try:
                 # "xb": a file that exists raises FileExistsError, for the caller to decide.
                 self._file: IO[bytes] = open(target, "xb" if exclusive else "wb")  # noqa: SIM115 - closed in close()
@@ -484,7 +488,7 @@ class LogWriter:
                     f"cannot create log {_show(target)}: {exc.strerror}; "
                     "check the folder exists and is writable"
                 ) from exc
-            self.path: Path | None = Path(target)  # type: ignore[arg-type]
+            self.path: Path | None = Path(target)
         else:
             if not hasattr(target, "write") or not hasattr(target, "tell"):
                 raise ValidationError(
@@ -492,8 +496,10 @@ class LogWriter:
                     f"got {type(target).__name__}"
                 )
             # mcap would buffer a raw stream in a writer of its own that close() cannot flush.
-            self._detach = isinstance(target, io.RawIOBase)
-            self._file = io.BufferedWriter(target) if self._detach else target  # type: ignore
+            if isinstance(target, io.RawIOBase):
+                self._file, self._detach = io.BufferedWriter(target), True
+            else:
+                self._file = target
             self.path = None
         # The mcap writer never cuts a chunk itself (chunk_size = max): we cut between frames.
         self._mcap = McapWriter(
@@ -722,7 +728,7 @@ class _FrameAssembler:
 # Reader: I/O shell
 
 
-def _show(path: Path | str) -> str:
+def _show(path: str | os.PathLike[str]) -> str:
     """The path for a one-line message."""
     return str(path).replace("\n", "\\n").replace("\r", "\\r")
 
@@ -788,7 +794,7 @@ def _summary(f: IO[bytes], size: int) -> Any:
     """A finished log's summary (with its channels), or None when it has none (truncated)."""
     try:
         summary = SeekingReader(f, record_size_limit=size).get_summary()
-    except (*_DECODE_ERRORS, OSError, KeyError, IndexError):
+    except _SUMMARY_ERRORS:
         return None
     finally:
         f.seek(0)

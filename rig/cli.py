@@ -163,7 +163,7 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
                 pubs.append(RecorderPublisher(writer, record_frames=record_frames))
             except BaseException:
                 writer.close()
-                if not record_overwrite:
+                if not record_overwrite and writer.path is not None:  # (open_recording's writer has one)
                     writer.path.unlink(missing_ok=True)  # made by this run, and holds nothing
                 raise
     except BaseException:
@@ -546,6 +546,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             deadline.cancel()
         source.close()
     if disk_full is not None:
+        assert disk_full.errno is not None  # one of _DISK_FULL
         raise SunrigError(f"record: {out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
                           f"chunks still replay (sunrig replay {out}); free space or pass another --out")
     if not quiet:

@@ -21,12 +21,12 @@ try:  # pyserial's posix reset_output_buffer raises termios.error on a dead fd, 
     from termios import error as _TermiosError
 except ImportError:  # pragma: no cover - Windows
 
-    class _TermiosError(Exception):  # type: ignore[no-redef]
+    class _TermiosError(Exception):  # type: ignore[no-redef]  # the stand-in for termios.error
         pass
 
 
 # Everything a pyserial port (or a socket behind a pyserial URL) raises when its device goes away.
-PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, ValueError, _TermiosError)
+PORT_ERRORS: tuple[type[Exception], ...] = (serial.SerialException, OSError, ValueError, _TermiosError)
 
 
 class Backoff:

@@ -89,7 +89,7 @@ def publisher_name(p: Publisher) -> str:
     return type(inner if inner is not None else p).__name__
 
 
-def open_serial(url: str, baudrate: int, write_timeout_s: float) -> serial.SerialBase:
+def open_serial(url: str, baudrate: int, write_timeout_s: float) -> serial.Serial:
     """Open ``url`` (a device path or a pyserial URL: ``socket://``, ``loop://``, ``spy://``), 8N1.
 
     Raises :class:`PublishError` with a message that says what to do.
@@ -125,7 +125,7 @@ _CLOSE_DRAIN_S = 0.5
 _WAIT_FOR_WRITER_MIN_S = 1.0
 
 
-def _unsent_bytes(port: serial.SerialBase) -> int:
+def _unsent_bytes(port: serial.Serial) -> int:
     """Bytes the port holds unsent (TIOCOUTQ); 0 where it cannot say (socket://, loop://)."""
     try:
         return int(port.out_waiting)
@@ -133,7 +133,7 @@ def _unsent_bytes(port: serial.SerialBase) -> int:
         return 0
 
 
-def _plain_posix_fd(port: serial.SerialBase) -> int | None:
+def _plain_posix_fd(port: serial.Serial) -> int | None:
     """The non-blocking fd of a plain posix pyserial port, written directly (see ``_write_fd``).
 
     None for everything else (loop://, socket://, spy:// which logs in its write, Windows, a
@@ -148,7 +148,7 @@ def _plain_posix_fd(port: serial.SerialBase) -> int | None:
         return None
 
 
-def _port_name(port: serial.SerialBase) -> str:
+def _port_name(port: serial.Serial) -> str:
     return str(getattr(port, "port", None) or getattr(port, "name", None) or type(port).__name__)
 
 
@@ -173,7 +173,7 @@ class SerialPublisher:
 
     def __init__(
         self,
-        port: serial.SerialBase | str,
+        port: serial.Serial | str,
         *,
         format: str = "nmea",
         baudrate: int = 115200,
@@ -419,6 +419,12 @@ class SerialPublisher:
         return True
 
 
+class JsonRow(Protocol):
+    """What a JSONL line can be made of: an estimate, or a GNSS update (``sunrig gnss``)."""
+
+    def to_json_dict(self) -> dict[str, Any]: ...
+
+
 class JsonlPublisher:
     """One ``json.dumps(est.to_json_dict())`` per line, flushed per line.
 
@@ -450,7 +456,7 @@ class JsonlPublisher:
         self._failed = False  # a write failed and said so: close() need not say it again
         self._counts = {"published": 0, "written": 0}
 
-    def publish(self, est: SunEstimate) -> None:
+    def publish(self, est: SunEstimate | JsonRow) -> None:
         if self._closed:
             raise PublishError(f"publish() on the closed JSONL publisher of {self._name}; make a new one")
         self._counts["published"] += 1
@@ -464,9 +470,10 @@ class JsonlPublisher:
             raise self._write_error(exc) from None
         self._counts["written"] += 1
 
-    def _row(self, est: SunEstimate) -> dict[str, Any]:
+    def _row(self, est: SunEstimate | JsonRow) -> dict[str, Any]:
         row = est.to_json_dict()
-        if self._rule is not None:  # what the serial output says of it, by the same rule
+        # What the serial output says of an estimate, by the same rule (a GNSS update has no status).
+        if self._rule is not None and isinstance(est, SunEstimate):
             flags = self._rule.flags(est)
             row["valid"] = bool(flags & FLAG_VALID)
             row["status"] = flag_names(flags)

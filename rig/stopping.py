@@ -27,7 +27,9 @@ import contextlib
 import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from types import FrameType
+from typing import Any
 
 NAMES = ("SIGINT", "SIGTERM", "SIGHUP", "SIGBREAK")  # each skipped where the OS has none (SIGBREAK: Windows)
 
@@ -86,12 +88,14 @@ class StopSignals:
     def installed(self, names: tuple[str, ...] = NAMES) -> Iterator[StopSignals]:
         """:meth:`handle` for ``names`` while the block runs, then the previous handlers back. Off
         the main thread (a library caller: Python sets handlers there only) nothing changes."""
-        previous: dict[int, object] = {}
+        previous: dict[signal.Signals, Callable[[int, FrameType | None], Any] | int] = {}
         try:
             if threading.current_thread() is threading.main_thread():
                 for name in names:
-                    sig = getattr(signal, name, None)
-                    before = signal.getsignal(sig) if sig is not None else None
+                    sig: signal.Signals | None = getattr(signal, name, None)
+                    if sig is None:
+                        continue
+                    before = signal.getsignal(sig)
                     # Ignored (nohup) stays ignored; None is a handler set outside Python, which
                     # could not be put back: both are left alone.
                     if before is None or before is signal.SIG_IGN:

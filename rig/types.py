@@ -337,9 +337,10 @@ class SunEstimate:
         }
         if self.utc_ns is not None:
             out["utc"] = utc_iso(self.utc_ns)
-        if self.truth_enu is not None:
+        error_rad = self.error_rad  # None exactly when truth_enu is
+        if self.truth_enu is not None and error_rad is not None:
             out["truth_enu"] = [round(float(x), 7) for x in self.truth_enu]
-            out["error_deg"] = math.degrees(self.error_rad)
+            out["error_deg"] = math.degrees(error_rad)
         return out
 
 

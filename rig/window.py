@@ -51,19 +51,19 @@ class SpreadWindowPolicy:
         Only frames whose heading shares the newest heading's zero are candidates: the same
         reference and, for relative headings, the same epoch (after a source lost its zero, the
         window starts again from the frames after it)."""
-        usable = [c for c in candidates if c.frame.attitude is not None]
-        if not usable:
+        # Each candidate with its attitude, so the filter's None check carries to the uses below.
+        with_attitude = [(c, c.frame.attitude) for c in candidates if c.frame.attitude is not None]
+        if not with_attitude:
             return []
-        newest = usable[-1].frame.attitude
-        usable = [c for c in usable
-                  if (c.frame.attitude.reference, c.frame.attitude.epoch) == (newest.reference, newest.epoch)]
-        t = np.array([c.frame.t_mono_s for c in usable])
+        newest = with_attitude[-1][1]
+        usable = [(c, a) for c, a in with_attitude if (a.reference, a.epoch) == (newest.reference, newest.epoch)]
+        t = np.array([c.frame.t_mono_s for c, _ in usable])
         first = int(np.searchsorted(t, t[-1] - self.span_s, side="left"))
         pool = usable[first:]
         if len(pool) <= self.n_frames:
-            return list(pool)
+            return [c for c, _ in pool]
         t = t[first:] / self.span_s
-        yaw = np.array([c.frame.attitude.heading_rad for c in pool])
+        yaw = np.array([a.heading_rad for _, a in pool])
         dist = np.hypot(t[:, None] - t[None, :], wrap_pi(yaw[:, None] - yaw[None, :]) / self.yaw_scale_rad)
         chosen = [len(pool) - 1]  # the newest frame is always in
         nearest = dist[-1].copy()
@@ -72,4 +72,4 @@ class SpreadWindowPolicy:
             best = len(pool) - 1 - int(np.argmax(nearest[::-1]))
             chosen.append(best)
             nearest = np.minimum(nearest, dist[best])
-        return [pool[i] for i in sorted(chosen)]
+        return [pool[i][0] for i in sorted(chosen)]

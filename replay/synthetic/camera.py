@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from replay.synthetic.scene import float3
+
 _LUT_SIZE = 4096
 _LUT_RANGE = 2.0  # sqrt(exposure) range the LUT covers: exposures up to 4x mid-white
 
@@ -58,7 +60,7 @@ class CameraEffects:
             exposure_bias_stops=float(rng.normal(0.0, 0.35)),
             ae_key=float(rng.uniform(0.14, 0.24)),
             ae_smoothing=float(rng.uniform(0.2, 0.7)),
-            white_balance_bgr=tuple(float(v) for v in 1.0 + rng.normal(0.0, 0.04, 3)),
+            white_balance_bgr=float3(1.0 + rng.normal(0.0, 0.04, 3)),
             vignette=float(rng.uniform(0.0, 0.35)),
             blur_sigma_px=float(rng.choice([0.0, 0.0, rng.uniform(0.3, 0.9)])),
             noise_sqrt=float(rng.uniform(0.002, 0.008)),

@@ -190,8 +190,8 @@ class RenderOutput:
     ids: np.ndarray
     sun_px: np.ndarray
     sun_visible: float
-    depth: np.ndarray = field(repr=False, default=None)  # type: ignore[assignment]
-    sunlit: np.ndarray = field(repr=False, default=None)  # type: ignore[assignment]
+    depth: np.ndarray = field(repr=False)
+    sunlit: np.ndarray = field(repr=False)
 
 
 class Renderer:
@@ -289,6 +289,7 @@ class Renderer:
         for i in np.nonzero(has_windows & (np.abs(n[:, 2]) < 0.2))[0]:
             f = i + FIRST_FACE_ID
             w = mats[i].windows
+            assert w is not None  # has_windows selected only the faces whose material has windows
             su, sw = w.spacing_m
             ncol = int((lengths[i] - 1.0) // su)
             if ncol >= 1:

@@ -143,6 +143,12 @@ def ellipsoid_solid(center, radii, material: Material, n_lon: int = 8, n_lat: in
     return Solid(np.array(verts), np.array(faces), [material])
 
 
+def float3(values) -> tuple[float, float, float]:
+    """Three floats (an RGB or BGR colour) from any length-3 sequence; another length is a ValueError."""
+    a, b, c = (float(v) for v in values)
+    return a, b, c
+
+
 def convex_hull_ccw(points_xy) -> np.ndarray:
     """Convex hull (K, 2) counter-clockwise in ENU (x east, y north)."""
     pts = np.asarray(points_xy, dtype=np.float32).reshape(-1, 1, 2)
@@ -158,7 +164,9 @@ class SceneObject:
 
     kind: str
     parts: list[Solid]
-    footprint: np.ndarray = field(default=None)  # type: ignore[assignment]
+    # None only until __post_init__ computes it from the parts: a field optional at construction
+    # but set after it is not expressible to mypy.
+    footprint: np.ndarray = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         if self.footprint is None:
@@ -293,7 +301,8 @@ class GroundMap:
     res_m: float
     albedo: np.ndarray
     default_bgr: tuple[float, float, float]  # linear albedo beyond the map
-    coarse: np.ndarray = field(default=None)  # type: ignore[assignment]
+    # None only until __post_init__ computes it (see SceneObject.footprint).
+    coarse: np.ndarray = field(default=None)  # type: ignore[arg-type]
     coarse_factor: int = 8
 
     def __post_init__(self) -> None:
@@ -310,7 +319,7 @@ class GroundMap:
         bgr = np.array(albedo_rgb[::-1]) * ALBEDO_SCALE
         img = np.zeros((h, w, 3), np.uint8)
         cv2.rectangle(img, (0, 0), (w, h), tuple(float(v) for v in np.clip(np.round(bgr), 0, 255)), -1)
-        return GroundMap((x0, y0), res_m, img, tuple(float(a) for a in albedo_rgb[::-1]))
+        return GroundMap((x0, y0), res_m, img, float3(albedo_rgb[::-1]))
 
     def to_px(self, xy) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
@@ -346,8 +355,8 @@ def _albedo_px(rgb, rng: np.random.Generator | None = None, jitter: float = 0.0)
     rgb = np.asarray(rgb, dtype=np.float64)
     if rng is not None and jitter:
         rgb = rgb * (1.0 + rng.uniform(-jitter, jitter, 3))
-    bgr = np.clip(rgb[::-1] * ALBEDO_SCALE, 0, 255)
-    return tuple(int(round(v)) for v in bgr)
+    b, g, r = (int(round(v)) for v in np.clip(rgb[::-1] * ALBEDO_SCALE, 0, 255))
+    return b, g, r
 
 
 GROUND_TYPES = {  # linear albedo RGB of what lies beyond the sidewalks
@@ -391,12 +400,12 @@ def paint_ground(rng: np.random.Generator, path: RoadPath, road: RoadSpec, groun
     sidewalk_rgb = np.array([0.24, 0.23, 0.21]) * rng.uniform(0.8, 1.25) * rng.uniform(0.92, 1.08, 3)
     kerb_rgb = np.array([0.30, 0.30, 0.28]) * rng.uniform(0.8, 1.2)
     asphalt_rgb = np.array([0.065, 0.065, 0.068]) * rng.uniform(0.75, 1.6)
-    for xy, hd in lines:
-        paint.strip(xy, hd, -outer, outer, _albedo_px(sidewalk_rgb))
-    for xy, hd in lines:
-        paint.strip(xy, hd, -hw - 0.2, hw + 0.2, _albedo_px(kerb_rgb))
-    for xy, hd in lines:
-        paint.strip(xy, hd, -hw, hw, _albedo_px(asphalt_rgb))
+    for xy, heading_rad in lines:
+        paint.strip(xy, heading_rad, -outer, outer, _albedo_px(sidewalk_rgb))
+    for xy, heading_rad in lines:
+        paint.strip(xy, heading_rad, -hw - 0.2, hw + 0.2, _albedo_px(kerb_rgb))
+    for xy, heading_rad in lines:
+        paint.strip(xy, heading_rad, -hw, hw, _albedo_px(asphalt_rgb))
     # Asphalt patches and repairs: darker or lighter rectangles on the road.
     for _ in range(int(path.length / 25)):
         s = rng.uniform(0, path.length)
@@ -412,23 +421,23 @@ def paint_ground(rng: np.random.Generator, path: RoadPath, road: RoadSpec, groun
     yellow = _albedo_px((0.42, 0.30, 0.05))
     centre_yellow = rng.random() < 0.35
     lw = 0.12
-    for xy, hd in lines:
+    for xy, heading_rad in lines:
         seg_s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
         mid = 0.5 * (seg_s[:-1] + seg_s[1:])
         dashes = (mid % 9.0) < 3.0
         if centre_yellow:
-            paint.strip(xy, hd, -0.2, -0.2 + lw, yellow)
-            paint.strip(xy, hd, 0.2 - lw, 0.2, yellow)
+            paint.strip(xy, heading_rad, -0.2, -0.2 + lw, yellow)
+            paint.strip(xy, heading_rad, 0.2 - lw, 0.2, yellow)
         else:
-            paint.strip(xy, hd, -lw / 2, lw / 2, white, dashes)
+            paint.strip(xy, heading_rad, -lw / 2, lw / 2, white, dashes)
         for k in range(1, road.lanes_each_way):
             for side in (-1.0, 1.0):
                 o = side * k * road.lane_width
-                paint.strip(xy, hd, o - lw / 2, o + lw / 2, white, dashes)
+                paint.strip(xy, heading_rad, o - lw / 2, o + lw / 2, white, dashes)
         edge = road.lanes_each_way * road.lane_width
         for side in (-1.0, 1.0):
             o = side * (edge + (0.0 if road.parking else -0.3))
-            paint.strip(xy, hd, o - lw / 2, o + lw / 2, white)
+            paint.strip(xy, heading_rad, o - lw / 2, o + lw / 2, white)
     # Crosswalks a few metres before each intersection.
     for corner, h_in, h_out in path.intersections:
         for hd, sgn in ((h_in, -1.0), (h_out, 1.0)):
@@ -448,7 +457,7 @@ def paint_ground(rng: np.random.Generator, path: RoadPath, road: RoadSpec, groun
                           interpolation=cv2.INTER_LINEAR)[: min(band, h - r0), :w]
         rows = img[r0:r0 + mod8.shape[0]]
         cv2.multiply(rows, cv2.merge([mod8, mod8, mod8]), dst=rows, scale=1.0 / 128.0)
-    return GroundMap((float(lo[0]), float(lo[1])), res, img, tuple(float(v) for v in base_rgb[::-1]))
+    return GroundMap((float(lo[0]), float(lo[1])), res, img, float3(base_rgb[::-1]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -514,7 +523,7 @@ def _box_footprint(c, yaw, width, length) -> np.ndarray:
 def _mat(rgb, rng: np.random.Generator, jitter: float = 0.1, contrast: float = 0.15,
          windows: WindowPattern | None = None) -> Material:
     rgb = np.clip(np.asarray(rgb) * (1.0 + rng.uniform(-jitter, jitter, 3)) * rng.uniform(0.85, 1.15), 0.01, 0.9)
-    return Material(tuple(float(v) for v in rgb), contrast, windows)
+    return Material(float3(rgb), contrast, windows)
 
 
 def make_building(rng: np.random.Generator, c, yaw, width, length, height) -> SceneObject:
@@ -524,7 +533,7 @@ def make_building(rng: np.random.Generator, c, yaw, width, length, height) -> Sc
         spacing_m=(float(rng.uniform(2.4, 4.5)), float(rng.uniform(2.8, 3.6))),
         size_frac=(float(rng.uniform(0.35, 0.75)), float(rng.uniform(0.4, 0.65))),
         ground_floor_m=float(rng.uniform(3.0, 4.5)),
-        glass_rgb=tuple(float(v) for v in glass),
+        glass_rgb=float3(glass),
     )
     wall_mat = _mat(BUILDING_RGB[wall], rng, contrast=float(rng.uniform(0.08, 0.3)),
                     windows=win if rng.random() < 0.9 else None)
@@ -540,7 +549,7 @@ def make_tree(rng: np.random.Generator, c, crown_r: float, height: float) -> Sce
                       _mat((0.12, 0.09, 0.06), rng, contrast=0.3))
     green = np.array([0.05, 0.10, 0.03]) * rng.uniform(0.7, 1.5) * rng.uniform(0.85, 1.2, 3)
     crown = ellipsoid_solid((c[0], c[1], z_bottom + crown_v), (crown_r, crown_v),
-                            Material(tuple(float(v) for v in green), contrast=0.6),
+                            Material(float3(green), contrast=0.6),
                             n_lon=int(rng.choice([6, 8])), n_lat=4)
     return SceneObject("tree", [trunk, crown])
 
@@ -714,8 +723,8 @@ def random_scene(rng: np.random.Generator, path: RoadPath, road: RoadSpec, camer
         s = rng.uniform(0.0, path.length)
         p, hd, _ = path.at(s)
         nrm = np.array([math.cos(hd), -math.sin(hd)])
-        k = rng.integers(road.lanes_each_way)
-        lat = -lane_side * (k + 0.5) * road.lane_width
+        lane = rng.integers(road.lanes_each_way)
+        lat = -lane_side * (lane + 0.5) * road.lane_width
         place(make_car(rng, p + nrm * lat, hd + math.pi + rng.normal(0, 0.02)),
               on_road=True, pad=1.0)
     return Scene(ground=ground, objects=objects, noise=fractal_noise(rng, 256, beta=1.2))
