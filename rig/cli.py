@@ -667,6 +667,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from rig.errors import require_torch
 
     require_torch()
+    from estimator.models import resolve_init_dir
     from estimator.train import TrainConfig, command_line, data_fingerprint, train
 
     if args.export_only:
@@ -690,7 +691,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
                       hard_share=args.hard_share, precision=args.precision,
-                      init=args.init or "",
+                      init=str(resolve_init_dir(args.init)) if args.init else "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
                       data={"logs": len(paths), "fingerprint": data_fingerprint(paths),
@@ -1028,7 +1029,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
     p.add_argument("--init", metavar="MODEL_DIR",
-                   help="fine-tune: start from this model's weights (e.g. the shipped model) instead of random ones")
+                   help="fine-tune: start from this model's weights instead of random ones "
+                        "('shipped': the model installed with sunrig)")
     p.add_argument("--export-only", metavar="DIR",
                    help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run); "
                         "with the run's logs, a checkpoint that predates it also records their sun elevations")

@@ -571,20 +571,28 @@ def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
     from replay.sources import DEMO_LOG
 
     for init, needle in ((tmp_path, "no weights.npz"), (tmp_path / "gone", "gone does not exist"),
-                         (None, "; pass --preset fast")):  # the shipped model's preset, by name
-        # The shipped model is the fast preset: --init it into a tiny run is refused by name.
+                         ("shipped", "; pass --preset fast")):  # the shipped model's preset, by name
+        # The word `shipped` is the installed model, the fast preset: --init it into a tiny run is
+        # refused by name (so the word reached that model, not a folder of that name).
         args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--steps", "1", "--quiet"]
-        if init is not None:
-            args += ["--init", str(init)]
-        else:
-            from estimator.models import DEFAULT_MODEL_DIR
-
-            args += ["--init", str(DEFAULT_MODEL_DIR)]
-        res = run_cli(*args)
+        res = run_cli(*args, "--init", str(init))
         assert res.returncode == 2, res.stderr
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr
     assert not (tmp_path / "m" / "checkpoint.pt").exists()
+
+
+@pytest.mark.torch
+def test_train_init_shipped_beside_a_folder_of_that_name_is_refused_not_guessed(tmp_path):
+    from replay.sources import DEMO_LOG
+
+    (tmp_path / "shipped").mkdir()
+    res = subprocess.run([sys.executable, "-m", "rig.cli", "train", str(DEMO_LOG), "--out", "m", "--init", "shipped",
+                          "--steps", "1", "--quiet"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                         env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and "write ./shipped" in lines[0], res.stderr
+    assert not (tmp_path / "m").exists()
 
 
 def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(tmp_path):

@@ -74,3 +74,15 @@ def test_its_weights_npz_rebuilds_its_graphs(model):
         got = backbone(x.float()).numpy()
     # float16 storage: agreement to a few parts per thousand of the embedding's scale.
     assert np.abs(got - want).max() < 1e-2 * (1.0 + np.abs(want).max())
+
+
+def test_init_shipped_is_this_model_and_says_so_when_it_is_not_installed(monkeypatch, tmp_path):
+    import estimator.models
+    from estimator.models import resolve_init_dir
+    from rig.errors import ModelError
+
+    assert resolve_init_dir("shipped") == DEFAULT_MODEL_DIR
+    assert resolve_init_dir("runs/shipped") == estimator.models.Path("runs/shipped")  # only the bare word
+    monkeypatch.setattr(estimator.models, "DEFAULT_MODEL_DIR", tmp_path)  # an install without its graphs
+    with pytest.raises(ModelError, match="no shipped model is installed"):
+        resolve_init_dir("shipped")
