@@ -231,3 +231,65 @@ def test_a_given_status_rule_decides_the_flags(tiny_model_dir):
                       SpreadWindowPolicy(8, 4.0), aggregators=["mean"], status_rule=StatusRule(full_window=99))
     assert len(result.flags["mean"]) == 1 and result.windows_without_truth == 1
     assert result.flags["mean"][0] & FLAG_PARTIAL_WINDOW and not result.flags["mean"][0] & FLAG_VALID
+
+
+def test_share_under_a_threshold_leaves_out_a_window_exactly_at_it():
+    # "Under 5 deg" is strict, as the tail count is (30.0 is on target, not past it): a window at
+    # exactly 5, 10 or 20 deg does not count as under that threshold.
+    s = error_summary([5.0, 10.0, 20.0, 1.0])
+    assert s["under_5_deg"] == pytest.approx(0.25)  # only the 1.0
+    assert s["under_10_deg"] == pytest.approx(0.5)  # 1.0 and 5.0
+    assert s["under_20_deg"] == pytest.approx(0.75)  # all but the 20.0
+
+
+def test_a_flagged_window_exactly_at_the_target_is_not_in_the_caught_tail():
+    # windows_over_30_deg_not_valid counts as windows_over_30_deg does: past 30 deg, not at it.
+    r = EvalResult(errors_deg={"transformer": [30.0, 30.5, 1.0]},
+                   flags={"transformer": [FLAG_SPREAD_HIGH, FLAG_SPREAD_HIGH, FLAG_VALID]}, window_logs=["d0"] * 3)
+    s = r.summary()
+    assert s["aggregators"]["transformer"]["windows_over_30_deg"] == 1
+    assert s["status"]["transformer"]["windows_over_30_deg_not_valid"] == 1
+
+
+def test_pooling_keeps_each_windows_true_elevation_with_its_answer():
+    # bench_accuracy pairs pooled elevation_deg with pooled truth_elevation_deg window by window
+    # (how far above the truth the answer lies): both must grow together when seeds are pooled.
+    a = EvalResult(errors_deg={"transformer": [1.0]}, flags={"transformer": [FLAG_VALID]},
+                   elevation_deg={"transformer": [40.0]}, truth_elevation_deg=[38.0], window_logs=["d0"])
+    b = EvalResult(errors_deg={"transformer": [2.0, 3.0]}, flags={"transformer": [FLAG_VALID, FLAG_VALID]},
+                   elevation_deg={"transformer": [41.0, 60.0]}, truth_elevation_deg=[38.5, 52.0],
+                   window_logs=["d0", "d1"])
+    a.extend(b)
+    assert a.elevation_deg["transformer"] == [40.0, 41.0, 60.0]
+    assert a.truth_elevation_deg == [38.0, 38.5, 52.0]
+    assert a.window_logs == ["d0", "d0", "d1"]
+
+
+@pytest.mark.torch
+def test_ctrl_c_inside_a_window_leaves_no_half_window(tiny_model_dir):
+    # A Ctrl-C can arrive while a window is being scored, after its error is appended for one
+    # aggregator but before its flags, elevations and log are: evaluate() must trim that half
+    # window, or the summary pairs errors with the wrong windows (by_log refuses the mismatch).
+    from estimator.estimator import SunEstimator
+    from estimator.evaluate import evaluate
+    from estimator.runtime import OnnxModel
+    from rig.protocol import StatusRule
+    from rig.window import SpreadWindowPolicy
+
+    class CtrlCOnThirdFlags:
+        def __init__(self):
+            self.rule, self.calls = StatusRule(), 0
+
+        def flags(self, est):
+            self.calls += 1
+            if self.calls == 3:  # the second full window, its first aggregator
+                raise KeyboardInterrupt
+            return self.rule.flags(est)
+
+    result = evaluate([("d0", noise_drive(12))], SunEstimator(OnnxModel.load(tiny_model_dir)),
+                      SpreadWindowPolicy(8, 4.0), aggregators=["mean", "single"], status_rule=CtrlCOnThirdFlags())
+    assert result.interrupted and result.window_logs == ["d0"]
+    for per_agg in (result.errors_deg, result.flags, result.elevation_deg):
+        assert {name: len(v) for name, v in per_agg.items()} == {"mean": 1, "single": 1}
+    assert len(result.truth_elevation_deg) == 1
+    assert result.summary()["aggregators"]["mean"]["n_windows"] == 1

@@ -418,3 +418,176 @@ def test_oxts_records_numbered_unlike_the_images_are_refused(tmp_path):
     (data / "0000000004.txt").rename(data / "0000000009.txt")
     with pytest.raises(LogError, match="not numbered"):
         open_kitti(date, utc_offset_h=2.0)
+
+
+def test_a_date_folder_with_another_folder_beside_its_drive_still_opens(tmp_path):
+    # Only *_drive_NNNN_sync folders are drives: a notes/ or an unzipped calib/ folder beside the
+    # one drive must not make the date folder look like it holds two.
+    date = make_drive(tmp_path, 3)
+    (date / "notes").mkdir()
+    (date / "2011_09_26_drive_0002_extract").mkdir()  # the unsynced variant is not a sync drive
+    drive = open_kitti(date, utc_offset_h=2.0)
+    assert drive.path.name == DRIVE and len(drive) == 3
+
+
+def test_a_drive_folder_under_another_name_opens_by_its_contents(tmp_path):
+    # A drive folder copied under a name of one's own still has oxts/ and image_02/: it is a drive,
+    # and its date folder (with the calibration) is its parent.
+    date = make_drive(tmp_path, 3)
+    (date / DRIVE).rename(date / "my_drive")
+    drive = open_kitti(date / "my_drive", utc_offset_h=2.0)
+    assert drive.path.name == "my_drive" and len(drive) == 3
+    assert drive.date_dir.resolve() == date.resolve()
+
+
+def test_a_dataformat_with_other_fields_is_refused(tmp_path):
+    # dataformat.txt, when present, must list lat, lon, alt, roll, pitch, yaw first: records in
+    # another order would be read as the wrong pose without a word.
+    date = make_drive(tmp_path, 3)
+    fields = ["lon", "lat", *OXTS_FIELDS[2:]]  # latitude and longitude swapped
+    (date / DRIVE / "oxts" / "dataformat.txt").write_text("".join(f"{f}: something\n" for f in fields))
+    with pytest.raises(LogError, match="not a KITTI OXTS format"):
+        open_kitti(date, utc_offset_h=2.0)
+    # The devkit's own field list (as the fixture's file has it, typo aside) opens.
+    (date / DRIVE / "oxts" / "dataformat.txt").write_text("".join(f"{f}: something\n" for f in OXTS_FIELDS))
+    assert len(open_kitti(date, utc_offset_h=2.0)) == 3
+
+
+def test_a_position_just_past_the_poles_or_the_date_line_costs_only_its_frame(tmp_path):
+    # Latitude 90.5 or longitude 180.5 is no place on Earth: the record is out of range, so its
+    # frame goes without pose (a GnssFix of lat 90.5 would end the replay), however slight the excess.
+    date = make_drive(tmp_path, 4)
+    rest = " ".join(["0"] * 24)
+    data = date / DRIVE / "oxts" / "data"
+    (data / "0000000001.txt").write_text(f"90.5 8.4343 116.4 0.01 0.005 0.3 {rest}\n")
+    (data / "0000000002.txt").write_text(f"49.015 180.5 116.4 0.01 0.005 0.3 {rest}\n")
+    drive = open_kitti(date, utc_offset_h=2.0)
+    frames = list(drive)
+    assert [f.gnss is None and f.attitude is None for f in frames] == [False, True, True, False]
+    assert drive.corrupt_skipped == 2
+
+
+def test_oxts_record_with_a_number_missing_or_extra_is_refused():
+    # A record cut short (or two run together) is a damaged file even when its first six numbers
+    # look like a pose: the count is checked, and the message says what was expected.
+    good = [49.015, 8.4343, 116.4, 0.01, 0.005, 0.3] + [0.0] * 24
+    assert kitti.parse_oxts(" ".join(map(str, good))).tolist() == good
+    for values, count in ((good[:-1], 29), (good + [1.0], 31)):
+        with pytest.raises(LogError, match=f"r/0001.txt: expected 30 numbers, got {count}"):
+            kitti.parse_oxts(" ".join(map(str, values)), "r/0001.txt")
+
+
+def test_dataformat_lines_naming_no_field_are_skipped():
+    # Only ``name: description`` lines name a field: a title line, a blank one or a line with an
+    # empty name before its colon must not shift the field order the drive is checked against.
+    text = "OXTS data format\n\n" + "".join(f"{f}: description\n" for f in OXTS_FIELDS[:3]) + ": orphan\n" + \
+        "".join(f"{f}: description\n" for f in OXTS_FIELDS[3:])
+    assert parse_dataformat(text) == list(OXTS_FIELDS)
+
+
+def test_blank_lines_in_a_timestamps_file_are_skipped():
+    # An extra newline at the end (or a blank line an editor left) is not a frame and not an error.
+    text = "2011-09-26 13:02:25.000000001\n\n   \n2011-09-26 13:02:25.100000002\n\n"
+    assert parse_timestamps_ns(text).tolist() == [_timestamp_ns("2011-09-26 13:02:25.000000001"),
+                                                  _timestamp_ns("2011-09-26 13:02:25.100000002")]
+
+
+def test_utc_offset_limits_themselves_are_allowed():
+    # Kiribati's +14 h is a real time zone: the limits are inclusive, as the message's [-14, 14] says.
+    assert kitti.utc_offset_ns(14) == 14 * 3600 * 10**9
+    assert kitti.utc_offset_ns(-14.0) == -14 * 3600 * 10**9
+
+
+def test_oxts_record_with_a_non_finite_velocity_keeps_its_pose():
+    # Only the pose (lat, lon, alt, roll, pitch, yaw) is used and must be finite: a NaN in an
+    # unused field (here vn, the 7th) must not cost the frame its heading and truth.
+    values = [49.015, 8.4343, 116.4, 0.01, 0.005, 0.3, float("nan")] + [0.0] * 23
+    got = kitti.parse_oxts(" ".join(map(str, values)))
+    assert got[:6].tolist() == values[:6] and math.isnan(got[6])
+    with pytest.raises(LogError, match="not finite"):
+        kitti.parse_oxts(" ".join(map(str, [*values[:5], float("nan"), *values[6:]])))
+
+
+def test_bad_timestamp_message_names_its_line_number():
+    # "line 2" is the file's own numbering (from 1), so an editor's go-to-line finds it.
+    with pytest.raises(LogError, match=r"x/timestamps.txt line 2: expected"):
+        parse_timestamps_ns("2011-09-26 13:02:25.000000000\n2011-09-26 13:02\n", "x/timestamps.txt")
+
+
+def test_a_missing_or_unreadable_timestamps_file_is_a_log_error(tmp_path):
+    date = make_drive(tmp_path, 3)
+    (date / DRIVE / "image_02" / "timestamps.txt").unlink()
+    with pytest.raises(LogError, match=r"timestamps.txt: missing \(image timestamps\)"):
+        open_kitti(date, utc_offset_h=2.0)
+    date2 = make_drive(tmp_path / "b", 3)
+    stamps = date2 / DRIVE / "oxts" / "timestamps.txt"
+    stamps.unlink()
+    stamps.mkdir()  # a folder where the file should be: readable by no one, root included
+    with pytest.raises(LogError, match="cannot read OXTS timestamps"):
+        open_kitti(date2, utc_offset_h=2.0)
+
+
+def test_a_file_given_for_the_drive_is_refused_as_not_a_folder(tmp_path):
+    path = tmp_path / "2011_09_26_drive_0001_sync"
+    path.write_text("not a folder")
+    with pytest.raises(LogError, match="not a folder"):
+        open_kitti(path, utc_offset_h=2.0)
+
+
+def test_a_fresh_process_warns_about_the_default_offset(tmp_path):
+    # The other tests reset the once-per-process flag; here a real process starts as users' do,
+    # and its first drive opened without --utc-offset says which offset it assumed.
+    date = make_drive(tmp_path, 3)
+    code = ("import logging, replay.kitti as k; logging.basicConfig(level=logging.WARNING); "
+            f"k.open_kitti({str(date)!r}); k.open_kitti({str(date)!r})")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("carry no time zone") == 1 and "--utc-offset 0" in res.stderr
+
+
+def test_resized_images_warn_only_when_their_aspect_ratio_differs(tmp_path, caplog):
+    # A copy resized by 1/9 (138 x 42: 41.67 rounded) keeps the calibration's aspect: scaled quietly.
+    # One stretched to 138 x 80 does not: the intrinsics are still scaled, with a warning to check.
+    for size, warns in (((138, 42), False), ((138, 80), True)):
+        caplog.clear()
+        date = make_drive(tmp_path / f"{size[0]}x{size[1]}", 2, size=size)
+        with caplog.at_level(logging.INFO, logger="replay.kitti"):
+            f0 = next(iter(open_kitti(date, utc_offset_h=2.0)))
+        assert (f0.intrinsics.width, f0.intrinsics.height) == size
+        warned = [r for r in caplog.records if "aspect ratio differs" in r.getMessage()]
+        assert bool(warned) == warns and all(r.levelno == logging.WARNING for r in warned)
+
+
+def test_a_drive_without_its_oxts_folder_is_called_incomplete(tmp_path):
+    # Half an unzip: the drive folder is there, its oxts/ is not. The message says so, rather than
+    # leaving the user to work it out from a count of 0 OXTS records.
+    date = make_drive(tmp_path, 3)
+    shutil.rmtree(date / DRIVE / "oxts")
+    with pytest.raises(LogError, match=r"no oxts/ folder; is it a complete \*_sync drive"):
+        open_kitti(date, utc_offset_h=2.0)
+
+
+def test_the_default_offset_reads_the_timestamps_as_cest(tmp_path):
+    # Opened without an offset, a drive is read as UTC+2 (CEST, docs/ground-truth.md): each hour
+    # off would move the true sun ~15 deg, so the default itself is checked, not just its name.
+    date = make_drive(tmp_path, 2)
+    line = (date / DRIVE / "image_02" / "timestamps.txt").read_text().splitlines()[0]
+    drive = open_kitti(date)
+    assert drive.utc_offset_h == 2.0
+    assert int(drive.utc_ns[0]) == _timestamp_ns(line) - 2 * 3600 * 10**9
+
+
+def test_oxts_headings_are_within_one_turn():
+    # heading = 90 deg - yaw, in [0, 2 pi): yaw 135 deg (north-west) is heading 315 deg, not -45 or 495.
+    yaw = np.radians([135.0, 90.0, -90.0, 180.0])
+    heading, _, _ = attitude_from_oxts(np.zeros(4), np.zeros(4), yaw)
+    assert np.degrees(heading) == pytest.approx([315.0, 0.0, 180.0, 270.0])
+
+
+def test_an_unreadable_image_is_counted_and_warned(kitti_date, caplog):
+    (kitti_date / DRIVE / "image_02" / "data" / "0000000003.png").write_bytes(b"not a png")
+    drive = open_kitti(kitti_date, utc_offset_h=2.0)
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        assert len(list(drive)) == N_FRAMES - 1
+    assert drive.corrupt_skipped == 1
+    assert any("0000000003.png is missing or not an image" in r.getMessage() for r in caplog.records)
