@@ -75,3 +75,59 @@ def test_time_left_is_rounded_shows_hours_and_stops_at_the_end():
     assert q.line() == "train: 1/3701 (1.0/s, 1:01:40 left)"
     q.update(3701)
     assert q.line() == "train: 3701/3701 (3701.0/s)"
+
+
+class _FlushLog(io.StringIO):
+    """Records what had been written at each flush: what a reader of the stream has seen."""
+
+    def __init__(self, tty: bool):
+        super().__init__()
+        self.tty, self.seen = tty, []
+
+    def isatty(self):
+        return self.tty
+
+    def flush(self):
+        self.seen.append(self.getvalue())
+
+
+def test_every_line_written_is_flushed_at_once():
+    # A redraw ends without a newline, so a line-buffered terminal would hold it back; a log line
+    # under nohup and the closing summary must reach the file while the job runs, not at exit.
+    now = [0.0]
+    tty = _FlushLog(tty=True)
+    p = Progress("eval", total=10, stream=tty, clock=lambda: now[0])
+    now[0] = 1.0
+    p.update(4)
+    assert tty.seen and tty.seen[-1].endswith("eval: 4/10 (4.0/s, 0:02 left)\033[K")
+    p.close("mean 9 deg")
+    assert tty.seen[-1].endswith("\r\033[Keval: mean 9 deg\n")
+    log = _FlushLog(tty=False)
+    q = Progress("train", stream=log, clock=lambda: now[0])
+    now[0] += 60.0
+    q.update(3)
+    assert log.seen and log.seen[-1].startswith("train: 3 (")
+
+
+def test_not_a_terminal_logs_once_a_minute_by_default():
+    # The default interval is the documented 60 s: nothing at 59 s, a line at 60 s.
+    now = [0.0]
+    out = io.StringIO()
+    p = Progress("synth", stream=out, clock=lambda: now[0])
+    now[0] = 59.0
+    p.update(1)
+    assert out.getvalue() == ""
+    now[0] = 60.0
+    p.update(2)
+    assert out.getvalue().startswith("synth: 2 (")
+
+
+def test_advance_counts_one_by_default_and_the_first_second_has_a_rate():
+    # 5 units in the first half second is 10/s: the rate is not held back until a second has passed.
+    now = [0.0]
+    p = Progress("replay", total=20, stream=_Tty(), clock=lambda: now[0])
+    now[0] = 0.5
+    for _ in range(5):
+        p.advance()
+    assert p.done == 5
+    assert p.line() == "replay: 5/20 (10.0/s, 0:02 left)"

@@ -429,3 +429,94 @@ def test_aggregate_and_embed_refuse_what_would_be_cast_silently(model):
         model.aggregate(np.zeros((1, 4, 64), np.int32), np.zeros((1, 4, 3), np.float32), mask)
     with pytest.raises(ValidationError, match="batch_size: expected a positive integer, got 0"):
         model.embed(np.zeros((2, 32, 32, 3), np.uint8), batch_size=0)
+
+
+def test_a_contract_that_is_not_a_json_object_is_refused_as_such():
+    # A list or a string in the metadata is no contract: said so, not reported as unknown fields.
+    for text in ("[1, 2]", '"crop_size_px"'):
+        with pytest.raises(ContractMismatch, match="m.onnx: the contract metadata is not a JSON object"):
+            ModelContract.from_json(text, "m.onnx")
+
+
+def test_a_contract_missing_a_required_field_is_refused():
+    # A contract without its embedding size cannot feed the aggregator: from_json must refuse it
+    # with ContractMismatch (one line, naming the model), never hand back something half made.
+    raw = json.loads(CONTRACT.to_json())
+    del raw["embedding_dim"]
+    with pytest.raises(ContractMismatch, match=r"m.onnx: incomplete contract \(.*embedding_dim.*\); re-export"):
+        ModelContract.from_json(json.dumps(raw), "m.onnx")
+
+
+def test_contract_refuses_a_colour_order_the_runtime_cannot_feed():
+    # input_affine swaps channels for RGB and leaves them for anything else: another order
+    # ("YUV", or a lower-case "rgb") would be fed as BGR without a word, so it is refused here.
+    for order in ("YUV", "rgb"):
+        with pytest.raises(ContractMismatch, match="input_norm.color_order: expected 'RGB' or 'BGR'"):
+            ModelContract(crop_size_px=64, embedding_dim=32, input_norm={**CONTRACT.input_norm, "color_order": order})
+    assert ModelContract(crop_size_px=64, embedding_dim=32,
+                         input_norm={**CONTRACT.input_norm, "color_order": "BGR"}).input_norm["color_order"] == "BGR"
+
+
+def test_defaults_feed_a_model_as_the_shipped_one_is_fed():
+    # A model exported with the default contract must be fed as the shipped model is: ImageNet
+    # normalisation (which its pretrained backbone expects), the same angle encoding (kind, alpha,
+    # base, yaw input) and 8 frames a window. An edited default would feed new exports numbers
+    # their networks never learnt. (depth_per_angle is the architecture's: the paper's 170 by default.)
+    from estimator.models import DEFAULT_MODEL_DIR
+
+    shipped = OnnxModel.load(DEFAULT_MODEL_DIR).contract
+    assert CONTRACT.input_norm == pytest.approx(shipped.input_norm)
+    assert list(IMAGENET_MEAN) == shipped.input_norm["mean"] and list(IMAGENET_STD) == shipped.input_norm["std"]
+    for key in ("kind", "alpha", "base", "yaw_input"):
+        assert CONTRACT.encoding[key] == shipped.encoding[key], key
+    assert CONTRACT.frames_per_window == shipped.frames_per_window == 8
+
+
+def test_encoding_the_runtime_does_not_compute_is_refused():
+    # The runtime computes one encoding, fed yaw relative to the newest frame: a contract asking
+    # for another kind or another yaw input would get numbers its network never saw.
+    for changes, named in (({"kind": "learned"}, "encoding.kind: expected 'cyclic-nested-sine'"),
+                           ({"yaw_input": "absolute"}, "encoding.yaw_input: this runtime feeds")):
+        with pytest.raises(ContractMismatch, match=named):
+            ModelContract(crop_size_px=64, embedding_dim=32, encoding={**CONTRACT.encoding, **changes})
+
+
+def test_a_contract_cannot_change_after_it_was_checked():
+    # Validated once, when made: a field set afterwards would bypass every check above.
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        CONTRACT.crop_size_px = 0
+
+
+def test_trained_elevation_range_bounds_are_inclusive():
+    def trained(elevations):
+        return ModelContract(crop_size_px=64, embedding_dim=32,
+                             training={"data": {"sun_elevation_deg": elevations}}).trained_sun_elevation_deg
+
+    assert trained([-90.0, 90.0]) == (-90.0, 90.0)  # the horizon's far side to the zenith: the whole sky
+    assert trained([35.0, 35.0]) == (35.0, 35.0)  # one short drive: one elevation is still a range
+    assert trained([10.0, 90.5]) is None and trained([-90.5, 10.0]) is None  # no sun is there
+
+
+def test_a_fine_tuned_models_trained_range_includes_its_starts():
+    # Fine-tuned on drives with the sun at 12..18 deg from a model trained on 5..75 deg: it has
+    # seen suns up to 75 deg, so suns above 18 deg must not be flagged as beyond its training.
+    def trained(training):
+        return ModelContract(crop_size_px=64, embedding_dim=32, training=training).trained_sun_elevation_deg
+
+    own = {"sun_elevation_deg": [12.0, 18.0]}
+    assert trained({"data": own, "init": {"data": {"sun_elevation_deg": [5.0, 75.0]}}}) == (5.0, 75.0)
+    # The start's own chain (its range including its start's) wins over its data's range.
+    assert trained({"data": own, "init": {"sun_elevation_deg": [3.0, 80.0],
+                                          "data": {"sun_elevation_deg": [5.0, 75.0]}}}) == (3.0, 80.0)
+    assert trained({"data": own}) == (12.0, 18.0)
+
+
+def test_an_encoding_missing_a_parameter_is_refused_by_name():
+    # Without alpha, base or depth_per_angle the runtime cannot compute the encoding: refused when
+    # the contract is read, naming the key, not a KeyError in the middle of the first window.
+    for key in ("alpha", "base", "depth_per_angle"):
+        encoding = {k: v for k, v in CONTRACT.encoding.items() if k != key}
+        with pytest.raises(ContractMismatch, match=f"encoding.{key}: missing"):
+            ModelContract(crop_size_px=64, embedding_dim=32, encoding=encoding)

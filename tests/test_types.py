@@ -172,3 +172,116 @@ def test_vectors_are_copied_not_frozen_in_the_callers_hands():
     f = make_frame(sun_enu_truth=truth)
     sun[2], truth[1] = 0.5, 0.5
     assert est.sun_enu.tolist() == [0.0, 0.0, 1.0] and f.sun_enu_truth.tolist() == [0.0, 1.0, 0.0]
+
+
+def test_vectors_must_be_finite_even_when_their_norm_cannot_say():
+    # A NaN makes the norm NaN, and NaN > tolerance is False: only the finite check stops it.
+    with pytest.raises(ValidationError, match="Frame.sun_enu_truth: expected finite values"):
+        make_frame(sun_enu_truth=[float("nan"), 0.0, 1.0])
+    with pytest.raises(ValidationError, match="SunEstimate.sun_enu: expected finite values"):
+        SunEstimate(t_mono_s=0.0, seq=0, sun_enu=[0.0, float("inf"), 1.0], heading_rad=0.0, heading_ref="true",
+                    spread_rad=0.0, n_frames=1, n_tokens=1, aggregator="single")
+
+
+def _estimate(**kw):
+    base = dict(t_mono_s=0.0, seq=0, sun_enu=[0.0, 0.0, 1.0], heading_rad=0.0, heading_ref="true", spread_rad=0.0,
+                n_frames=1, n_tokens=2, aggregator="mean")
+    return SunEstimate(**{**base, **kw})
+
+
+def test_estimate_arrays_are_read_only_and_its_heading_wrapped():
+    est = _estimate(truth_enu=[0.0, 1.0, 0.0], token_enu=[[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]],
+                    heading_rad=-math.pi / 2)
+    assert est.token_enu.shape == (2, 3)  # one world vector per token is accepted as it is
+    for arr in (est.sun_enu, est.truth_enu, est.token_enu):
+        with pytest.raises(ValueError):
+            arr[0] = 0.5
+    assert est.heading_rad == pytest.approx(1.5 * math.pi)  # clockwise from north, in [0, 2 pi)
+    with pytest.raises(ValidationError, match="SunEstimate.truth_enu: expected a unit vector"):
+        _estimate(truth_enu=[0.0, 0.0, 2.0])
+
+
+def test_estimate_json_view_has_every_field_a_consumer_reads():
+    d = _estimate(utc_ns=0, truth_enu=[0.0, 0.0, 1.0]).to_json_dict()
+    assert set(d) == {"t", "seq", "sun_enu", "azimuth_deg", "elevation_deg", "heading_deg", "heading_ref",
+                      "relative_bearing_deg", "spread_deg", "n_frames", "n_tokens", "aggregator", "utc",
+                      "truth_enu", "error_deg"}
+    assert (d["n_tokens"], d["aggregator"], d["n_frames"]) == (2, "mean", 1)
+
+
+def test_value_types_cannot_change_after_they_were_checked():
+    import dataclasses
+
+    fix = GnssFix(utc_ns=0, lat_deg=49.0, lon_deg=8.4)
+    att = Attitude(heading_rad=0.0, reference="true")
+    ff = FrameFeatures(make_frame(), np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 8), np.float32), "m")
+    for obj, name in ((INTR, "fx"), (fix, "lat_deg"), (_estimate(), "spread_rad"), (att, "heading_rad"),
+                      (ff, "model_id")):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(obj, name, 0.0)
+
+
+def test_intrinsics_sizes_are_plain_ints_and_from_hfov_centres_the_principal_point():
+    # 64.0 or a numpy int64 is a whole number: accepted, and stored as int (image slicing and JSON need one).
+    k = Intrinsics(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64.0, height=np.int64(48))
+    assert type(k.width) is int and type(k.height) is int
+    c = Intrinsics.from_hfov(1242, 375, math.radians(81.4))
+    assert (c.cx, c.cy) == (621.0, 187.5)
+    assert math.degrees(c.vfov_rad) == pytest.approx(2 * math.degrees(math.atan(187.5 / c.fy)))
+
+
+def test_gnss_range_edges_and_altitude():
+    with pytest.raises(ValidationError, match="lat_deg: expected within"):
+        GnssFix(utc_ns=0, lat_deg=-90.5, lon_deg=0.0)
+    assert GnssFix(utc_ns=0, lat_deg=-90.0, lon_deg=360.0).lon_deg == 360.0  # the 0..360 convention's end
+    with pytest.raises(ValidationError, match="alt_m: expected a finite number"):
+        GnssFix(utc_ns=0, lat_deg=0.0, lon_deg=0.0, alt_m=float("nan"))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"image_bgr": [[[0, 0, 0]]]}, "Frame.image_bgr: expected a numpy array, got list"),
+        ({"intrinsics": {"fx": 50.0}}, "Frame.intrinsics: expected Intrinsics, got dict"),
+        ({"attitude": 1.5}, "Frame.attitude: expected Attitude or None, got float"),
+        ({"gnss": (49.0, 8.4)}, "Frame.gnss: expected GnssFix or None, got tuple"),
+        ({"utc_ns": 1.5e18}, "Frame.utc_ns: expected integer ns since the epoch"),
+    ],
+)
+def test_frame_refuses_wrong_types_with_a_validation_error(kwargs, message):
+    # Wrong types are a ValidationError naming the field, not an AttributeError from deeper down.
+    with pytest.raises(ValidationError) as info:
+        make_frame(**kwargs)
+    assert message in str(info.value)
+
+
+def test_frame_heading_and_utc():
+    f = make_frame(attitude=Attitude(heading_rad=-math.pi / 2, reference="true"), utc_ns=np.int64(5))
+    assert f.heading_rad == pytest.approx(1.5 * math.pi) and make_frame().heading_rad is None
+    assert f.utc_ns == 5 and type(f.utc_ns) is int
+
+
+def test_frame_features_check_their_shapes_and_keep_their_own_read_only_copies():
+    boxes, angles, emb = np.zeros((2, 4)), np.zeros((2, 2)), np.zeros((2, 8), np.float32)
+    with pytest.raises(ValidationError, match=r"crop_angles_rad: expected shape \(2, 2\), got \(2, 3\)"):
+        FrameFeatures(make_frame(), boxes, np.zeros((2, 3)), emb, "m")
+    with pytest.raises(ValidationError, match=r"embeddings: expected shape \(2, D\), got \(3, 8\)"):
+        FrameFeatures(make_frame(), boxes, angles, np.zeros((3, 8), np.float32), "m")
+    ff = FrameFeatures(make_frame(), boxes, angles, emb, "m")
+    boxes[0, 0], angles[0, 0], emb[0, 0] = 9.0, 9.0, 9.0  # the caller's arrays stay writable
+    assert ff.crop_boxes_px[0, 0] == 0.0 and ff.crop_angles_rad[0, 0] == 0.0 and ff.embeddings[0, 0] == 0.0
+    for arr in (ff.crop_boxes_px, ff.crop_angles_rad, ff.embeddings):
+        with pytest.raises(ValueError):
+            arr[0, 0] = 1.0
+
+
+def test_a_value_that_is_no_number_is_a_validation_error():
+    with pytest.raises(ValidationError, match="t_mono_s: expected a real number, got 'soon'"):
+        make_frame(t_mono_s="soon")
+    with pytest.raises(ValidationError, match="SunEstimate.sun_enu: expected a unit vector"):
+        _estimate(sun_enu=[0.0, 0.0, 2.0])
+
+
+def test_utc_iso_keeps_the_second_of_the_last_microsecond():
+    # 13:02:25.999999999 is still second 25: integer arithmetic, no float rounding up to :26.
+    assert utc_iso(1_317_042_145_999_999_999) == "2011-09-26T13:02:25.999999Z"
