@@ -174,17 +174,20 @@ class WindowSampler:
     A ``hard_share`` of windows draws its drive in proportion to the drive's running error
     (:meth:`record`); the rest in proportion to drive length, so every frame is equally likely.
     A drive not yet seen counts as :data:`UNSEEN_ERR_DEG`, so early hard draws explore.
+    A ``mirror_share`` of windows is mirrored left to right (:func:`mirror_window`).
     """
 
     UNSEEN_ERR_DEG = 90.0
     ERR_EMA = 0.3  # weight of the newest window in a drive's running error
 
     def __init__(self, drives: Sequence[Drive], frames: int, crops: int, crop_size: int,
-                 subset_prob: float, rng: np.random.Generator, hard_share: float = 0.0) -> None:
+                 subset_prob: float, rng: np.random.Generator, hard_share: float = 0.0,
+                 mirror_share: float = 0.0) -> None:
         self.drives = list(drives)
         self.frames, self.crops, self.size = frames, crops, crop_size
         self.subset_prob = subset_prob
         self.hard_share = hard_share
+        self.mirror_share = mirror_share
         self.rng = rng
         lengths = np.array([len(d.images) for d in self.drives], dtype=np.float64)
         self.p = lengths / lengths.sum()
@@ -241,7 +244,25 @@ class WindowSampler:
                 keep = rng.integers(1, t + 1)
                 out.mask[b] = False
                 out.mask[b, rng.choice(t, size=keep, replace=False)] = True
+            # Drawn last and only when asked for, so a run without mirroring draws what it always did.
+            if self.mirror_share > 0.0 and rng.random() < self.mirror_share:
+                mirror_window(out, b)
         return out
+
+
+def mirror_window(batch: Batch, b: int) -> None:
+    """Turn window ``b`` of ``batch`` into the same drive in a world mirrored about the north-up
+    plane, in place: each crop flipped left to right, east negated, headings and horizontal view
+    angles negated (compass angles and view angles both turn the other way in a mirror).
+
+    A mirrored frame is a real pinhole image of the mirrored street (principal point at w - cx,
+    which only moves where a crop's angle is measured from, not the angle), so the cues stay
+    physically consistent: the sky brighter on the sun's side, shadows away from it. It doubles
+    the layouts a model sees per drive without rendering any."""
+    batch.crops[b] = batch.crops[b, :, :, ::-1]
+    batch.angles[b, :, :2] *= -1.0  # relative yaw and horizontal view angle
+    batch.yaw[b] *= -1.0
+    batch.truth[b, 0] *= -1.0
 
 
 # ------------------------------------------------------------------------------------------
@@ -259,6 +280,7 @@ class TrainConfig:
     warmup_steps: int = 300
     subset_prob: float = 0.3
     hard_share: float = 0.5  # windows whose drive is drawn by its running error
+    mirror_share: float = 0.0  # windows mirrored left to right (mirror_window)
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8
@@ -383,6 +405,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
     if not 0.0 <= cfg.hard_share <= 1.0:
         raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
+    if not 0.0 <= cfg.mirror_share <= 1.0:
+        raise ValidationError(f"mirror_share: expected a share in [0, 1], got {cfg.mirror_share}")
     if not cfg.max_steps and not (math.isfinite(cfg.minutes) and cfg.minutes > 0):
         # A nan budget never ends and a negative one exports random weights as "trained".
         raise ValidationError(f"minutes: expected a finite budget > 0, got {cfg.minutes}")
@@ -463,7 +487,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if not cfg.crops_per_frame:
         cfg = replace(cfg, crops_per_frame=PAPER_CROPS_PER_FRAME)
     sampler = WindowSampler(drives, cfg.frames_per_window, cfg.crops_per_frame, net_cfg.crop_size,
-                            cfg.subset_prob, rng, hard_share=cfg.hard_share)
+                            cfg.subset_prob, rng, hard_share=cfg.hard_share, mirror_share=cfg.mirror_share)
     if drive_err is not None and len(drive_err) == len(drives):
         sampler.err_deg[:] = drive_err
     bf16 = use_bf16(cfg.precision)
@@ -586,7 +610,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
 # What makes a run itself: resuming with any of these changed would make a contract that lies
 # about how its model was trained.
 _RUN_IDENTITY = {"preset": "--preset", "lr": "--lr", "batch_windows": "--batch", "seed": "--seed",
-                 "hard_share": "--hard-share"}
+                 "hard_share": "--hard-share", "mirror_share": "--mirror-share"}
+# What a checkpoint written before a setting was recorded ran with (none mirrored its windows).
+_RAN_BEFORE_RECORDED = {"mirror_share": 0.0}
 
 
 def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
@@ -607,8 +633,9 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
         return None
     state = torch.load(ckpt_path, weights_only=False)
     was = state["config"]
-    differs = [f"{flag} {was.get(key)!r}, not {getattr(cfg, key)!r}" for key, flag in _RUN_IDENTITY.items()
-               if key in was and was[key] != getattr(cfg, key)]
+    ran = {key: was.get(key, _RAN_BEFORE_RECORDED.get(key)) for key in _RUN_IDENTITY}
+    differs = [f"{flag} {ran[key]!r}, not {getattr(cfg, key)!r}" for key, flag in _RUN_IDENTITY.items()
+               if ran[key] is not None and ran[key] != getattr(cfg, key)]
     if (was.get("init") or "") != cfg.init and not (was.get("init") and cfg.init
                                                      and Path(was["init"]).resolve() == Path(cfg.init).resolve()):
         differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")

@@ -690,7 +690,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
-                      hard_share=args.hard_share, precision=args.precision,
+                      hard_share=args.hard_share, mirror_share=args.mirror_share, precision=args.precision,
                       init=str(resolve_init_dir(args.init)) if args.init else "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
@@ -1020,6 +1020,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=_positive_float, default=5e-4, help="peak learning rate (default 5e-4)")
     p.add_argument("--hard-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.5,
                    help="share of windows drawn from drives in proportion to their running error (default 0.5)")
+    p.add_argument("--mirror-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.0,
+                   help="share of windows mirrored left to right, the sun's east and every heading with them "
+                        "(default 0)")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="initialisation and sampling seed (default 0)")

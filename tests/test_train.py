@@ -230,6 +230,73 @@ def test_hard_share_draws_drives_by_their_running_error():
     assert 0.35 < np.mean(uniform.sample(200).drive == 1) < 0.65
 
 
+def _relative_sun(batch, b):
+    """Per token: the sun's azimuth from the crop's view direction (rad) and its elevation. A
+    mirror turns the first to the other side and keeps the second."""
+    from rig.geometry import az_el_from_enu, wrap_pi
+
+    az, el = az_el_from_enu(batch.truth[b])
+    newest_yaw = batch.yaw[b] - batch.angles[b, :, 0]  # every token's: yaw minus its relative yaw
+    assert np.allclose(wrap_pi(newest_yaw - newest_yaw[0]), 0.0, atol=1e-6)  # float32 angles
+    return wrap_pi(az - batch.yaw[b] - batch.angles[b, :, 1]), el
+
+
+def _ramp_drive(seed):
+    """A drive whose frames are a left-to-right ramp, so a crop's content tells left from right."""
+    ramp = np.broadcast_to(np.linspace(0, 255, 128).astype(np.uint8)[None, :, None], (80, 128, 3)).copy()
+    frames = [replace(f, image_bgr=ramp) for f in _frames(10, seed, sun_enu=(0.48, 0.36, 0.8))]
+    return load_drive(frames, "d", crop_size=16, crop_fov_rad=math.radians(17.6))
+
+
+def test_mirrored_window_is_the_mirror_world():
+    drive = _ramp_drive(1)
+    kw = dict(frames=8, crops=4, crop_size=16, subset_prob=0.0)
+    plain = WindowSampler([drive], rng=np.random.default_rng(5), **kw).sample(1)
+    mirrored = WindowSampler([drive], rng=np.random.default_rng(5), mirror_share=1.0, **kw).sample(1)
+    # The same draws, mirrored: crops flipped, headings and horizontal angles negated, east negated.
+    assert np.array_equal(mirrored.crops, plain.crops[:, :, :, ::-1])
+    assert mirrored.crops[0, 0, 0, 0, 0] > mirrored.crops[0, 0, 0, -1, 0]  # brighter on the left now
+    assert np.allclose(mirrored.angles[..., 2], plain.angles[..., 2])
+    assert np.allclose(mirrored.angles[..., :2], -plain.angles[..., :2])
+    assert np.allclose(mirrored.truth, plain.truth * [-1.0, 1.0, 1.0])
+    rel_plain, el_plain = _relative_sun(plain, 0)
+    rel_mirror, el_mirror = _relative_sun(mirrored, 0)
+    assert np.allclose(rel_mirror, -rel_plain) and el_mirror == pytest.approx(el_plain)
+    assert np.abs(rel_plain).max() > 0.1  # the check above is not 0 == -0
+
+
+def test_mirror_share_mirrors_its_share_and_draws_nothing_when_off():
+    drive = _ramp_drive(2)
+    kw = dict(frames=8, crops=4, crop_size=16, subset_prob=0.3)
+    # Off, the stream of draws is the one runs made before mirroring existed.
+    a = WindowSampler([drive], rng=np.random.default_rng(3), **kw).sample(20)
+    b = WindowSampler([drive], rng=np.random.default_rng(3), mirror_share=0.0, **kw).sample(20)
+    assert np.array_equal(a.crops, b.crops) and np.array_equal(a.truth, b.truth) and np.array_equal(a.mask, b.mask)
+    half = WindowSampler([drive], rng=np.random.default_rng(3), mirror_share=0.5, **kw).sample(400)
+    mirrored = half.crops[:, :, 0, 0, 0] > half.crops[:, :, 0, -1, 0]  # darker to the right: flipped
+    assert (mirrored == mirrored[:, :1]).all()  # a window is mirrored whole
+    assert 0.4 < mirrored[:, 0].mean() < 0.6
+
+
+def test_resume_with_another_mirror_share_is_refused_also_from_a_checkpoint_before_it(logs, tmp_path):
+    out = tmp_path / "model"
+    train(logs, out, TrainConfig(preset="tiny", max_steps=1, batch_windows=1, mirror_share=0.5))
+    with pytest.raises(ValidationError, match="--mirror-share 0.5, not 0.0"):
+        train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1))
+    # A checkpoint that predates the setting mirrored nothing: resuming it with mirroring would
+    # make a contract that says it mirrored all along.
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    del state["config"]["mirror_share"]
+    torch.save(state, out / CHECKPOINT)
+    with pytest.raises(ValidationError, match="--mirror-share 0.0, not 0.5"):
+        train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.5))
+
+
+def test_mirror_share_is_refused_outside_a_share(logs, tmp_path):
+    with pytest.raises(ValidationError, match="mirror_share"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, mirror_share=1.5))
+
+
 def test_schedule_warms_up_decays_and_never_rises_on_a_longer_resume():
     cfg = TrainConfig(lr=1e-3, warmup_steps=10)
     first = Schedule(minutes=10.0)
