@@ -375,15 +375,19 @@ def test_frames_whose_timestamp_does_not_increase_are_skipped(tmp_path):
     assert drive.corrupt_skipped == 2
 
 
+def _write_oxts(date, index, pose):
+    """Frame ``index``'s OXTS record: ``pose`` (lat lon alt roll pitch yaw) and 24 zeros after it."""
+    rest = " ".join(["0"] * 24)
+    (date / DRIVE / "oxts" / "data" / f"{index:010d}.txt").write_text(f"{pose} {rest}\n")
+
+
 def test_oxts_records_out_of_range_or_not_finite_cost_only_their_frame(tmp_path):
     # A latitude of 95 deg, a NaN yaw or a pitch of 4 rad (a logger glitch) must not end the replay (a GnssFix of
     # lat 95 would raise) nor pass for a pose: the frame goes without heading, fix and truth, counted.
     date = make_drive(tmp_path, 6)
-    rest = " ".join(["0"] * 24)
-    data = date / DRIVE / "oxts" / "data"
-    (data / "0000000002.txt").write_text(f"95.0 8.4343 116.4 0.01 0.005 0.3 {rest}\n")
-    (data / "0000000003.txt").write_text(f"49.015 8.4343 116.4 0.01 0.005 nan {rest}\n")
-    (data / "0000000004.txt").write_text(f"49.015 8.4343 116.4 0.01 4.0 0.3 {rest}\n")  # pitch past pi
+    _write_oxts(date, 2, "95.0 8.4343 116.4 0.01 0.005 0.3")
+    _write_oxts(date, 3, "49.015 8.4343 116.4 0.01 0.005 nan")
+    _write_oxts(date, 4, "49.015 8.4343 116.4 0.01 4.0 0.3")  # pitch past pi
     drive = open_kitti(date, utc_offset_h=2.0)
     frames = list(drive)
     assert [f.attitude is None and f.gnss is None and f.sun_enu_truth is None for f in frames] == [
@@ -457,10 +461,8 @@ def test_a_position_just_past_the_poles_or_the_date_line_costs_only_its_frame(tm
     # Latitude 90.5 or longitude 180.5 is no place on Earth: the record is out of range, so its
     # frame goes without pose (a GnssFix of lat 90.5 would end the replay), however slight the excess.
     date = make_drive(tmp_path, 4)
-    rest = " ".join(["0"] * 24)
-    data = date / DRIVE / "oxts" / "data"
-    (data / "0000000001.txt").write_text(f"90.5 8.4343 116.4 0.01 0.005 0.3 {rest}\n")
-    (data / "0000000002.txt").write_text(f"49.015 180.5 116.4 0.01 0.005 0.3 {rest}\n")
+    _write_oxts(date, 1, "90.5 8.4343 116.4 0.01 0.005 0.3")
+    _write_oxts(date, 2, "49.015 180.5 116.4 0.01 0.005 0.3")
     drive = open_kitti(date, utc_offset_h=2.0)
     frames = list(drive)
     assert [f.gnss is None and f.attitude is None for f in frames] == [False, True, True, False]
