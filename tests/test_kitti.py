@@ -301,6 +301,12 @@ P_rect_02: 7.215377e+02 0.000000e+00 6.095593e+02 4.485728e+01 0.000000e+00 7.21
 """
 
 
+def _write_oxts(date, index, pose):
+    """Frame ``index``'s OXTS record: ``pose`` (lat lon alt roll pitch yaw) and 24 zeros after it."""
+    rest = " ".join(["0"] * 24)
+    (date / DRIVE / "oxts" / "data" / f"{index:010d}.txt").write_text(f"{pose} {rest}\n")
+
+
 def make_drive(root: Path, n: int, size=(138, 42), seed: int = 0) -> Path:
     """A KITTI date folder with one generated drive of ``n`` frames at 10 Hz, turning 5 deg a frame
     (no fixture needed): real calibration values, images at 1/9 of the real size."""
@@ -312,10 +318,8 @@ def make_drive(root: Path, n: int, size=(138, 42), seed: int = 0) -> Path:
     (drive / "image_02").mkdir()
     (drive / "image_02" / "timestamps.txt").write_text(stamps)
     (drive / "oxts" / "timestamps.txt").write_text(stamps)
-    rest = " ".join(["0"] * 24)
     for i in range(n):
-        yaw = -2.6 + math.radians(5.0 * i)
-        (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(f"49.015 8.4343 116.4 0.01 0.005 {yaw} {rest}\n")
+        _write_oxts(date, i, f"49.015 8.4343 116.4 0.01 0.005 {-2.6 + math.radians(5.0 * i)}")
     (drive / "image_02" / "data").mkdir()
     rng = np.random.default_rng(seed)
     w, h = size
@@ -373,12 +377,6 @@ def test_frames_whose_timestamp_does_not_increase_are_skipped(tmp_path):
     drive = open_kitti(date, utc_offset_h=2.0)
     assert [f.seq for f in drive] == [0, 1, 2, 5]
     assert drive.corrupt_skipped == 2
-
-
-def _write_oxts(date, index, pose):
-    """Frame ``index``'s OXTS record: ``pose`` (lat lon alt roll pitch yaw) and 24 zeros after it."""
-    rest = " ".join(["0"] * 24)
-    (date / DRIVE / "oxts" / "data" / f"{index:010d}.txt").write_text(f"{pose} {rest}\n")
 
 
 def test_oxts_records_out_of_range_or_not_finite_cost_only_their_frame(tmp_path):
