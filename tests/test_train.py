@@ -265,13 +265,29 @@ def test_mirrored_window_is_the_mirror_world():
     assert np.abs(rel_plain).max() > 0.1  # the check above is not 0 == -0
 
 
+class _CountingRng:
+    """A generator that counts its ``random()`` draws (the kind the mirror decision takes)."""
+
+    def __init__(self, seed):
+        self._rng, self.randoms = np.random.default_rng(seed), 0
+
+    def random(self, *args, **kwargs):
+        self.randoms += 1
+        return self._rng.random(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._rng, name)
+
+
 def test_mirror_share_mirrors_its_share_and_draws_nothing_when_off():
     drive = _ramp_drive(2)
     kw = dict(frames=8, crops=4, crop_size=16, subset_prob=0.3)
-    # Off, the stream of draws is the one runs made before mirroring existed.
-    a = WindowSampler([drive], rng=np.random.default_rng(3), **kw).sample(20)
-    b = WindowSampler([drive], rng=np.random.default_rng(3), mirror_share=0.0, **kw).sample(20)
-    assert np.array_equal(a.crops, b.crops) and np.array_equal(a.truth, b.truth) and np.array_equal(a.mask, b.mask)
+    # Off, no draw is taken for it, so runs without mirroring draw the stream they always did
+    # (one random() per window: the subset decision). On, however rarely, one more per window.
+    for share, per_window in ((0.0, 1), (1e-12, 2)):
+        rng = _CountingRng(3)
+        WindowSampler([drive], rng=rng, mirror_share=share, **kw).sample(20)
+        assert rng.randoms == 20 * per_window
     half = WindowSampler([drive], rng=np.random.default_rng(3), mirror_share=0.5, **kw).sample(400)
     mirrored = half.crops[:, :, 0, 0, 0] > half.crops[:, :, 0, -1, 0]  # darker to the right: flipped
     assert (mirrored == mirrored[:, :1]).all()  # a window is mirrored whole
