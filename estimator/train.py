@@ -403,10 +403,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     """Train (or resume) and export; returns the model folder."""
     if cfg.preset not in nets.PRESETS:
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
-    if not 0.0 <= cfg.hard_share <= 1.0:
-        raise ValidationError(f"hard_share: expected a share in [0, 1], got {cfg.hard_share}")
-    if not 0.0 <= cfg.mirror_share <= 1.0:
-        raise ValidationError(f"mirror_share: expected a share in [0, 1], got {cfg.mirror_share}")
+    for name in ("hard_share", "mirror_share"):
+        if not 0.0 <= getattr(cfg, name) <= 1.0:
+            raise ValidationError(f"{name}: expected a share in [0, 1], got {getattr(cfg, name)}")
     if not cfg.max_steps and not (math.isfinite(cfg.minutes) and cfg.minutes > 0):
         # A nan budget never ends and a negative one exports random weights as "trained".
         raise ValidationError(f"minutes: expected a finite budget > 0, got {cfg.minutes}")
