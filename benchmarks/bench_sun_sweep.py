@@ -75,12 +75,12 @@ def main() -> None:
     seed = drive_seed(args.drive_seed, args.index)
     plan = plan_drive(seed, args.frames)
     heading0 = plan.poses[0].heading_rad
+    policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window)  # the live policy, as bench_accuracy
     rows = []
     for rel in args.relative_az_deg:
         az = (heading0 + math.radians(rel)) % (2 * math.pi)
         drive = Drive(seed, args.frames, sun_azimuth_rad=az)
         frames = list(drive.frames())
-        policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
         result = evaluate([("sweep", iter(frames))], estimator, policy, aggregators=["transformer"])
         err = np.asarray(result.errors_deg["transformer"])
         elev = np.asarray(result.elevation_deg["transformer"])
