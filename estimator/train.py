@@ -764,7 +764,7 @@ def _init_provenance(model_dir: Path) -> dict[str, Any]:
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: int = 0,
-                      export_command: str = "", log_paths: Sequence[Path] = ()) -> Path:
+                      export_command: str = "", log_paths: Sequence[Path] = (), data_note: str = "") -> Path:
     """Export the model in ``checkpoint_dir``'s checkpoint as it stands (e.g. while it trains).
 
     ``run_crops_per_frame`` sets the crops per frame the runtime will feed it (default: the
@@ -776,6 +776,10 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     its data's sun elevations (the status rule's limit, :meth:`ModelContract.trained_sun_elevation_deg`).
     They must be the logs the run trained on (same fingerprint); a checkpoint that has the range
     keeps its own.
+
+    ``data_note``: what those logs are, for a run that was started without ``--data-note``
+    (the contract's ``training.data.source``). It needs ``log_paths``, so that the note is
+    attached to the logs the run trained on, and it cannot rename data a run has recorded.
     """
     if run_crops_per_frame < 0:
         raise ValidationError(f"crops per frame: expected at least 1 (0: as trained), got {run_crops_per_frame}")
@@ -785,13 +789,24 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     state = torch.load(path, weights_only=False)
     cfg = TrainConfig(**state["config"])  # train() saves the crop count resolved, never 0
     counts = state.setdefault("data_counts", {})
-    if log_paths and "sun_elevation_deg" not in counts:
+    if data_note:
+        recorded = cfg.data.get("source") or ""
+        if recorded and recorded != data_note:
+            raise ValidationError(f"the run in {checkpoint_dir} recorded its data as {recorded!r}; "
+                                  "--data-note names the data of a run that recorded none")
+        if not log_paths:
+            raise ValidationError("--data-note with --export-only needs the run's training logs too, "
+                                  "so that the note is checked to be about them (their fingerprint)")
+    if log_paths:
         trained_on = cfg.data.get("fingerprint")
         if data_fingerprint(log_paths) != trained_on:
             raise ValidationError(f"these {len(log_paths)} logs are not the ones {checkpoint_dir} trained on "
                                   f"(fingerprint {data_fingerprint(log_paths)}, not {trained_on}); "
                                   "pass the run's training logs, or none")
-        counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
+        if "sun_elevation_deg" not in counts:
+            counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
+    if data_note:
+        cfg.data = {**cfg.data, "source": data_note}
     backbone, aggregator = nets.PRESETS[cfg.preset].build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])

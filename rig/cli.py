@@ -677,7 +677,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         # elevations takes them from its logs (checked to be the run's by their fingerprint).
         logs = _expand_logs(args.logs) if args.logs else []
         out = export_checkpoint(Path(args.out), Path(args.export_only), run_crops_per_frame=args.crops or 0,
-                                export_command=command_line() if args.crops or logs else "", log_paths=logs)
+                                export_command=command_line() if args.crops or logs or args.data_note else "",
+                                log_paths=logs, data_note=args.data_note or "")
         if not args.quiet:
             print(f"train: exported the checkpoint in {args.out} to {out}", file=sys.stderr)
         return 0
@@ -1027,7 +1028,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="initialisation and sampling seed (default 0)")
     p.add_argument("--threads", type=_positive_int, default=0, help="torch threads (default: all cores)")
-    p.add_argument("--data-note", help="what the logs are, recorded in the model's contract")
+    p.add_argument("--data-note", help="what the logs are, recorded in the model's contract (with --export-only "
+                   "and the run's logs: for a run started without one)")
     p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")

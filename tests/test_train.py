@@ -147,6 +147,31 @@ def test_an_older_checkpoint_takes_its_sun_elevations_from_its_own_logs(logs, tm
     assert again.contract.trained_sun_elevation_deg == (53.1, 53.1)
 
 
+def test_a_run_started_without_a_data_note_gets_one_at_export_checked_against_its_logs(logs, tmp_path):
+    from estimator.runtime import OnnxModel
+    from estimator.train import export_checkpoint
+
+    out = tmp_path / "model"
+    train(logs, out, TrainConfig(preset="tiny", max_steps=1, batch_windows=1, warmup_steps=1,
+                                 data={"fingerprint": data_fingerprint(logs), "source": ""}))
+    note = "sunrig synth train --drives 3 --seed 7"
+    with pytest.raises(ValidationError, match="needs the run's training logs"):
+        export_checkpoint(out, tmp_path / "unchecked", data_note=note)
+    with pytest.raises(ValidationError, match="not the ones"):
+        export_checkpoint(out, tmp_path / "wrong", log_paths=logs[:2], data_note=note)
+    named = OnnxModel.load(export_checkpoint(out, tmp_path / "named", log_paths=logs, data_note=note))
+    assert named.contract.training["data"]["source"] == note
+    assert named.contract.training["data"]["fingerprint"] == data_fingerprint(logs)
+    # Data a run recorded itself is not renamed; the same words again change nothing.
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    state["config"]["data"]["source"] = note
+    torch.save(state, out / CHECKPOINT)
+    with pytest.raises(ValidationError, match="recorded its data as"):
+        export_checkpoint(out, tmp_path / "renamed", log_paths=logs, data_note="something else")
+    same = OnnxModel.load(export_checkpoint(out, tmp_path / "same", log_paths=logs, data_note=note))
+    assert same.contract.training["data"]["source"] == note
+
+
 def test_ctrl_c_keeps_the_steps_since_the_last_checkpoint(logs, tmp_path):
     out = tmp_path / "model"
 
