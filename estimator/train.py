@@ -38,6 +38,7 @@ import json
 import logging
 import math
 import os
+import shlex
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -840,4 +841,6 @@ def data_fingerprint(paths: Sequence[Path]) -> str:
 
 
 def command_line() -> str:
-    return "sunrig " + " ".join(sys.argv[1:])
+    """This process's command as a shell would take it again: an argument with spaces (a
+    ``--data-note``) stays one argument, so a recorded command can be copied and run."""
+    return "sunrig " + shlex.join(sys.argv[1:])

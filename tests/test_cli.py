@@ -4,6 +4,7 @@ import json
 import math
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -642,6 +643,17 @@ def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
     assert "--crops 8" in exported.contract.training["export_command"]
     crops = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
     np.testing.assert_array_equal(exported.embed(crops), trained.embed(crops))
+    # The run had no --data-note: the export can name its data, given the run's logs to check.
+    note = "the bundled demo drive, seed 7"
+    res = run_cli("train", "--out", str(out), "--export-only", str(tmp_path / "n"), "--data-note", note, "--quiet")
+    assert res.returncode == 2 and "needs the run's training logs" in res.stderr and "Traceback" not in res.stderr
+    res = run_cli("train", str(DEMO_LOG), "--out", str(out), "--export-only", str(tmp_path / "n"),
+                  "--data-note", note, "--quiet")
+    assert res.returncode == 0, res.stderr
+    named = OnnxModel.load(tmp_path / "n").contract.training
+    assert named["data"]["source"] == note
+    # Recorded as a shell takes it again: the note is one argument.
+    assert shlex.split(named["export_command"])[-2:] == [note, "--quiet"]
 
 
 def test_every_option_of_every_command_says_what_it_does():
