@@ -281,7 +281,7 @@ class TrainConfig:
     warmup_steps: int = 300
     subset_prob: float = 0.3
     hard_share: float = 0.5  # windows whose drive is drawn by its running error
-    mirror_share: float = 0.0  # windows mirrored left to right (mirror_window)
+    mirror_share: float = 0.5  # windows mirrored left to right (mirror_window)
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8
@@ -645,9 +645,14 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     if old_data and new_data and old_data != new_data:
         differs.append(f"logs with fingerprint {old_data}, not {new_data}")
     if differs:
+        # A default may have changed since the run began (--mirror-share did), so its own command
+        # alone may not resume it: name the settings to give as well.
+        settings = " ".join(f"{flag} {ran[key]}" for key, flag in _RUN_IDENTITY.items()
+                            if ran[key] is not None and ran[key] != getattr(cfg, key))
+        give = f" with `{settings}`" if settings else ""
         raise ValidationError(f"--out {out_dir} holds a run with {'; '.join(differs)}. To resume it, run its own "
-                              f"command (`{was.get('command') or 'see its checkpoint'}`); for a new run pass "
-                              "another --out")
+                              f"command (`{was.get('command') or 'see its checkpoint'}`){give}; for a new run "
+                              "pass another --out")
     return state
 
 

@@ -1021,9 +1021,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=_positive_float, default=5e-4, help="peak learning rate (default 5e-4)")
     p.add_argument("--hard-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.5,
                    help="share of windows drawn from drives in proportion to their running error (default 0.5)")
-    p.add_argument("--mirror-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.0,
+    p.add_argument("--mirror-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.5,
                    help="share of windows mirrored left to right, the sun's east and every heading with them "
-                        "(default 0)")
+                        "(default 0.5; 0 for the recipe before, which a run begun then resumes with)")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="initialisation and sampling seed (default 0)")
