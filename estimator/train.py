@@ -634,8 +634,8 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     state = torch.load(ckpt_path, weights_only=False)
     was = state["config"]
     ran = {key: was.get(key, _RAN_BEFORE_RECORDED.get(key)) for key in _RUN_IDENTITY}
-    differs = [f"{flag} {ran[key]!r}, not {getattr(cfg, key)!r}" for key, flag in _RUN_IDENTITY.items()
-               if ran[key] is not None and ran[key] != getattr(cfg, key)]
+    changed = [key for key in _RUN_IDENTITY if ran[key] is not None and ran[key] != getattr(cfg, key)]
+    differs = [f"{_RUN_IDENTITY[key]} {ran[key]!r}, not {getattr(cfg, key)!r}" for key in changed]
     if (was.get("init") or "") != cfg.init and not (was.get("init") and cfg.init
                                                      and Path(was["init"]).resolve() == Path(cfg.init).resolve()):
         differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")
@@ -647,9 +647,7 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     if differs:
         # A default may have changed since the run began (--mirror-share did), so its own command
         # alone may not resume it: name the settings to give as well.
-        settings = " ".join(f"{flag} {ran[key]}" for key, flag in _RUN_IDENTITY.items()
-                            if ran[key] is not None and ran[key] != getattr(cfg, key))
-        give = f" with `{settings}`" if settings else ""
+        give = f" with `{' '.join(f'{_RUN_IDENTITY[key]} {ran[key]}' for key in changed)}`" if changed else ""
         raise ValidationError(f"--out {out_dir} holds a run with {'; '.join(differs)}. To resume it, run its own "
                               f"command (`{was.get('command') or 'see its checkpoint'}`){give}; for a new run "
                               "pass another --out")
