@@ -801,6 +801,7 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
         if not log_paths:
             raise ValidationError("--data-note with --export-only needs the run's training logs too, "
                                   "so that the note is checked to be about them (their fingerprint)")
+        cfg.data = {**cfg.data, "source": data_note}  # exported only once the logs below are the run's
     if log_paths:
         trained_on = cfg.data.get("fingerprint")
         if data_fingerprint(log_paths) != trained_on:
@@ -809,8 +810,6 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
                                   "pass the run's training logs, or none")
         if "sun_elevation_deg" not in counts:
             counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
-    if data_note:
-        cfg.data = {**cfg.data, "source": data_note}
     backbone, aggregator = nets.PRESETS[cfg.preset].build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
