@@ -42,15 +42,16 @@ import shlex
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from estimator.contract import CHECKPOINT, PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
+from estimator.contract import CHECKPOINT, PAPER_CROPS_PER_FRAME, input_affine
 from estimator.crops import crop_side_px
+from estimator.recipe import TrainConfig
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.types import Frame, HeadingRef
@@ -268,31 +269,6 @@ def mirror_window(batch: Batch, b: int) -> None:
 
 # ------------------------------------------------------------------------------------------
 # Training
-
-
-@dataclass
-class TrainConfig:
-    preset: str = "fast"
-    minutes: float = 80.0  # wall-clock budget of this and earlier (resumed) sessions together
-    max_steps: int = 0  # 0: until the time budget ends
-    batch_windows: int = 6
-    lr: float = 5e-4
-    weight_decay: float = 0.05
-    warmup_steps: int = 300
-    subset_prob: float = 0.3
-    hard_share: float = 0.5  # windows whose drive is drawn by its running error
-    mirror_share: float = 0.5  # windows mirrored left to right (mirror_window)
-    precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
-    init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
-    frames_per_window: int = 8
-    crops_per_frame: int = 0  # 0: the resumed checkpoint's, else the paper's 4
-    crop_fov_deg: float = PAPER_CROP_FOV_DEG
-    seed: int = 0
-    threads: int = 0  # 0: all cores
-    checkpoint_every_s: float = 300.0
-    # Recorded in the contract; filled by the CLI.
-    command: str = ""
-    data: dict[str, Any] = field(default_factory=dict)
 
 
 LR_FLOOR = 0.02  # the schedule ends at this share of the peak rate

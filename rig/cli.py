@@ -1004,30 +1004,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_eval)
 
+    from estimator.recipe import TrainConfig  # no torch: the defaults below are the library's own
+
+    recipe = TrainConfig()
     p = sub.add_parser("train", parents=[debug], help="train a model on logs with ground truth (needs sunrig[train])")
     p.add_argument("logs", nargs="*", help="native logs (.mcap), folders of them, or KITTI raw drive folders")
     p.add_argument("--out", required=True, metavar="MODEL_DIR",
                    help="model folder; holds checkpoint.pt, and a run resumes from it")
-    p.add_argument("--preset", default="fast",
+    p.add_argument("--preset", default=recipe.preset,
                    help="network preset: fast (default, the 2-core CPU recipe of docs/model.md), light, "
                         "paper (ResNet18 at 224 px), tiny (for tests)")
-    p.add_argument("--minutes", type=_positive_float, default=80.0, help="training time budget (default 80)")
+    p.add_argument("--minutes", type=_positive_float, default=recipe.minutes,
+                   help=f"training time budget (default {recipe.minutes:g})")
     p.add_argument("--steps", type=_positive_int, default=0,
                    help="stop after this many steps instead of at the time budget")
-    p.add_argument("--batch", type=_positive_int, default=6, help="windows per step (default 6)")
+    p.add_argument("--batch", type=_positive_int, default=recipe.batch_windows,
+                   help=f"windows per step (default {recipe.batch_windows})")
     p.add_argument("--crops", type=_positive_int, metavar="N",
                    help="crops per frame, recorded in the contract and used at run time (default 4, the paper's; "
                         "a resume keeps its run's). With --export-only: the run-time count of the exported model")
-    p.add_argument("--lr", type=_positive_float, default=5e-4, help="peak learning rate (default 5e-4)")
-    p.add_argument("--hard-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.5,
-                   help="share of windows drawn from drives in proportion to their running error (default 0.5)")
-    p.add_argument("--mirror-share", type=_float_in(0.0, 1.0, lo_included=True), default=0.5,
+    p.add_argument("--lr", type=_positive_float, default=recipe.lr, help=f"peak learning rate (default {recipe.lr:g})")
+    p.add_argument("--hard-share", type=_float_in(0.0, 1.0, lo_included=True), default=recipe.hard_share,
+                   help="share of windows drawn from drives in proportion to their running error "
+                        f"(default {recipe.hard_share:g})")
+    p.add_argument("--mirror-share", type=_float_in(0.0, 1.0, lo_included=True), default=recipe.mirror_share,
                    help="share of windows mirrored left to right, the sun's east and every heading with them "
-                        "(default 0.5; 0 for the recipe before, which a run begun then resumes with)")
-    p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
+                        f"(default {recipe.mirror_share:g}; 0 for the recipe before, which a run begun then "
+                        "resumes with)")
+    p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=recipe.precision,
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
-    p.add_argument("--seed", type=_nonneg_int, default=0, help="initialisation and sampling seed (default 0)")
-    p.add_argument("--threads", type=_positive_int, default=0, help="torch threads (default: all cores)")
+    p.add_argument("--seed", type=_nonneg_int, default=recipe.seed,
+                   help=f"initialisation and sampling seed (default {recipe.seed})")
+    p.add_argument("--threads", type=_positive_int, default=recipe.threads, help="torch threads (default: all cores)")
     p.add_argument("--data-note", help="what the logs are, recorded in the model's contract (with --export-only "
                    "and the run's logs: for a run started without one)")
     p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",

@@ -339,8 +339,8 @@ def test_resume_with_another_mirror_share_is_refused_also_from_a_checkpoint_befo
 
 
 def test_the_cli_and_the_library_train_with_the_same_defaults():
-    # Two places hold the recipe's defaults (argparse shows them in --help; TrainConfig is the
-    # library's): a default changed in one only would train two recipes under one name.
+    # argparse takes its defaults from TrainConfig (estimator/recipe.py, no torch); a default
+    # written into the parser again would train two recipes under one name.
     from rig.cli import build_parser
 
     args = build_parser().parse_args(["train", "x.mcap", "--out", "m"])

@@ -1,0 +1,34 @@
+"""The training recipe's settings, apart from the trainer: ``sunrig train``'s options take their
+defaults from here without importing torch, so the CLI and the library cannot drift apart."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from estimator.contract import PAPER_CROP_FOV_DEG
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "fast"
+    minutes: float = 80.0  # wall-clock budget of this and earlier (resumed) sessions together
+    max_steps: int = 0  # 0: until the time budget ends
+    batch_windows: int = 6
+    lr: float = 5e-4
+    weight_decay: float = 0.05
+    warmup_steps: int = 300
+    subset_prob: float = 0.3
+    hard_share: float = 0.5  # windows whose drive is drawn by its running error
+    mirror_share: float = 0.5  # windows mirrored left to right (mirror_window)
+    precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
+    init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
+    frames_per_window: int = 8
+    crops_per_frame: int = 0  # 0: the resumed checkpoint's, else the paper's 4
+    crop_fov_deg: float = PAPER_CROP_FOV_DEG
+    seed: int = 0
+    threads: int = 0  # 0: all cores
+    checkpoint_every_s: float = 300.0
+    # Recorded in the contract; filled by the CLI.
+    command: str = ""
+    data: dict[str, Any] = field(default_factory=dict)
