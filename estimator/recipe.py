@@ -6,8 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from estimator.contract import PAPER_CROP_FOV_DEG
-
 
 @dataclass
 class TrainConfig:
@@ -25,7 +23,7 @@ class TrainConfig:
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8
     crops_per_frame: int = 0  # 0: the resumed checkpoint's, else the paper's 4
-    crop_fov_deg: float = PAPER_CROP_FOV_DEG
+    crop_fov_deg: float = 0.0  # 0: the --init model's, else the paper's 17.6 deg (PAPER_CROP_FOV_DEG)
     seed: int = 0
     threads: int = 0  # 0: all cores
     checkpoint_every_s: float = 300.0

@@ -49,7 +49,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from estimator.contract import CHECKPOINT, PAPER_CROPS_PER_FRAME, input_affine
+from estimator.contract import CHECKPOINT, PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
 from estimator.crops import crop_side_px
 from estimator.recipe import TrainConfig
 from rig.errors import SunrigError, ValidationError, require_torch
@@ -388,6 +388,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         raise ValidationError(f"minutes: expected a finite budget > 0, got {cfg.minutes}")
     if not (math.isfinite(cfg.lr) and cfg.lr > 0):
         raise ValidationError(f"lr: expected a finite learning rate > 0, got {cfg.lr}")
+    if not (math.isfinite(cfg.crop_fov_deg) and 0.0 <= cfg.crop_fov_deg < 180.0):
+        raise ValidationError(f"crop fov: expected an angle in (0, 180) deg (0: the --init model's or the paper's), "
+                              f"got {cfg.crop_fov_deg}")
     if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
                               f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
@@ -413,6 +416,12 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         run_crops = int(state["run_crops_per_frame"] or 0)
     else:  # a new run, or one checkpointed before session 11 recorded it
         run_crops = 0 if cfg.crops_per_frame or not init_info else int(init_info.get("crops_per_frame") or 0)
+    # The angle a crop spans, fixed at the run's start like the crops: a fine-tune keeps its start's
+    # (a model sees its crops at one angular scale), a resume its run's.
+    if state is not None:
+        cfg = replace(cfg, crop_fov_deg=float(state["config"].get("crop_fov_deg", PAPER_CROP_FOV_DEG)))
+    elif not cfg.crop_fov_deg:
+        cfg = replace(cfg, crop_fov_deg=float((init_info or {}).get("crop_fov_deg") or PAPER_CROP_FOV_DEG))
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     fov = math.radians(cfg.crop_fov_deg)
@@ -617,6 +626,9 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
         differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")
     if cfg.crops_per_frame not in (0, was["crops_per_frame"]):  # 0: the run's own
         differs.append(f"--crops {was['crops_per_frame']}, not {cfg.crops_per_frame}")
+    ran_fov = was.get("crop_fov_deg", PAPER_CROP_FOV_DEG)
+    if cfg.crop_fov_deg not in (0, ran_fov):  # 0: the run's own
+        differs.append(f"--crop-fov {ran_fov:g}, not {cfg.crop_fov_deg:g}")
     old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
     if old_data and new_data and old_data != new_data:
         differs.append(f"logs with fingerprint {old_data}, not {new_data}")
@@ -740,7 +752,7 @@ def _init_provenance(model_dir: Path) -> dict[str, Any]:
     return {"dir": str(model_dir), "model_id": start.model_id,
             **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None},
             **({"sun_elevation_deg": list(sun_range)} if sun_range else {}),
-            "crops_per_frame": start.contract.crops_per_frame}
+            "crops_per_frame": start.contract.crops_per_frame, "crop_fov_deg": start.contract.crop_fov_deg}
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: int = 0,

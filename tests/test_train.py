@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from estimator.contract import PAPER_CROP_FOV_DEG
 from rig.errors import ValidationError
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
 
@@ -61,7 +62,6 @@ def logs(tmp_path):
 
 
 def test_drive_is_prescaled_so_a_crop_is_a_slice():
-    from estimator.contract import PAPER_CROP_FOV_DEG
 
     fov = math.radians(PAPER_CROP_FOV_DEG)
     drive = load_drive(_frames(3, 0), "d", crop_size=16, crop_fov_rad=fov)
@@ -217,7 +217,6 @@ def test_frames_without_a_true_heading_do_not_train(tmp_path, ref):
     import dataclasses
     from functools import partial
 
-    from estimator.contract import PAPER_CROP_FOV_DEG
     from estimator.train import load_drives
     from replay.native import LogWriter
     from replay.sources import open_frames
@@ -349,6 +348,7 @@ def test_the_cli_and_the_library_train_with_the_same_defaults():
                       ("mirror_share", "mirror_share"), ("precision", "precision"), ("seed", "seed"),
                       ("minutes", "minutes")):
         assert getattr(args, flag) == getattr(cfg, key), flag
+    assert (args.crop_fov or 0.0) == cfg.crop_fov_deg  # None at the CLI, 0 in the library: the start's, or the paper's
 
 
 def test_mirror_share_is_refused_outside_a_share(logs, tmp_path):
@@ -495,6 +495,33 @@ def test_a_fine_tune_keeps_the_suns_and_the_crop_count_of_the_model_it_started_f
     shutil.rmtree(start)
     train(low_sun, again, tune)
     assert OnnxModel.load(again).contract.trained_sun_elevation_deg == (16.3, 53.1)
+
+
+def test_the_crop_angle_is_the_paper_s_or_the_given_one_and_a_fine_tune_keeps_its_start_s(logs, tmp_path):
+    from estimator.runtime import OnnxModel
+
+    one = TrainConfig(preset="tiny", max_steps=1, batch_windows=1)
+    paper = train(logs, tmp_path / "paper", one)
+    assert OnnxModel.load(paper).contract.crop_fov_deg == pytest.approx(PAPER_CROP_FOV_DEG)
+    wide = train(logs, tmp_path / "wide", replace(one, crop_fov_deg=26.0))
+    assert OnnxModel.load(wide).contract.crop_fov_deg == 26.0
+    # A model sees its crops at one angular scale: a fine-tune keeps its start's unless told.
+    tuned = train(logs, tmp_path / "tuned", replace(one, init=str(wide)))
+    assert OnnxModel.load(tuned).contract.crop_fov_deg == 26.0
+    told = train(logs, tmp_path / "told", replace(one, init=str(wide), crop_fov_deg=20.0))
+    assert OnnxModel.load(told).contract.crop_fov_deg == 20.0
+    # A resume keeps its run's, given or not, and refuses another before loading anything.
+    train(logs, wide, replace(one, max_steps=2))
+    assert OnnxModel.load(wide).contract.crop_fov_deg == 26.0
+    with pytest.raises(ValidationError, match="--crop-fov 26, not 17.6"):
+        train(logs, wide, replace(one, max_steps=3, crop_fov_deg=PAPER_CROP_FOV_DEG))
+
+
+@pytest.mark.parametrize("deg", [-1.0, 180.0, float("nan")])
+def test_a_crop_angle_outside_a_half_turn_is_refused(logs, tmp_path, deg):
+    with pytest.raises(ValidationError, match="crop fov"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, crop_fov_deg=deg))
+    assert not (tmp_path / "m").exists()
 
 
 def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
