@@ -691,7 +691,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         open_frames(p, utc_offset_h=args.utc_offset)
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
-                      crop_fov_deg=args.crop_fov or 0.0,
+                      crop_fov_deg=args.crop_fov,
                       hard_share=args.hard_share, mirror_share=args.mirror_share, precision=args.precision,
                       init=str(resolve_init_dir(args.init)) if args.init else "",
                       seed=args.seed, threads=args.threads,
@@ -1026,7 +1026,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="crops per frame, recorded in the contract and used at run time (default 4, the paper's; "
                         "a resume keeps its run's). With --export-only: the run-time count of the exported model")
     p.add_argument("--lr", type=_positive_float, default=recipe.lr, help=f"peak learning rate (default {recipe.lr:g})")
-    p.add_argument("--crop-fov", type=_float_in(0.0, 180.0), default=recipe.crop_fov_deg or None, metavar="DEG",
+    p.add_argument("--crop-fov", type=_float_in(0.0, 180.0), default=recipe.crop_fov_deg, metavar="DEG",
                    help="horizontal angle a crop spans, recorded in the contract and used at run time (default: "
                         f"the --init model's, else the paper's {PAPER_CROP_FOV_DEG:.1f}; a resume keeps its run's)")
     p.add_argument("--hard-share", type=_float_in(0.0, 1.0, lo_included=True), default=recipe.hard_share,
