@@ -598,6 +598,10 @@ _RUN_IDENTITY = {"preset": "--preset", "lr": "--lr", "batch_windows": "--batch",
                  "hard_share": "--hard-share", "mirror_share": "--mirror-share"}
 # What a checkpoint written before a setting was recorded ran with (none mirrored its windows).
 _RAN_BEFORE_RECORDED = {"mirror_share": 0.0}
+# Settings whose 0 means "the run's own" (so a resume need not repeat them) and what a checkpoint
+# written before the setting was recorded ran with.
+_RUN_OWN_WHEN_ZERO = {"crops_per_frame": ("--crops", PAPER_CROPS_PER_FRAME),
+                      "crop_fov_deg": ("--crop-fov", PAPER_CROP_FOV_DEG)}
 
 
 def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
@@ -624,11 +628,10 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     if (was.get("init") or "") != cfg.init and not (was.get("init") and cfg.init
                                                      and Path(was["init"]).resolve() == Path(cfg.init).resolve()):
         differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")
-    if cfg.crops_per_frame not in (0, was["crops_per_frame"]):  # 0: the run's own
-        differs.append(f"--crops {was['crops_per_frame']}, not {cfg.crops_per_frame}")
-    ran_fov = was.get("crop_fov_deg", PAPER_CROP_FOV_DEG)
-    if cfg.crop_fov_deg not in (0, ran_fov):  # 0: the run's own
-        differs.append(f"--crop-fov {ran_fov:g}, not {cfg.crop_fov_deg:g}")
+    for key, (flag, before_recorded) in _RUN_OWN_WHEN_ZERO.items():
+        ran_with = was.get(key, before_recorded)
+        if getattr(cfg, key) not in (0, ran_with):
+            differs.append(f"{flag} {ran_with:g}, not {getattr(cfg, key):g}")
     old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
     if old_data and new_data and old_data != new_data:
         differs.append(f"logs with fingerprint {old_data}, not {new_data}")
