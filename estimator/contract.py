@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -57,6 +58,18 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
+def fovs_deg(value: float | Sequence[float]) -> tuple[float, ...]:
+    """A crop angle setting (one angle, or one per scale) as a tuple of angles; 0 or empty: ()."""
+    if isinstance(value, int | float):
+        return (float(value),) if value else ()
+    return tuple(float(v) for v in value)
+
+
+def format_fovs_deg(value: float | Sequence[float]) -> str:
+    """A crop angle setting as ``--crop-fov`` takes it: ``17.6`` or ``17.6,26``."""
+    return ",".join(f"{v:g}" for v in fovs_deg(value)) or "0"
+
+
 def _encoding_default() -> dict[str, Any]:
     # yaw_input: the yaw angle fed to the encoding is relative to the window's newest frame, so
     # the network cannot depend on a global yaw offset (estimator.estimator.window_tokens).
@@ -79,12 +92,16 @@ class ModelContract:
 
     ``crop_fov_deg`` is the horizontal angle a crop spans in the source image: the runtime cuts
     ``2 fx tan(fov / 2)`` pixels and resizes to ``crop_size_px``, so a model sees the same angular
-    detail whatever the camera's resolution or focal length.
+    detail whatever the camera's resolution or focal length. A list of angles mixes scales in
+    every frame: the frame's crops are shared out among the angles as evenly as they go, the first
+    angle first (:func:`estimator.crops.crops_per_scale`), so narrow crops see shading and shadow
+    detail and wide ones the layout of sky and street (docs/model.md). A runtime that predates
+    lists refuses such a model rather than misreading it.
     """
 
     crop_size_px: int
     embedding_dim: int
-    crop_fov_deg: float = PAPER_CROP_FOV_DEG
+    crop_fov_deg: float | list[float] = PAPER_CROP_FOV_DEG
     crops_per_frame: int = PAPER_CROPS_PER_FRAME
     frames_per_window: int = 8
     encoding: dict[str, Any] = field(default_factory=_encoding_default)
@@ -99,8 +116,14 @@ class ModelContract:
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0:
                 problems.append(f"{name}: expected a positive integer, got {v!r}")
-        if not (isinstance(self.crop_fov_deg, int | float) and 0.0 < self.crop_fov_deg < 180.0):
-            problems.append(f"crop_fov_deg: expected within (0, 180) deg, got {self.crop_fov_deg!r}")
+        fovs = self.crop_fov_deg
+        if isinstance(fovs, tuple):  # JSON has no tuples: a list keeps to_json/from_json/differences exact
+            object.__setattr__(self, "crop_fov_deg", fovs := list(fovs))
+        if isinstance(fovs, list) and len(fovs) == 1:
+            object.__setattr__(self, "crop_fov_deg", fovs := fovs[0])  # one scale is written as a number
+        if not all(isinstance(f, int | float) and not isinstance(f, bool) and 0.0 < f < 180.0
+                   for f in (fovs if isinstance(fovs, list) and fovs else [fovs])):
+            problems.append(f"crop_fov_deg: expected an angle or a list of angles within (0, 180) deg, got {fovs!r}")
         if self.version != CONTRACT_VERSION:
             problems.append(f"version: this runtime reads contract version {CONTRACT_VERSION}, got {self.version!r}")
         enc = self.encoding
@@ -122,6 +145,11 @@ class ModelContract:
                 problems.append(f"input_norm.{key}: expected 3 values, got {norm.get(key)!r}")
         if problems:
             raise ContractMismatch("invalid model contract: " + "; ".join(problems))
+
+    @property
+    def crop_fovs_deg(self) -> tuple[float, ...]:
+        """The crop angles as a tuple, one entry per scale (a single-scale model has one)."""
+        return fovs_deg(self.crop_fov_deg)
 
     @property
     def tokens_per_window(self) -> int:

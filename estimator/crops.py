@@ -27,6 +27,13 @@ def crop_side_px(intrinsics: Intrinsics, crop_fov_rad: float) -> int:
     return int(max(1, min(round(side), intrinsics.width, intrinsics.height)))
 
 
+def crops_per_scale(n: int, n_scales: int) -> list[int]:
+    """How many of a frame's ``n`` crops each of ``n_scales`` crop angles gets, in the contract's
+    order: as even as they go, the earlier angles taking the odd ones (7 crops, 2 angles: 4 and 3).
+    A frame's crops come grouped by angle in that order, so its first crop has the first angle."""
+    return [len(range(k, n, n_scales)) for k in range(n_scales)]
+
+
 def _check_boxes(intrinsics: Intrinsics, n: int, side_px: int) -> None:
     if n <= 0:
         raise ValidationError(f"crops per frame: expected a positive integer, got {n}")

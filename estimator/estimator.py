@@ -25,7 +25,15 @@ import numpy as np
 
 from estimator.calibration import EstimationError, mean_direction, spread_rad, world_from_tokens
 from estimator.contract import ModelContract
-from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes, spread_crop_boxes
+from estimator.crops import (
+    crop_angles_rad,
+    crop_side_px,
+    crops_per_scale,
+    cut_crops,
+    frame_rng,
+    sample_crop_boxes,
+    spread_crop_boxes,
+)
 from estimator.meanshift import meanshift_aggregate
 from rig.errors import ValidationError
 from rig.geometry import wrap_pi
@@ -134,7 +142,7 @@ class SunEstimator:
         contract = model.contract
         self.crops_per_frame = int(crops_per_frame or contract.crops_per_frame)
         self.crop_size_px = int(contract.crop_size_px)
-        self.crop_fov_rad = math.radians(contract.crop_fov_deg)
+        self.crop_fovs_rad = tuple(math.radians(f) for f in contract.crop_fovs_deg)
         self.frames_per_window = int(contract.frames_per_window)
 
     def status_rule(self) -> StatusRule:
@@ -145,8 +153,15 @@ class SunEstimator:
 
     # -- per frame ---------------------------------------------------------------------------
     def _crops(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        side = crop_side_px(frame.intrinsics, self.crop_fov_rad)
-        boxes = self.sample_boxes(frame.intrinsics, self.crops_per_frame, side, frame_rng(self.seed, frame.seq))
+        # Each crop angle lays out its own crops (spread across the frame among themselves), the
+        # first angle first, all from the frame's one generator: a single-angle model draws exactly
+        # what it always did.
+        rng = frame_rng(self.seed, frame.seq)
+        counts = crops_per_scale(self.crops_per_frame, len(self.crop_fovs_rad))
+        boxes = np.concatenate([
+            self.sample_boxes(frame.intrinsics, n, crop_side_px(frame.intrinsics, fov), rng)
+            for fov, n in zip(self.crop_fovs_rad, counts, strict=True) if n
+        ])
         return boxes, crop_angles_rad(boxes, frame.intrinsics), cut_crops(frame.image_bgr, boxes, self.crop_size_px)
 
     def encode(self, frame: Frame) -> FrameFeatures:

@@ -408,7 +408,7 @@ class NetConfig:
         *,
         crops_per_frame: int = PAPER_CROPS_PER_FRAME,
         frames_per_window: int = 8,
-        crop_fov_deg: float = PAPER_CROP_FOV_DEG,
+        crop_fov_deg: float | list[float] = PAPER_CROP_FOV_DEG,
         training: dict[str, Any] | None = None,
     ) -> ModelContract:
         return ModelContract(

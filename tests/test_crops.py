@@ -5,7 +5,15 @@ import math
 import numpy as np
 import pytest
 
-from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, sample_crop_boxes, spread_crop_boxes
+from estimator.crops import (
+    crop_angles_rad,
+    crop_side_px,
+    crops_per_scale,
+    cut_crops,
+    frame_rng,
+    sample_crop_boxes,
+    spread_crop_boxes,
+)
 from rig.errors import ValidationError
 from rig.types import Intrinsics
 
@@ -123,3 +131,9 @@ def test_cut_crops_content_and_resize():
     assert abs(int(crops[0, 0, 0, 1]) - 10) <= 1 and abs(int(crops[0, -1, 0, 1]) - 232) <= 1
     same = cut_crops(img, np.array([[5, 5, 112, 112]]), 112)
     assert (same[0] == img[5:117, 5:117]).all()
+
+
+@pytest.mark.parametrize(("n", "scales", "counts"), [(8, 2, [4, 4]), (7, 2, [4, 3]), (4, 1, [4]), (1, 2, [1, 0]),
+                                                     (5, 3, [2, 2, 1])])
+def test_a_frame_s_crops_are_shared_among_its_angles_the_first_first(n, scales, counts):
+    assert crops_per_scale(n, scales) == counts

@@ -137,6 +137,25 @@ def test_crops_per_frame_overrides_the_contract(model):
     assert est.estimate(window).n_tokens == 6
 
 
+def test_a_two_angle_model_shares_each_frame_s_crops_between_its_angles(model):
+    from estimator.crops import crop_side_px
+
+    first = model.contract.crop_fov_deg
+    mixed = SimpleNamespace(contract=dataclasses.replace(model.contract, crop_fov_deg=[first, 40.0]),
+                            model_id=model.model_id, embed=model.embed, aggregate=model.aggregate)
+    est = SunEstimator(mixed, crops_per_frame=5)
+    frames = make_frames(3)
+    window = est.encode_batch(frames)
+    sides = [crop_side_px(INTR, math.radians(a)) for a in (first, 40.0)]
+    for f in window:  # grouped by angle, the first angle first and taking the odd crop
+        assert f.crop_boxes_px[:, 2].tolist() == [sides[0]] * 3 + [sides[1]] * 2
+    # The first angle's crops are what a one-angle model draws: adding an angle moves none of them.
+    np.testing.assert_array_equal(window[0].crop_boxes_px[:3],
+                                  SunEstimator(model, crops_per_frame=3).encode(frames[0]).crop_boxes_px)
+    estimate = est.estimate(window)
+    assert estimate.n_tokens == 15 and np.linalg.norm(estimate.sun_enu) == pytest.approx(1.0)
+
+
 def test_each_frame_draws_its_own_crops(model):
     # The crop draw is seeded by (seed, seq): frames of one window look at different parts of the
     # sky, and a frame's crops do not depend on which frames came with it.

@@ -143,6 +143,8 @@ CONTRACT = ModelContract(crop_size_px=64, embedding_dim=32)
         ({"crop_size_px": 0}, "crop_size_px"),
         ({"crop_fov_deg": 0.0}, "crop_fov_deg"),
         ({"crop_fov_deg": 180.0}, "crop_fov_deg"),  # 2 fx tan(90 deg): no crop spans it
+        ({"crop_fov_deg": [17.6, 0.0]}, "crop_fov_deg"),  # every angle of a mixed model is checked
+        ({"crop_fov_deg": []}, "crop_fov_deg"),
         ({"input_norm": {**CONTRACT.input_norm, "mean": [0.5] * 4}}, "input_norm.mean"),  # one per colour
         # the encoding interlaces a sin(phi) and a cos(phi) branch per frequency (nets.py): depth is even
         ({"encoding": {**CONTRACT.encoding, "depth_per_angle": 171}}, "depth_per_angle"),
@@ -151,6 +153,15 @@ CONTRACT = ModelContract(crop_size_px=64, embedding_dim=32)
 def test_contract_refuses_values_no_model_can_have(changes, named):
     with pytest.raises(ContractMismatch, match=named):
         ModelContract(**{"crop_size_px": 64, "embedding_dim": 32, **changes})
+
+
+def test_a_contract_carries_one_crop_angle_as_a_number_and_several_as_a_list():
+    mixed = ModelContract(crop_size_px=64, embedding_dim=32, crop_fov_deg=(17.6, 26.0))
+    assert mixed.crop_fov_deg == [17.6, 26.0] and mixed.crop_fovs_deg == (17.6, 26.0)
+    assert ModelContract.from_json(mixed.to_json()) == mixed  # JSON has no tuples: stored as the list
+    one = ModelContract(crop_size_px=64, embedding_dim=32, crop_fov_deg=[26.0])
+    assert one.crop_fov_deg == 26.0 and one.crop_fovs_deg == (26.0,)  # as a model of one angle writes it
+    assert not one.differences(ModelContract(crop_size_px=64, embedding_dim=32, crop_fov_deg=26.0))
 
 
 def test_trained_sun_elevations_are_read_only_as_a_range():
