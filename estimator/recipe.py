@@ -23,7 +23,9 @@ class TrainConfig:
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8
     crops_per_frame: int = 0  # 0: the resumed checkpoint's, else the paper's 4
-    crop_fov_deg: float = 0.0  # 0: the --init model's, else the paper's 17.6 deg (PAPER_CROP_FOV_DEG)
+    # One angle, or one per crop scale (a frame's crops shared among them); 0: the --init model's,
+    # else the paper's 17.6 deg (PAPER_CROP_FOV_DEG).
+    crop_fov_deg: float | tuple[float, ...] = 0.0
     seed: int = 0
     threads: int = 0  # 0: all cores
     checkpoint_every_s: float = 300.0

@@ -49,8 +49,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from estimator.contract import CHECKPOINT, PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, input_affine
-from estimator.crops import crop_side_px
+from estimator.contract import (
+    CHECKPOINT,
+    PAPER_CROP_FOV_DEG,
+    PAPER_CROPS_PER_FRAME,
+    format_fovs_deg,
+    fovs_deg,
+    input_affine,
+)
+from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
@@ -79,17 +86,30 @@ class TrainingDataError(SunrigError):
 
 
 @dataclass
-class Drive:
-    """One log's usable frames, pre-scaled: images (F, h, w, 3) uint8 BGR and per-frame values."""
+class DriveView:
+    """A drive's frames scaled for one crop angle, so that a crop of that angle is exactly
+    ``crop_size`` pixels: images (F, h, w, 3) uint8 BGR and the intrinsics scaled with them."""
 
-    name: str
     images: np.ndarray
     fx: float
     fy: float
     cx: float
     cy: float
+
+
+@dataclass
+class Drive:
+    """One log's usable frames: one view per crop angle (the contract's order) and per-frame values."""
+
+    name: str
+    views: tuple[DriveView, ...]
     yaw_rad: np.ndarray  # (F,)
     sun_enu: np.ndarray  # (F, 3)
+
+    @property
+    def images(self) -> np.ndarray:
+        """The first crop angle's images (every view has the same frames)."""
+        return self.views[0].images
 
 
 def _scaled(frame: Frame, crop_size: int, crop_fov_rad: float) -> tuple[np.ndarray, float]:
@@ -110,32 +130,34 @@ def trainable(frame: Frame) -> bool:
     return has_true_heading and frame.sun_enu_truth is not None
 
 
-def load_drive(frames: Sequence[Frame], name: str, crop_size: int, crop_fov_rad: float) -> Drive | None:
-    """A drive from its frames; frames without a TRUE heading or true sun are left out (None if none)."""
-    usable = [f for f in frames if trainable(f)]
-    if not usable:
-        return None
+def _view(usable: Sequence[Frame], name: str, crop_size: int, crop_fov_rad: float) -> DriveView:
     images, scales = zip(*(_scaled(f, crop_size, crop_fov_rad) for f in usable), strict=True)
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
         raise TrainingDataError(f"{name}: frames of different sizes in one drive ({sorted(shapes)}); split the log")
     k, s = usable[0].intrinsics, scales[0]
+    # Intrinsics scale with the image about the pixel grid's corner (continuous coordinates).
+    return DriveView(np.stack(images), fx=k.fx * s, fy=k.fy * s, cx=k.cx * s, cy=k.cy * s)
+
+
+def load_drive(frames: Sequence[Frame], name: str, crop_size: int,
+               crop_fov_rad: float | Sequence[float]) -> Drive | None:
+    """A drive from its frames, one view per crop angle; frames without a TRUE heading or true sun
+    are left out (None if none)."""
+    usable = [f for f in frames if trainable(f)]
+    if not usable:
+        return None
+    fovs = (crop_fov_rad,) if isinstance(crop_fov_rad, int | float) else tuple(crop_fov_rad)
     yaw_rad, sun_enu = [], []
     for f in usable:
         assert f.attitude is not None and f.sun_enu_truth is not None  # what trainable() checked
         yaw_rad.append(f.attitude.heading_rad)
         sun_enu.append(f.sun_enu_truth)
-    # Intrinsics scale with the image about the pixel grid's corner (continuous coordinates).
-    return Drive(
-        name=name,
-        images=np.stack(images),
-        fx=k.fx * s, fy=k.fy * s, cx=k.cx * s, cy=k.cy * s,
-        yaw_rad=np.array(yaw_rad),
-        sun_enu=np.stack(sun_enu),
-    )
+    return Drive(name=name, views=tuple(_view(usable, name, crop_size, fov) for fov in fovs),
+                 yaw_rad=np.array(yaw_rad), sun_enu=np.stack(sun_enu))
 
 
-def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float,
+def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float | Sequence[float],
                 read_frames: Callable[[Path], Iterable[Frame]] | None = None,
                 progress: Callable[[int, int], None] | None = None) -> list[Drive]:
     """Every log as one drive. ``read_frames`` defaults to the native log reader."""
@@ -171,7 +193,8 @@ class Batch:
 
 
 class WindowSampler:
-    """Random windows: a drive, ``frames`` of its frames, ``crops`` random crops each.
+    """Random windows: a drive, ``frames`` of its frames, ``crops`` random crops each, shared
+    among the drive's crop angles as the runtime shares them (:func:`estimator.crops.crops_per_scale`).
 
     A ``hard_share`` of windows draws its drive in proportion to the drive's running error
     (:meth:`record`); the rest in proportion to drive length, so every frame is equally likely.
@@ -193,6 +216,11 @@ class WindowSampler:
         self.rng = rng
         lengths = np.array([len(d.images) for d in self.drives], dtype=np.float64)
         self.p = lengths / lengths.sum()
+        n_views = {len(d.views) for d in self.drives}
+        if len(n_views) > 1:
+            raise ValidationError(f"drives with different numbers of crop angles ({sorted(n_views)}); load them alike")
+        # The view each crop of a frame is cut from, grouped by angle in the contract's order.
+        self.crop_view = np.repeat(np.arange(n_views.pop()), crops_per_scale(crops, len(self.drives[0].views)))
         self.err_deg = np.full(len(self.drives), self.UNSEEN_ERR_DEG)
 
     def record(self, drive_index: np.ndarray, err_deg: np.ndarray) -> None:
@@ -226,14 +254,17 @@ class WindowSampler:
             idx = np.sort(rng.choice(n, size=self.frames, replace=n < self.frames))
             newest = idx[-1]
             offset = rng.uniform(0.0, 2.0 * math.pi)
-            h, w = d.images.shape[1:3]
+            views = [d.views[v] for v in self.crop_view]  # per crop of a frame
+            h = np.array([v.images.shape[1] for v in views])
+            w = np.array([v.images.shape[2] for v in views])
             x0 = rng.integers(0, w - s + 1, size=(self.frames, self.crops))
             y0 = rng.integers(0, h - s + 1, size=(self.frames, self.crops))
-            hz, vt = view_angles_rad(x0 + s / 2.0, y0 + s / 2.0, d.fx, d.fy, d.cx, d.cy)
+            fx, fy, cx, cy = np.array([(v.fx, v.fy, v.cx, v.cy) for v in views]).T  # each (crops,)
+            hz, vt = view_angles_rad(x0 + s / 2.0, y0 + s / 2.0, fx, fy, cx, cy)
             for j, fi in enumerate(idx):
                 for c in range(self.crops):
                     k = j * self.crops + c
-                    out.crops[b, k] = d.images[fi, y0[j, c] : y0[j, c] + s, x0[j, c] : x0[j, c] + s]
+                    out.crops[b, k] = views[c].images[fi, y0[j, c] : y0[j, c] + s, x0[j, c] : x0[j, c] + s]
                 rows = slice(j * self.crops, (j + 1) * self.crops)
                 out.angles[b, rows, 0] = wrap_pi(d.yaw_rad[fi] - d.yaw_rad[newest])
                 out.angles[b, rows, 1] = hz[j]
@@ -388,9 +419,13 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         raise ValidationError(f"minutes: expected a finite budget > 0, got {cfg.minutes}")
     if not (math.isfinite(cfg.lr) and cfg.lr > 0):
         raise ValidationError(f"lr: expected a finite learning rate > 0, got {cfg.lr}")
-    if not (math.isfinite(cfg.crop_fov_deg) and 0.0 <= cfg.crop_fov_deg < 180.0):
-        raise ValidationError(f"crop fov: expected an angle in (0, 180) deg (0: the --init model's or the paper's), "
-                              f"got {cfg.crop_fov_deg}")
+    fovs = fovs_deg(cfg.crop_fov_deg)
+    if not all(math.isfinite(f) and 0.0 < f < 180.0 for f in fovs):
+        raise ValidationError(f"crop fov: expected angles in (0, 180) deg (0: the --init model's or the paper's), "
+                              f"got {format_fovs_deg(cfg.crop_fov_deg)}")
+    if len(fovs) > max(1, cfg.crops_per_frame or PAPER_CROPS_PER_FRAME):
+        raise ValidationError(f"crop fov: {len(fovs)} angles for {cfg.crops_per_frame or PAPER_CROPS_PER_FRAME} crops "
+                              "a frame leave an angle without crops; pass at most one angle per crop")
     if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
                               f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
@@ -419,19 +454,20 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # The angle a crop spans, fixed at the run's start like the crops: a fine-tune keeps its start's
     # (a model sees its crops at one angular scale), a resume its run's.
     if state is not None:
-        cfg = replace(cfg, crop_fov_deg=float(state["config"].get("crop_fov_deg", PAPER_CROP_FOV_DEG)))
-    elif not cfg.crop_fov_deg:
-        cfg = replace(cfg, crop_fov_deg=float((init_info or {}).get("crop_fov_deg") or PAPER_CROP_FOV_DEG))
+        fovs = fovs_deg(state["config"].get("crop_fov_deg", PAPER_CROP_FOV_DEG))
+    elif not fovs:
+        fovs = fovs_deg((init_info or {}).get("crop_fov_deg") or PAPER_CROP_FOV_DEG)
+    cfg = replace(cfg, crop_fov_deg=fovs[0] if len(fovs) == 1 else fovs)  # one angle stays a number
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    fov = math.radians(cfg.crop_fov_deg)
 
     t_load = time.monotonic()
     on_load = None
     if progress:
         def on_load(done: int, total: int) -> None:
             progress({"phase": "load", "done": done, "total": total})
-    drives = load_drives(sorted(Path(p) for p in log_paths), net_cfg.crop_size, fov, progress=on_load)
+    drives = load_drives(sorted(Path(p) for p in log_paths), net_cfg.crop_size,
+                         [math.radians(f) for f in fovs], progress=on_load)
     n_frames = sum(len(d.images) for d in drives)
     sun_range_deg = sun_elevation_range_deg(d.sun_enu for d in drives)  # once: state_dict() runs at every checkpoint
     log.info("loaded %d drives, %d frames in %.0f s", len(drives), n_frames, time.monotonic() - t_load)
@@ -481,7 +517,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         backbone = backbone.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     log.info("training in %s", "bf16 autocast, channels-last" if bf16 else "float32")
     contract_stub = net_cfg.contract(crops_per_frame=cfg.crops_per_frame,
-                                     frames_per_window=cfg.frames_per_window, crop_fov_deg=cfg.crop_fov_deg)
+                                     frames_per_window=cfg.frames_per_window, crop_fov_deg=list(fovs))
     normalise = _Normaliser(contract_stub.input_norm)
     budget_s = cfg.minutes * 60.0
     # The schedule's length: steps if given, else estimated from the measured step time once 20
@@ -629,9 +665,9 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
                                                      and Path(was["init"]).resolve() == Path(cfg.init).resolve()):
         differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")
     for key, (flag, before_recorded) in _RUN_OWN_WHEN_ZERO.items():
-        ran_with = was.get(key, before_recorded)
-        if getattr(cfg, key) not in (0, ran_with):
-            differs.append(f"{flag} {ran_with:g}, not {getattr(cfg, key):g}")
+        ran_with, asked = fovs_deg(was.get(key, before_recorded)), fovs_deg(getattr(cfg, key))
+        if asked and asked != ran_with:  # (a crop count is a one-entry setting here, as an angle is)
+            differs.append(f"{flag} {format_fovs_deg(ran_with)}, not {format_fovs_deg(asked)}")
     old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
     if old_data and new_data and old_data != new_data:
         differs.append(f"logs with fingerprint {old_data}, not {new_data}")
@@ -689,7 +725,7 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
         training["export_command"] = export_command
     contract = nets.PRESETS[cfg.preset].contract(
         crops_per_frame=run_crops_per_frame or cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
-        crop_fov_deg=cfg.crop_fov_deg, training=training)
+        crop_fov_deg=list(fovs_deg(cfg.crop_fov_deg)), training=training)
     out = export_model(backbone, aggregator, contract, out_dir)
     save_weights(backbone, aggregator, out)
     return out

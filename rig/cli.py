@@ -97,6 +97,18 @@ def _float_in(lo: float, hi: float = math.inf, *, lo_included: bool = False):
     return parse
 
 
+def _crop_fovs(text: str) -> float | tuple[float, ...]:
+    """``--crop-fov``: one angle (``17.6``) or one per crop scale (``17.6,26``), each in (0, 180)."""
+    try:
+        fovs = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        fovs = (math.nan,)
+    if not all(0.0 < f < 180.0 for f in fovs):  # (nan fails it too)
+        raise argparse.ArgumentTypeError(
+            f"expected an angle in (0, 180) deg or a comma-separated list of them, got {text!r}")
+    return fovs[0] if len(fovs) == 1 else fovs
+
+
 def _config_type(section: str, key: str):
     """An argparse type for a flag that sets a config option: the option's own type and range
     (rig/config.py), so a flag and a file accept the same values, 0 for "unset" included."""
@@ -1026,9 +1038,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="crops per frame, recorded in the contract and used at run time (default 4, the paper's; "
                         "a resume keeps its run's). With --export-only: the run-time count of the exported model")
     p.add_argument("--lr", type=_positive_float, default=recipe.lr, help=f"peak learning rate (default {recipe.lr:g})")
-    p.add_argument("--crop-fov", type=_float_in(0.0, 180.0), default=recipe.crop_fov_deg, metavar="DEG",
-                   help="horizontal angle a crop spans, recorded in the contract and used at run time (default: "
-                        f"the --init model's, else the paper's {PAPER_CROP_FOV_DEG:.1f}; a resume keeps its run's)")
+    p.add_argument("--crop-fov", type=_crop_fovs, default=recipe.crop_fov_deg, metavar="DEG[,DEG]",
+                   help="horizontal angle a crop spans, recorded in the contract and used at run time; several "
+                        "(e.g. 17.6,26) share each frame's crops among the angles (default: the --init model's, "
+                        f"else the paper's {PAPER_CROP_FOV_DEG:.1f}; a resume keeps its run's)")
     p.add_argument("--hard-share", type=_float_in(0.0, 1.0, lo_included=True), default=recipe.hard_share,
                    help="share of windows drawn from drives in proportion to their running error "
                         f"(default {recipe.hard_share:g})")

@@ -84,7 +84,8 @@ def angle_between(a, b) -> np.ndarray:
     return np.arctan2(cross, dot)
 
 
-def view_angles_rad(u_px, v_px, fx: float, fy: float, cx: float, cy: float):
+def view_angles_rad(u_px, v_px, fx: float | np.ndarray, fy: float | np.ndarray, cx: float | np.ndarray,
+                    cy: float | np.ndarray):
     """Horizontal and vertical view angle of pixel (u, v) for a pinhole camera.
 
     Horizontal is positive to the right, ``atan((u - cx) / fx)``; vertical is positive up,

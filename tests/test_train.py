@@ -63,13 +63,15 @@ def logs(tmp_path):
 
 def test_drive_is_prescaled_so_a_crop_is_a_slice():
 
-    fov = math.radians(PAPER_CROP_FOV_DEG)
-    drive = load_drive(_frames(3, 0), "d", crop_size=16, crop_fov_rad=fov)
-    side = 2 * 100.0 * math.tan(fov / 2)  # source pixels of one crop
-    assert drive.images.shape[0] == 3
-    assert drive.fx == pytest.approx(100.0 * 16 / round(side))
-    # The view angle of the image centre is unchanged by the scaling.
-    assert drive.cx / drive.fx == pytest.approx(64.0 / 100.0)
+    fov, wide = math.radians(PAPER_CROP_FOV_DEG), math.radians(30.0)
+    drive = load_drive(_frames(3, 0), "d", crop_size=16, crop_fov_rad=[fov, wide])
+    assert drive.images.shape[0] == 3 and len(drive.views) == 2
+    for view, angle in zip(drive.views, (fov, wide), strict=True):
+        side = 2 * 100.0 * math.tan(angle / 2)  # source pixels of one crop of this angle
+        assert view.fx == pytest.approx(100.0 * 16 / round(side))
+        # The view angle of the image centre is unchanged by the scaling.
+        assert view.cx / view.fx == pytest.approx(64.0 / 100.0)
+    assert drive.views[1].images.shape[1] < drive.views[0].images.shape[1]  # a wider crop: a smaller image
     assert load_drive(_frames(3, 0, truth=False), "d", 16, fov) is None
 
 
@@ -350,6 +352,20 @@ def test_the_cli_and_the_library_train_with_the_same_defaults():
         assert getattr(args, flag) == getattr(cfg, key), flag
 
 
+def test_the_cli_takes_one_crop_angle_or_a_list_and_refuses_what_no_crop_spans(capsys):
+    from rig.cli import build_parser
+
+    def crop_fov(text):
+        return build_parser().parse_args(["train", "x.mcap", "--out", "m", "--crop-fov", text]).crop_fov
+
+    assert crop_fov("26") == 26.0 and crop_fov("17.6,26") == (17.6, 26.0)
+    for bad in ("17.6,x", "180", "17.6,180", "17.6,,26", "0", "nan"):
+        with pytest.raises(SystemExit):
+            crop_fov(bad)
+        assert f"expected an angle in (0, 180) deg or a comma-separated list of them, got '{bad}'" \
+            in capsys.readouterr().err, bad
+
+
 def test_mirror_share_is_refused_outside_a_share(logs, tmp_path):
     with pytest.raises(ValidationError, match="mirror_share"):
         train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, mirror_share=1.5))
@@ -514,9 +530,43 @@ def test_the_crop_angle_is_the_paper_s_or_the_given_one_and_a_fine_tune_keeps_it
     assert OnnxModel.load(wide).contract.crop_fov_deg == 26.0
     with pytest.raises(ValidationError, match="--crop-fov 26, not 17.6"):
         train(logs, wide, replace(one, max_steps=3, crop_fov_deg=PAPER_CROP_FOV_DEG))
+    # Two scales: recorded as a list, kept by a fine-tune and by a resume like one angle is.
+    mixed = train(logs, tmp_path / "mixed", replace(one, crop_fov_deg=(17.6, 26.0)))
+    assert OnnxModel.load(mixed).contract.crop_fov_deg == [17.6, 26.0]
+    assert OnnxModel.load(train(logs, tmp_path / "tuned2", replace(one, init=str(mixed)))).contract.crop_fov_deg \
+        == [17.6, 26.0]
+    with pytest.raises(ValidationError, match="--crop-fov 17.6,26, not 26"):
+        train(logs, mixed, replace(one, max_steps=2, crop_fov_deg=26.0))
 
 
-@pytest.mark.parametrize("deg", [-1.0, 180.0, float("nan")])
+def test_a_mixed_window_cuts_each_crop_from_its_angle_s_view():
+    """Crops of two angles in one window: each is cut from the view scaled for its angle, and its
+    view angle is that of the pixel at its centre in the source frame (a gradient image says which)."""
+    gradient = np.broadcast_to((np.arange(128) * 2).astype(np.uint8)[None, :, None], (80, 128, 3))  # 2 x column
+    frames = [replace(f, image_bgr=np.ascontiguousarray(gradient)) for f in _frames(4, 0)]
+    narrow, wide = math.radians(17.6), math.radians(40.0)
+    drive = load_drive(frames, "d", crop_size=16, crop_fov_rad=[narrow, wide])
+    b = WindowSampler([drive], frames=4, crops=3, crop_size=16, subset_prob=0.0,
+                      rng=np.random.default_rng(1)).sample(30)
+    # 3 crops a frame, 2 angles: the first two of each frame narrow, the third wide.
+    col = b.crops[:, :, 8, 7:9, 0].astype(np.float64).mean(-1) / 2.0  # source column at each crop's centre
+    horizontal = np.degrees(np.arctan((col - 64.0) / 100.0))
+    np.testing.assert_allclose(np.degrees(b.angles[..., 1]), horizontal, atol=1.0)
+    side = np.abs(b.crops[:, :, 8, 15, 0].astype(np.float64) - b.crops[:, :, 8, 0, 0]) / 2.0  # columns spanned
+    narrow_side, wide_side = (2 * 100.0 * math.tan(a / 2) for a in (narrow, wide))
+    per_frame = side.reshape(30, 4, 3)
+    np.testing.assert_allclose(per_frame[..., :2], narrow_side * 15 / 16, rtol=0.15)
+    np.testing.assert_allclose(per_frame[..., 2], wide_side * 15 / 16, rtol=0.15)
+
+
+def test_more_crop_angles_than_crops_are_refused(logs, tmp_path):
+    with pytest.raises(ValidationError, match="at most one angle per crop"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, crops_per_frame=2,
+                                                crop_fov_deg=(17.6, 26.0, 40.0)))
+    assert not (tmp_path / "m").exists()
+
+
+@pytest.mark.parametrize("deg", [-1.0, 180.0, float("nan"), (17.6, 0.0), (17.6, 180.0)])
 def test_a_crop_angle_outside_a_half_turn_is_refused(logs, tmp_path, deg):
     with pytest.raises(ValidationError, match="crop fov"):
         train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, crop_fov_deg=deg))
