@@ -65,6 +65,12 @@ def fovs_deg(value: float | Sequence[float]) -> tuple[float, ...]:
     return tuple(float(v) for v in value)
 
 
+def is_crop_fov_deg(value: object) -> bool:
+    """Whether ``value`` is an angle a crop can span: a number in (0, 180) deg (nan is not;
+    2 fx tan(90 deg) is no crop at all). The contract, ``sunrig train`` and its CLI all ask this."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and 0.0 < value < 180.0
+
+
 def format_fovs_deg(value: float | Sequence[float]) -> str:
     """A crop angle setting as ``--crop-fov`` takes it: ``17.6`` or ``17.6,26``."""
     return ",".join(f"{v:g}" for v in fovs_deg(value)) or "0"
@@ -121,8 +127,8 @@ class ModelContract:
             object.__setattr__(self, "crop_fov_deg", fovs := list(fovs))
         if isinstance(fovs, list) and len(fovs) == 1:
             object.__setattr__(self, "crop_fov_deg", fovs := fovs[0])  # one scale is written as a number
-        if not all(isinstance(f, int | float) and not isinstance(f, bool) and 0.0 < f < 180.0
-                   for f in (fovs if isinstance(fovs, list) and fovs else [fovs])):
+        angles = fovs if isinstance(fovs, list) else [fovs]
+        if not angles or not all(is_crop_fov_deg(f) for f in angles):
             problems.append(f"crop_fov_deg: expected an angle or a list of angles within (0, 180) deg, got {fovs!r}")
         if self.version != CONTRACT_VERSION:
             problems.append(f"version: this runtime reads contract version {CONTRACT_VERSION}, got {self.version!r}")

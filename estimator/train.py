@@ -58,6 +58,7 @@ from estimator.contract import (
     format_fovs_deg,
     fovs_deg,
     input_affine,
+    is_crop_fov_deg,
 )
 from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig
@@ -422,7 +423,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if not (math.isfinite(cfg.lr) and cfg.lr > 0):
         raise ValidationError(f"lr: expected a finite learning rate > 0, got {cfg.lr}")
     fovs = fovs_deg(cfg.crop_fov_deg)
-    if not all(math.isfinite(f) and 0.0 < f < 180.0 for f in fovs):
+    if not all(is_crop_fov_deg(f) for f in fovs):
         raise ValidationError(f"crop fov: expected angles in (0, 180) deg (0: the --init model's or the paper's), "
                               f"got {format_fovs_deg(cfg.crop_fov_deg)}")
     if len(fovs) > max(1, cfg.crops_per_frame or PAPER_CROPS_PER_FRAME):

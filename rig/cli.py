@@ -103,7 +103,9 @@ def _crop_fovs(text: str) -> float | tuple[float, ...]:
         fovs = tuple(float(part) for part in text.split(","))
     except ValueError:
         fovs = (math.nan,)
-    if not all(0.0 < f < 180.0 for f in fovs):  # (nan fails it too)
+    from estimator.contract import is_crop_fov_deg
+
+    if not all(is_crop_fov_deg(f) for f in fovs):
         raise argparse.ArgumentTypeError(
             f"expected an angle in (0, 180) deg or a comma-separated list of them, got {text!r}")
     return fovs[0] if len(fovs) == 1 else fovs
