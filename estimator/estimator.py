@@ -142,7 +142,10 @@ class SunEstimator:
         contract = model.contract
         self.crops_per_frame = int(crops_per_frame or contract.crops_per_frame)
         self.crop_size_px = int(contract.crop_size_px)
-        self.crop_fovs_rad = tuple(math.radians(f) for f in contract.crop_fovs_deg)
+        # (angle, crops of that angle) per frame: fixed for the estimator, so not redone per frame.
+        fovs_rad = [math.radians(f) for f in contract.crop_fovs_deg]
+        self.crops_per_fov = [(fov, n) for fov, n in zip(fovs_rad, crops_per_scale(self.crops_per_frame, len(fovs_rad)),
+                                                         strict=True) if n]
         self.frames_per_window = int(contract.frames_per_window)
 
     def status_rule(self) -> StatusRule:
@@ -157,11 +160,8 @@ class SunEstimator:
         # first angle first, all from the frame's one generator: a single-angle model draws exactly
         # what it always did.
         rng = frame_rng(self.seed, frame.seq)
-        counts = crops_per_scale(self.crops_per_frame, len(self.crop_fovs_rad))
-        boxes = np.concatenate([
-            self.sample_boxes(frame.intrinsics, n, crop_side_px(frame.intrinsics, fov), rng)
-            for fov, n in zip(self.crop_fovs_rad, counts, strict=True) if n
-        ])
+        boxes = np.concatenate([self.sample_boxes(frame.intrinsics, n, crop_side_px(frame.intrinsics, fov), rng)
+                                for fov, n in self.crops_per_fov])
         return boxes, crop_angles_rad(boxes, frame.intrinsics), cut_crops(frame.image_bgr, boxes, self.crop_size_px)
 
     def encode(self, frame: Frame) -> FrameFeatures:
