@@ -152,8 +152,7 @@ def test_a_two_angle_model_shares_each_frame_s_crops_between_its_angles(model):
     # The first angle's crops are what a one-angle model draws: adding an angle moves none of them.
     np.testing.assert_array_equal(window[0].crop_boxes_px[:3],
                                   SunEstimator(model, crops_per_frame=3).encode(frames[0]).crop_boxes_px)
-    estimate = est.estimate(window)
-    assert estimate.n_tokens == 15 and np.linalg.norm(estimate.sun_enu) == pytest.approx(1.0)
+    assert est.estimate(window).n_tokens == 15
 
 
 def test_each_frame_draws_its_own_crops(model):
