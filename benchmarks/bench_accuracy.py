@@ -28,19 +28,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import add_drive_args, drives_and_model, machine  # noqa: E402
+from benchmarks.common import add_drive_args, comma_list, drives_and_model, machine  # noqa: E402
 
 HELD_OUT_SEED = 2000
-
-
-def _seeds(text: str) -> list[int]:
-    try:
-        seeds = [int(s) for s in text.split(",") if s.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not seeds or len(set(seeds)) != len(seeds):
-        raise argparse.ArgumentTypeError(f"expected distinct comma-separated integers, got {text!r}")
-    return seeds
+_seeds = comma_list(int, "distinct integers", lambda seeds: len(set(seeds)) == len(seeds))
 
 
 def _positive(text: str) -> int:

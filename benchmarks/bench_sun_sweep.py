@@ -22,20 +22,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine  # noqa: E402
+from benchmarks.common import comma_list, machine  # noqa: E402
 
 DEFAULT_RELATIVE_AZ_DEG = (0, 60, 90, 120, 150, 180, 210, 240, 270, 300)
 TOP_BAND_ROWS = (0.01, 0.16)  # of the image height: above the horizon of a level KITTI camera
-
-
-def _degrees(text: str) -> list[float]:
-    try:
-        values = [float(s) for s in text.split(",") if s.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated degrees, got {text!r}") from None
-    if not values or not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(f"expected comma-separated finite degrees, got {text!r}")
-    return values
+_degrees = comma_list(float, "finite degrees", lambda degs: all(math.isfinite(d) for d in degs))
 
 
 def top_band_thirds(image_bgr) -> list[float]:

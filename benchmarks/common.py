@@ -49,6 +49,22 @@ def time_ms(fn: Callable[[], object], repeats: int = 20, warmup: int = 3) -> dic
             "repeats": repeats}
 
 
+def comma_list(convert: Callable[[str], float], what: str, valid: Callable[[list], bool] = bool) -> Callable:
+    """An argparse type for a comma-separated list of ``what`` (e.g. ``0,1,2``), each made by
+    ``convert`` and the list accepted by ``valid`` (default: not empty)."""
+
+    def parse(text: str) -> list:
+        try:
+            values = [convert(s) for s in text.split(",") if s.strip()]
+        except ValueError:
+            values = []
+        if not values or not valid(values):
+            raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}")
+        return values
+
+    return parse
+
+
 def add_drive_args(ap: argparse.ArgumentParser, *, data: str, drives: int, drive_seed: int,
                    drive_seed_help: str) -> None:
     """The options of a benchmark over synthetic drives: the model, and which drives (made if missing)."""
