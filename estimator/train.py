@@ -637,10 +637,13 @@ _RUN_IDENTITY = {"preset": "--preset", "lr": "--lr", "batch_windows": "--batch",
                  "hard_share": "--hard-share", "mirror_share": "--mirror-share"}
 # What a checkpoint written before a setting was recorded ran with (none mirrored its windows).
 _RAN_BEFORE_RECORDED = {"mirror_share": 0.0}
-# Settings whose 0 means "the run's own" (so a resume need not repeat them) and what a checkpoint
-# written before the setting was recorded ran with.
-_RUN_OWN_WHEN_ZERO = {"crops_per_frame": ("--crops", PAPER_CROPS_PER_FRAME),
-                      "crop_fov_deg": ("--crop-fov", PAPER_CROP_FOV_DEG)}
+# Settings whose 0 means "the run's own" (so a resume need not repeat them): the flag, what a
+# checkpoint written before the setting was recorded ran with, the setting's value as compared
+# (an angle setting of 17.6 and one of [17.6] are one angle) and as the flag takes it.
+_RUN_OWN_WHEN_ZERO: dict[str, tuple[str, Any, Callable[[Any], Any], Callable[[Any], str]]] = {
+    "crops_per_frame": ("--crops", PAPER_CROPS_PER_FRAME, int, str),
+    "crop_fov_deg": ("--crop-fov", PAPER_CROP_FOV_DEG, fovs_deg, format_fovs_deg),
+}
 
 
 def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
@@ -667,10 +670,10 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     if (was.get("init") or "") != cfg.init and not (was.get("init") and cfg.init
                                                      and Path(was["init"]).resolve() == Path(cfg.init).resolve()):
         differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")
-    for key, (flag, before_recorded) in _RUN_OWN_WHEN_ZERO.items():
-        ran_with, asked = fovs_deg(was.get(key, before_recorded)), fovs_deg(getattr(cfg, key))
-        if asked and asked != ran_with:  # (a crop count is a one-entry setting here, as an angle is)
-            differs.append(f"{flag} {format_fovs_deg(ran_with)}, not {format_fovs_deg(asked)}")
+    for key, (flag, before_recorded, value, shown) in _RUN_OWN_WHEN_ZERO.items():
+        ran_with, asked = was.get(key, before_recorded), getattr(cfg, key)
+        if value(asked) and value(asked) != value(ran_with):
+            differs.append(f"{flag} {shown(ran_with)}, not {shown(asked)}")
     old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
     if old_data and new_data and old_data != new_data:
         differs.append(f"logs with fingerprint {old_data}, not {new_data}")
