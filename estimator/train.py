@@ -670,10 +670,10 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     if (was.get("init") or "") != cfg.init and not (was.get("init") and cfg.init
                                                      and Path(was["init"]).resolve() == Path(cfg.init).resolve()):
         differs.append(f"--init {was.get('init')!r}, not {cfg.init!r}")
-    for key, (flag, before_recorded, value, shown) in _RUN_OWN_WHEN_ZERO.items():
+    for key, (flag, before_recorded, value, as_flag) in _RUN_OWN_WHEN_ZERO.items():
         ran_with, asked = was.get(key, before_recorded), getattr(cfg, key)
         if value(asked) and value(asked) != value(ran_with):
-            differs.append(f"{flag} {shown(ran_with)}, not {shown(asked)}")
+            differs.append(f"{flag} {as_flag(ran_with)}, not {as_flag(asked)}")
     old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
     if old_data and new_data and old_data != new_data:
         differs.append(f"logs with fingerprint {old_data}, not {new_data}")
