@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import add_drive_args, drives_and_model, machine  # noqa: E402
+from benchmarks.common import VALIDATION_SEED, add_drive_args, drives_and_model, machine  # noqa: E402
 
 TAIL_DEG = 30.0
 BLANK_IMAGES = {
@@ -36,8 +36,8 @@ BLANK_IMAGES = {
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_drive_args(ap, data="data/val", drives=300, drive_seed=2500,
-                   drive_seed_help="seed of the drives (default 2500: validation)")
+    add_drive_args(ap, data="data/val", drives=300, drive_seed=VALIDATION_SEED,
+                   drive_seed_help=f"seed of the drives (default {VALIDATION_SEED}: validation)")
     ap.add_argument("--seed", type=int, default=0, help="crop seed (default 0)")
     args = ap.parse_args()
 

@@ -25,9 +25,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks.common import VALIDATION_SEED  # noqa: E402
 from estimator.evaluate import TAIL_KEY  # noqa: E402
 
-VALIDATION_SEED = 2500  # the card's validation drives; held-out drives (2000) are not for choosing
 # Lower is better in each. The first three pool every crop seed's estimates; the last is the
 # median over crop seeds of each seed's max, since the pooled max is one window and moved by
 # 26 deg with nothing but the crop seed (docs/model.md).
