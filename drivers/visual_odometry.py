@@ -430,12 +430,13 @@ class VisualOdometry:
                               "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
                               "minEigThreshold": cfg.lk_min_eig}
         if guess is None:
-            # nextPts=None: OpenCV allocates the output (documented); its stubs type it as required.
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, None, **lk)  # type: ignore[call-overload]
+            # Without OPTFLOW_USE_INITIAL_FLOW, nextPts is only the output buffer. Passing one, not
+            # None, types the same under every cv2 stub set (4.x wanted an array, 5.x takes None).
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, np.empty_like(p0), **lk)
         else:
             p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, guess.astype(np.float32),
                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, prev_gray, p1, None, **lk)  # type: ignore[call-overload]
+        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, prev_gray, p1, np.empty_like(p1), **lk)
         fb = np.linalg.norm((p0 - p0r).reshape(-1, 2), axis=1)
         h, w = gray.shape
         cur = p1.reshape(-1, 2)
