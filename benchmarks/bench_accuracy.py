@@ -16,7 +16,9 @@ suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DE
 
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
-                                         [--crops N]
+                                         [--crops N] [--variant plain|mirror|clamp]
+
+``--variant`` measures a run-time change that was tried and not adopted (benchmarks/variants.py).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import add_drive_args, comma_list, drives_and_model, machine  # noqa: E402
+from benchmarks.variants import VARIANTS, estimator_for  # noqa: E402
 
 HELD_OUT_SEED = 2000
 _seeds = comma_list(int, "distinct integers", lambda seeds: len(set(seeds)) == len(seeds))
@@ -72,17 +75,19 @@ def main() -> None:
                     help="where each frame's crops go (default spread, as every command; uniform: the paper's draws)")
     ap.add_argument("--crops", type=_positive, default=0, metavar="N",
                     help="crops per frame instead of the model's (its contract's; more costs backbone time per frame)")
+    ap.add_argument("--variant", default="plain", choices=VARIANTS,
+                    help="a run-time change tried and not adopted (benchmarks/variants.py; default plain)")
     args = ap.parse_args()
 
-    from estimator.estimator import SunEstimator
     from estimator.evaluate import WORST_LOGS, error_summary, evaluate, plot_eval
     from replay.sources import open_frames
     from rig.window import SpreadWindowPolicy
 
     paths, model = drives_and_model(args)
     pooled, per_seed = None, {}
+    make_estimator = estimator_for(args.variant)
     for seed in args.seeds:
-        estimator = SunEstimator(model, seed=seed, crop_layout=args.crop_layout, crops_per_frame=args.crops or None)
+        estimator = make_estimator(model, seed=seed, crop_layout=args.crop_layout, crops_per_frame=args.crops or None)
         policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
         result = evaluate([(p.name, open_frames(p)) for p in paths], estimator, policy)
         per_seed[str(seed)] = {**error_summary(result.errors_deg["transformer"]),
@@ -104,6 +109,7 @@ def main() -> None:
         "benchmark": "accuracy",
         "data": {"held_out_seed": args.drive_seed, "drives": args.drives, "frames_per_drive": args.frames},
         "crop_layout": args.crop_layout,
+        "variant": args.variant,
         "crop_seeds": args.seeds,
         "crops_per_frame": args.crops or model.contract.crops_per_frame,
         "model": {"dir": str(model.model_dir), "id": model.model_id,
