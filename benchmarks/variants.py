@@ -23,6 +23,7 @@ import numpy as np
 from estimator.calibration import mean_direction, world_from_tokens
 from estimator.crops import cut_crops
 from estimator.estimator import SunEstimator, window_tokens
+from rig.geometry import az_el_from_enu, enu_from_az_el
 from rig.types import Frame, FrameFeatures, SunEstimate
 
 VARIANTS = ("plain", "mirror", "clamp")
@@ -74,17 +75,11 @@ class MirrorEstimator(SunEstimator):
 
 
 def clamp_elevation(sun_enu: np.ndarray, low_deg: float, high_deg: float) -> np.ndarray:
-    """``sun_enu`` moved along its azimuth to the nearest elevation in [low_deg, high_deg]."""
-    u = np.asarray(sun_enu, dtype=np.float64)
-    el = math.degrees(math.asin(max(-1.0, min(1.0, float(u[2])))))
-    target = min(max(el, low_deg), high_deg)
-    if target == el:
-        return u
-    horizontal = math.hypot(float(u[0]), float(u[1]))
-    # Straight up has no azimuth to keep: north is as good as any.
-    east, north = (u[0] / horizontal, u[1] / horizontal) if horizontal > 1e-12 else (0.0, 1.0)
-    c, s = math.cos(math.radians(target)), math.sin(math.radians(target))
-    return np.array([east * c, north * c, s])
+    """``sun_enu`` moved along its azimuth to the nearest elevation in [low_deg, high_deg] (straight
+    up has no azimuth to keep; az_el_from_enu gives it north)."""
+    az, el = az_el_from_enu(sun_enu)
+    target = np.clip(el, math.radians(low_deg), math.radians(high_deg))
+    return np.asarray(sun_enu, dtype=np.float64) if target == el else enu_from_az_el(az, target)
 
 
 class ClampEstimator(SunEstimator):

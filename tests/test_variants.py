@@ -13,7 +13,7 @@ from benchmarks.variants import ClampEstimator, MirrorEstimator, clamp_elevation
 from estimator.calibration import mean_direction
 from estimator.models import resolve_model_dir
 from estimator.runtime import OnnxModel
-from rig.geometry import angle_between
+from rig.geometry import angle_between, az_el_from_enu, enu_from_az_el
 
 # The shipped model's windows on the bundled drive are a few degrees off (test_shipped_model.py);
 # a mirrored run brought back into the world with east left negated answers the mirror image of
@@ -24,18 +24,14 @@ MIRRORED_MEAN_ERR_DEG = 15.0
 MIRRORED_MAX_ERR_DEG = 20.0
 
 
-def _enu(az_deg: float, el_deg: float) -> np.ndarray:
-    az, el = math.radians(az_deg), math.radians(el_deg)
-    return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
-
-
 def _az_el_deg(u: np.ndarray) -> tuple[float, float]:
-    return math.degrees(math.atan2(u[0], u[1])) % 360.0, math.degrees(math.asin(u[2]))
+    az, el = az_el_from_enu(u)
+    return math.degrees(az), math.degrees(el)
 
 
 @pytest.mark.parametrize(("el_deg", "expected_deg"), [(40.0, 40.0), (82.0, 74.9), (-3.0, 5.0), (5.0, 5.0)])
 def test_clamp_moves_only_the_elevation_into_the_range(el_deg, expected_deg):
-    az, el = _az_el_deg(clamp_elevation(_enu(123.0, el_deg), 5.0, 74.9))
+    az, el = _az_el_deg(clamp_elevation(enu_from_az_el(math.radians(123.0), math.radians(el_deg)), 5.0, 74.9))
     assert az == pytest.approx(123.0) and el == pytest.approx(expected_deg)
 
 
@@ -44,20 +40,22 @@ def test_clamp_of_the_zenith_is_a_unit_vector_at_the_top_of_the_range():
     assert np.linalg.norm(u) == pytest.approx(1.0) and _az_el_deg(u)[1] == pytest.approx(74.9)
 
 
-@pytest.fixture(scope="module")
-def demo_windows():
-    from estimator.estimator import SunEstimator
+def _demo_windows(estimator) -> list:
+    """The transformer's estimates of the bundled drive's full windows."""
     from replay.sources import DEMO_LOG, open_frames
     from rig.offline import estimate_stream
     from rig.window import SpreadWindowPolicy
 
+    windows = estimate_stream(open_frames(DEMO_LOG), estimator, SpreadWindowPolicy(n_frames=8))
+    return [w["transformer"] for w in windows if w["transformer"].n_frames == 8]
+
+
+@pytest.fixture(scope="module")
+def demo_windows():
+    from estimator.estimator import SunEstimator
+
     model = OnnxModel.load(resolve_model_dir(None))
-
-    def run(cls: type[SunEstimator]) -> list:
-        windows = estimate_stream(open_frames(DEMO_LOG), cls(model), SpreadWindowPolicy(n_frames=8))
-        return [w["transformer"] for w in windows if w["transformer"].n_frames == 8]
-
-    return model, run(SunEstimator), run(MirrorEstimator), run(ClampEstimator)
+    return model, *(_demo_windows(cls(model)) for cls in (SunEstimator, MirrorEstimator, ClampEstimator))
 
 
 def test_mirror_adds_a_mirrored_run_that_finds_the_same_sun(demo_windows):
@@ -84,16 +82,11 @@ def test_clamp_leaves_answers_in_the_trained_range_alone(demo_windows):
 
 def test_clamp_lifts_answers_below_the_trained_range_along_their_azimuth(demo_windows, monkeypatch):
     from estimator.contract import ModelContract
-    from replay.sources import DEMO_LOG, open_frames
-    from rig.offline import estimate_stream
-    from rig.window import SpreadWindowPolicy
 
     model, plain, _, _ = demo_windows
     # As if the model had trained on suns 25-74.9 deg up only: every demo answer (near 15 deg) is below.
     monkeypatch.setattr(ModelContract, "trained_sun_elevation_deg", property(lambda self: (25.0, 74.9)))
-    clamped = [w["transformer"] for w in estimate_stream(open_frames(DEMO_LOG), ClampEstimator(model),
-                                                         SpreadWindowPolicy(n_frames=8))
-               if w["transformer"].n_frames == 8]
+    clamped = _demo_windows(ClampEstimator(model))
     for p, c in zip(plain, clamped, strict=True):
         assert math.degrees(c.elevation_rad) == pytest.approx(25.0)
         assert _az_el_deg(c.sun_enu)[0] == pytest.approx(_az_el_deg(p.sun_enu)[0])
