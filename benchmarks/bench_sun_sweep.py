@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import comma_list, machine  # noqa: E402
+from benchmarks.common import comma_list, machine, transformer_errors_deg  # noqa: E402
 
 DEFAULT_RELATIVE_AZ_DEG = (0, 60, 90, 120, 150, 180, 210, 240, 270, 300)
 TOP_BAND_ROWS = (0.01, 0.16)  # of the image height: above the horizon of a level KITTI camera
@@ -54,27 +54,22 @@ def main() -> None:
     import numpy as np
 
     from estimator.estimator import SunEstimator
-    from estimator.evaluate import evaluate
     from estimator.models import resolve_model_dir
     from estimator.runtime import OnnxModel
     from replay.synthetic import drive_seed
     from replay.synthetic.drive import Drive, plan_drive
-    from rig.window import SpreadWindowPolicy
 
     model = OnnxModel.load(resolve_model_dir(args.model))
     estimator = SunEstimator(model, seed=args.crop_seed)
     seed = drive_seed(args.drive_seed, args.index)
     plan = plan_drive(seed, args.frames)
     heading0 = plan.poses[0].heading_rad
-    policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window)  # the live policy, as bench_accuracy
     rows = []
     for rel in args.relative_az_deg:
         az = (heading0 + math.radians(rel)) % (2 * math.pi)
         drive = Drive(seed, args.frames, sun_azimuth_rad=az)
         frames = list(drive.frames())
-        result = evaluate([("sweep", iter(frames))], estimator, policy, aggregators=["transformer"])
-        err = np.asarray(result.errors_deg["transformer"])
-        elev = np.asarray(result.elevation_deg["transformer"])
+        err, elev = map(np.asarray, transformer_errors_deg(frames, estimator))
         rows.append({"relative_az_deg": rel, "sun_azimuth_deg": round(math.degrees(az), 2),
                      "n_windows": int(err.size), "mean_deg": float(err.mean()), "max_deg": float(err.max()),
                      "answer_elevation_deg_mean": float(elev.mean()),

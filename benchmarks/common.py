@@ -88,3 +88,14 @@ def drives_and_model(args: argparse.Namespace) -> tuple[list[Path], object]:
     paths = write_synthetic_logs(args.data, drives=args.drives, frames=args.frames, seed=args.drive_seed,
                                  progress=sys.stderr.isatty(), jobs=2)
     return paths, OnnxModel.load(resolve_model_dir(args.model))
+
+
+def transformer_errors_deg(frames: list, estimator) -> tuple[list[float], list[float]]:
+    """The transformer's angular error and answer elevation (degrees) on each full window of one
+    drive's frames, with the live window policy (as bench_accuracy.py)."""
+    from estimator.evaluate import evaluate
+    from rig.window import SpreadWindowPolicy
+
+    policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window)
+    result = evaluate([("drive", iter(frames))], estimator, policy, aggregators=["transformer"])
+    return list(result.errors_deg["transformer"]), list(result.elevation_deg["transformer"])
