@@ -23,9 +23,6 @@ from rig.errors import SunrigError
 from rig.progress import Progress
 from rig.stopping import StopSignals
 
-# How the running command is being stopped (rig/stopping.py): Ctrl-C, SIGTERM and SIGHUP.
-STOP = StopSignals()
-
 EXIT_USER_ERROR = 2
 EXIT_BUG = 1
 # A full disk (or quota, or file size limit) while writing: the user's to fix, not a bug.
@@ -146,10 +143,11 @@ def _load_model(model_dir: str | None):
     return OnnxModel.load(resolve_model_dir(model_dir or None))
 
 
-def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, rule,
+def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, rule, stop: StopSignals,
                 record: str | None = None, record_overwrite: bool = False, record_frames: bool = False,
                 nmea_stdout: bool = False, live: bool = False) -> list:
     """The outputs a command asked for. Opened before any work, so a bad port fails at once.
+    ``stop``: the command's stop signals, which closing the outputs must not be cut by.
 
     ``live``: the stream outputs (JSONL, NMEA on stdout) write in threads of their own, so a
     reader that stops reading cannot stall the rig; offline they write in the caller's thread,
@@ -181,7 +179,7 @@ def _publishers(*, serial: str | None, baud: int, fmt: str, jsonl: str | None, r
                     writer.path.unlink(missing_ok=True)  # made by this run, and holds nothing
                 raise
     except BaseException:
-        _close_all(pubs)
+        _close_all(pubs, stop)
         raise
     return pubs
 
@@ -207,9 +205,9 @@ def _recording_refusals(option: str, replace: str):
         raise SunrigError(f"{option} {path} {msg}") from None
 
 
-def _close_all(pubs: list) -> None:
+def _close_all(pubs: list, stop: StopSignals) -> None:
     # A stop signal now must not leave an output half closed (a recording without its summary).
-    with STOP.finishing():
+    with stop.finishing():
         for p in pubs:
             try:
                 p.close()
@@ -244,7 +242,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
     pubs = _publishers(serial=args.serial, baud=args.baud, fmt=args.format, jsonl=args.jsonl,
-                       rule=estimator.status_rule())
+                       rule=estimator.status_rule(), stop=args.stop)
     stats = OfflineStats()
     progress = Progress(f"replay {Path(log_path).name}", enabled=None if not args.quiet else False)
     frames = paced(source) if args.realtime else source
@@ -263,7 +261,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         interrupted = True  # what was replayed is written: say how far it got, as eval does
     finally:
-        _close_all(pubs)
+        _close_all(pubs, args.stop)
     summary = f"{stats.frames} frames, {stats.windows - stats.windows_failed} estimates"
     if interrupted:
         summary = f"interrupted after {summary}"
@@ -286,7 +284,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from rig.publishers import publisher_name
 
     lost = _report_output_losses({publisher_name(p): p.stats() for p in pubs})  # below the progress line
-    return STOP.exit_code() if interrupted else lost  # as for any Ctrl-C, with the work so far written
+    return args.stop.exit_code() if interrupted else lost  # as for any Ctrl-C, with the work so far written
 
 
 def _effective_config(args: argparse.Namespace) -> dict:
@@ -387,10 +385,11 @@ def _check_live_outputs(cfg: dict, inputs: list[Path], record_words: tuple[str, 
             check_recording_path(out["record"], overwrite=out["record_overwrite"])
 
 
-def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
+def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: bool,
           record_words: tuple[str, str] = _RECORD_CONFIG_WORDS) -> int:
     """The live rig on ``source``; its outputs were checked (:func:`_check_live_outputs`).
-    ``record_words``: how errors name the recording's options, as there."""
+    ``stop``: the command's stop signals; ``record_words``: how errors name the recording's
+    options, as there."""
     from estimator.estimator import SunEstimator
     from rig.pipeline import RigConfig, RigPipeline
     from rig.window import SpreadWindowPolicy
@@ -409,7 +408,7 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
         pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
                            jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
                            record=out["record"] or None, record_overwrite=out["record_overwrite"],
-                           record_frames=out["record_frames"], nmea_stdout=nmea_stdout, live=True)
+                           record_frames=out["record_frames"], nmea_stdout=nmea_stdout, live=True, stop=stop)
     from rig.recorder import RecorderPublisher
 
     recorder = next((p for p in pubs if isinstance(p, RecorderPublisher)), None)
@@ -428,7 +427,7 @@ def _live(cfg: dict, source, *, nmea_stdout: bool, quiet: bool,
         stats = pipe.run()  # ends by itself when every output's reader has gone (`| head`)
     finally:
         try:
-            _close_all(pubs)
+            _close_all(pubs, stop)
         except KeyboardInterrupt:  # quit at once (rig/stopping.py): say what that cost
             if recorder is not None and not recorder.finished:
                 print(f"sunrig: quit before the recording {recorder.path} was finished; its complete chunks "
@@ -485,7 +484,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         logging.getLogger(__name__).warning("no output: estimates are made and dropped; pass --serial PORT, "
                                             "--jsonl PATH|- or --record OUT.mcap (or set [output] in --config)")
     try:
-        return _live(cfg, source, nmea_stdout=False, quiet=args.quiet, record_words=words)
+        return _live(cfg, source, stop=args.stop, nmea_stdout=False, quiet=args.quiet, record_words=words)
     finally:
         source.close()  # release the devices: the rig only iterates its source
 
@@ -504,6 +503,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         check_recording_path(args.out, overwrite=args.overwrite)
     # The sources first: a wrong camera or port fails before the output file is created.
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
+    stop = args.stop
     quiet = args.quiet
     live_line = sys.stderr.isatty()
     n = n_heading = 0
@@ -523,7 +523,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         out = writer.path
         try:
             for frame in source:
-                with STOP.finishing():  # a frame is written whole or not at all
+                with stop.finishing():  # a frame is written whole or not at all
                     writer.write_frame(frame, jpeg_quality=args.jpeg_quality)
                 n += 1
                 n_heading += frame.attitude is not None
@@ -536,7 +536,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                         sys.stderr.write(f"record: {line}\n")
                         next_status = now + 5.0
                     sys.stderr.flush()
-                if STOP.requested:  # held while the frame was written
+                if stop.requested:  # held while the frame was written
                     break
                 if (args.frames is not None and n >= args.frames) or (
                         args.seconds is not None and now - start >= args.seconds):
@@ -549,7 +549,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             disk_full = exc
         finally:
             try:
-                with STOP.finishing():  # a stop signal now must not cut the summary short
+                with stop.finishing():  # a stop signal now must not cut the summary short
                     writer.close()
             except OSError as exc:
                 if exc.errno not in _DISK_FULL:
@@ -567,8 +567,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         if live_line:
             sys.stderr.write("\n")
         summary = f"{n} frames ({n_heading} with heading) in {time.monotonic() - start:.1f} s to {out}"
-        if interrupted or STOP.requested:
-            summary += f" (stopped by {STOP.by or 'Ctrl-C'}; the log is complete)"
+        if interrupted or stop.requested:
+            summary += f" (stopped by {stop.by or 'Ctrl-C'}; the log is complete)"
         details = _source_summary(source.stats())
         if details:
             summary += f"; {details}"
@@ -608,7 +608,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             raise SunrigError("--jsonl - would mix JSON lines into the NMEA text on stdout: pass --jsonl FILE, "
                               "or --serial PORT")
     _check_live_outputs(cfg, [Path(DEMO_LOG)], _RECORD_CONFIG_WORDS)
-    return _live(cfg, open_frames(DEMO_LOG), nmea_stdout=not cfg["output"]["serial"], quiet=args.quiet)
+    return _live(cfg, open_frames(DEMO_LOG), stop=args.stop, nmea_stdout=not cfg["output"]["serial"],
+                 quiet=args.quiet)
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -652,7 +653,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     summary = result.summary()
     summary["model"] = {"dir": str(model.model_dir), "id": model.model_id}
     text = json.dumps(summary, indent=2)
-    with STOP.finishing():  # the work is done: a stop signal now must not lose its record
+    with args.stop.finishing():  # the work is done: a stop signal now must not lose its record
         if args.json and args.json != "-":
             Path(args.json).write_text(text + "\n", encoding="utf-8")
         else:
@@ -671,7 +672,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not args.quiet:
         progress.close("; ".join(lines) if lines else nothing)
     if result.interrupted:
-        return STOP.exit_code()  # as for any Ctrl-C, but with the work so far written
+        return args.stop.exit_code()  # as for any Ctrl-C, but with the work so far written
     if not lines:
         return EXIT_USER_ERROR
     return 0
@@ -1116,13 +1117,12 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.debug else logging.WARNING,
         format="sunrig: %(levelname)s: %(message)s",
     )
-    global STOP
-    if threading.current_thread() is threading.main_thread():
-        # One per command (tests run several in one process). Only the main thread's: signals
-        # reach it alone, and a command running there must keep reading its own.
-        STOP = StopSignals()
+    # How this command is being stopped (rig/stopping.py): Ctrl-C, SIGTERM and SIGHUP. One per
+    # call, so that commands run one after another in a process (tests), or a library caller's
+    # command in a thread of its own (which signals never reach), share no stop state.
+    stop = args.stop = StopSignals()
     try:
-        with STOP.installed():
+        with stop.installed():
             return args.func(args)
     except SunrigError as exc:
         if args.debug:
@@ -1130,7 +1130,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sunrig: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
-        return STOP.exit_code()  # the shell's code for death by that signal
+        return stop.exit_code()  # the shell's code for death by that signal
     except BrokenPipeError:
         # The reader of our stdout went away (e.g. `| head`): not an error of ours.
         return 0

@@ -119,13 +119,14 @@ def test_a_recorder_that_fails_to_start_leaves_no_file(tmp_path, monkeypatch):
     # there), the half-made log would sit in the drives folder as if it were a recording.
     import rig.recorder
     from rig.cli import _publishers
+    from rig.stopping import StopSignals
 
     def no_thread(*args, **kwargs):
         raise RuntimeError("can't start new thread")
 
     monkeypatch.setattr(rig.recorder, "RecorderPublisher", no_thread)
     with pytest.raises(RuntimeError, match="can't start new thread"):
-        _publishers(serial=None, baud=115200, fmt="nmea", jsonl=None, rule=None,
+        _publishers(serial=None, baud=115200, fmt="nmea", jsonl=None, rule=None, stop=StopSignals(),
                     record=str(tmp_path / "{start}.mcap"))
     assert list(tmp_path.iterdir()) == []
 
