@@ -437,7 +437,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     ckpt_path = out_dir / CHECKPOINT
     state = _resumable_state(out_dir, cfg)
     # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
-    init_weights = check_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
+    init_start = _checked_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
+    init_weights = init_start[0] if init_start is not None else None
     if state is not None:
         if _run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
             log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
@@ -447,7 +448,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         if progress:
             progress({"phase": "resume", "step": state["step"], "minutes": state["elapsed_s"] / 60.0})
     # What a fine-tune started from, read once at its start: the folder may be gone by the export.
-    init_info = (state or {}).get("init_info") or (_init_provenance(Path(cfg.init)) if cfg.init else None)
+    # (The model check_init loaded, if it did: loading a model twice costs about a second.)
+    init_info = (state or {}).get("init_info") or (
+        _init_provenance(Path(cfg.init), init_start[1] if init_start is not None else None) if cfg.init else None)
     # How the model will run: as its start did (the shipped model: 8 crops a frame, though trained
     # with 4), unless --crops said; fixed at the run's start, so a resume or --export-only keeps it.
     if state is not None and "run_crops_per_frame" in state:
@@ -749,6 +752,11 @@ def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
 
 def check_init(model_dir: Path, net_cfg: nets.NetConfig) -> Path:
     """The ``weights.npz`` a run can start from, or a one-line error (checked before any data loads)."""
+    return _checked_init(model_dir, net_cfg)[0]
+
+
+def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
+    """:func:`check_init`'s ``weights.npz``, and the model it loaded to check it (an ``OnnxModel``)."""
     from estimator.runtime import OnnxModel
 
     path = Path(model_dir) / WEIGHTS
@@ -758,7 +766,8 @@ def check_init(model_dir: Path, net_cfg: nets.NetConfig) -> Path:
     if not path.is_file():
         raise ValidationError(f"--init {model_dir}: no {WEIGHTS} there; pass a model folder written by `sunrig train` "
                               "(the shipped model has one)")
-    contract = OnnxModel.load(model_dir).contract
+    start = OnnxModel.load(model_dir)
+    contract = start.contract
     arch = contract.architecture
     if arch != net_cfg.architecture():
         diff = sorted(k for k in set(arch) | set(net_cfg.architecture())
@@ -767,7 +776,7 @@ def check_init(model_dir: Path, net_cfg: nets.NetConfig) -> Path:
         which = f"--preset {preset}" if preset in nets.PRESETS else "the preset it was trained with"
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
                               f"pass {which}")
-    return path
+    return path, start
 
 
 def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggregator: Any) -> None:
@@ -783,15 +792,17 @@ def _load_npz(path: Path, backbone: Any, aggregator: Any) -> None:
             module.load_state_dict(state)
 
 
-def _init_provenance(model_dir: Path) -> dict[str, Any]:
+def _init_provenance(model_dir: Path, start: Any = None) -> dict[str, Any]:
     """What a fine-tuned model started from: the starting model's id and how it was trained, so
-    the contract still says how to remake the whole chain after that folder is gone."""
+    the contract still says how to remake the whole chain after that folder is gone. ``start``:
+    that model (an ``OnnxModel``) if it is loaded already, else it is loaded from ``model_dir``."""
     from estimator.runtime import OnnxModel
 
-    try:
-        start = OnnxModel.load(model_dir)
-    except SunrigError as exc:  # moved or deleted since the run started
-        return {"dir": str(model_dir), "unavailable": str(exc)}
+    if start is None:
+        try:
+            start = OnnxModel.load(model_dir)
+        except SunrigError as exc:  # moved or deleted since the run started
+            return {"dir": str(model_dir), "unavailable": str(exc)}
     t = start.contract.training
     sun_range = start.contract.trained_sun_elevation_deg  # its own chain's, for the status rule
     return {"dir": str(model_dir), "model_id": start.model_id,
