@@ -5,7 +5,9 @@ The status rule (``rig/protocol.py``) calls a window valid when its tokens agree
 (percentiles, and on the windows more than 30 deg off), and on windows with nothing to see:
 eight frames of a drive made black, white, mid-grey or pure noise, with the elevation the model
 answers. Those are estimated directly, as if the exposure gate (``rig/exposure.py``) were off.
-It also gives the range of the drives' frame luma that the gate's thresholds are placed against.
+It also gives the range of the drives' frame luma that the gate's thresholds are placed against,
+and the windows grouped by where the answer puts the sun from the camera (ahead, to the side,
+behind; low, mid, high): whether the answer's own place could flag the windows far off.
 
     python3 benchmarks/bench_spread.py [--model DIR] [--data data/val --drives 300 --drive-seed 2500]
 """
@@ -26,12 +28,35 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import VALIDATION_SEED, add_drive_args, drives_and_model, machine  # noqa: E402
 
 TAIL_DEG = 30.0
+# Where an answer puts the sun from the camera: |azimuth from the heading| and elevation bands, deg.
+AZIMUTH_BANDS_DEG = (("ahead", 0.0, 60.0), ("side", 60.0, 120.0), ("behind", 120.0, 180.1))
+ELEVATION_BANDS_DEG = (("low", -90.0, 30.0), ("mid", 30.0, 60.0), ("high", 60.0, 90.1))
 BLANK_IMAGES = {
     "black": lambda img, rng: np.zeros_like(img),
     "white": lambda img, rng: np.full_like(img, 255),
     "grey": lambda img, rng: np.full_like(img, 128),
     "noise": lambda img, rng: rng.integers(0, 256, img.shape, dtype=np.uint8),
 }
+
+
+def answer_place(azimuth_from_heading_deg: float, elevation_deg: float) -> str:
+    """The band (e.g. ``behind high``) that holds an answer ``azimuth_from_heading_deg`` (either
+    side, in [-180, 180]) from the camera's heading and ``elevation_deg`` up."""
+    a = abs(azimuth_from_heading_deg)
+    az = next(name for name, lo, hi in AZIMUTH_BANDS_DEG if lo <= a < hi)
+    el = next(name for name, lo, hi in ELEVATION_BANDS_DEG if lo <= elevation_deg < hi)
+    return f"{az} {el}"
+
+
+def by_answer_place(places: list[str], errors_deg: list[float]) -> dict[str, dict]:
+    """For each band: its share of the windows, their mean error and how many are over TAIL_DEG."""
+    out = {}
+    for az, _, _ in AZIMUTH_BANDS_DEG:
+        for el, _, _ in ELEVATION_BANDS_DEG:
+            e = np.asarray([x for p, x in zip(places, errors_deg, strict=True) if p == f"{az} {el}"])
+            out[f"{az} {el}"] = {"share": e.size / len(places), "mean_deg": float(e.mean()) if e.size else None,
+                                 f"over_{TAIL_DEG:.0f}_deg": int((e > TAIL_DEG).sum())}
+    return out
 
 
 def main() -> None:
@@ -44,6 +69,7 @@ def main() -> None:
     from estimator.estimator import SunEstimator
     from replay.sources import open_frames
     from rig.exposure import luminance_stats
+    from rig.geometry import az_el_from_enu, wrap_pi
     from rig.offline import estimate_stream
     from rig.window import SpreadWindowPolicy
 
@@ -51,7 +77,7 @@ def main() -> None:
     estimator = SunEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
 
-    spread, error, luma = [], [], []
+    spread, error, luma, places = [], [], [], []
 
     def measured(frames):
         for frame in frames:
@@ -64,6 +90,8 @@ def main() -> None:
             if est.n_frames == policy.n_frames and est.error_rad is not None:
                 spread.append(math.degrees(est.spread_rad))
                 error.append(math.degrees(est.error_rad))
+                az, el = az_el_from_enu(est.sun_enu)
+                places.append(answer_place(math.degrees(float(wrap_pi(az - est.heading_rad))), math.degrees(float(el))))
     spread_a, error_a = np.asarray(spread), np.asarray(error)
     tail = spread_a[error_a > TAIL_DEG]
     luma_a = np.asarray(luma)
@@ -87,6 +115,7 @@ def main() -> None:
         f"windows_over_{TAIL_DEG:.0f}_deg": int(tail.size),
         f"spread_deg_on_windows_over_{TAIL_DEG:.0f}_deg": (
             {"min": float(tail.min()), "max": float(tail.max())} if tail.size else None),
+        "by_answer_place": by_answer_place(places, error),
         "blank_windows": blank,
         "frame_luma": {"frames": len(luma_a), "mean_min": float(luma_a[:, 0].min()),
                        "mean_max": float(luma_a[:, 0].max()), "std_min": float(luma_a[:, 1].min())},
