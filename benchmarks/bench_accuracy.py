@@ -16,11 +16,9 @@ suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DE
 
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
-                                         [--crops N] [--variant plain|mirror|clamp|ensemble]
-                                         [--members DIR[,DIR]]
+                                         [--crops N] [--variant plain|mirror|clamp]
 
-``--variant`` measures a run-time change that was tried and not adopted (benchmarks/variants.py);
-``--variant ensemble --members DIR,...`` pools ``--model`` with further models on the same crops.
+``--variant`` measures a run-time change that was tried and not adopted (benchmarks/variants.py).
 """
 
 from __future__ import annotations
@@ -79,19 +77,15 @@ def main() -> None:
                     help="crops per frame instead of the model's (its contract's; more costs backbone time per frame)")
     ap.add_argument("--variant", default="plain", choices=VARIANTS,
                     help="a run-time change tried and not adopted (benchmarks/variants.py; default plain)")
-    ap.add_argument("--members", type=comma_list(str, "model folders"), default=[], metavar="DIR[,DIR]",
-                    help="--variant ensemble: the further models pooled with --model's")
     args = ap.parse_args()
 
     from estimator.evaluate import WORST_LOGS, error_summary, evaluate, plot_eval
-    from estimator.runtime import OnnxModel
     from replay.sources import open_frames
     from rig.window import SpreadWindowPolicy
 
     paths, model = drives_and_model(args)
-    members = [OnnxModel.load(Path(d)) for d in args.members]
     pooled, per_seed = None, {}
-    make_estimator = estimator_for(args.variant, members)
+    make_estimator = estimator_for(args.variant)
     for seed in args.seeds:
         estimator = make_estimator(model, seed=seed, crop_layout=args.crop_layout, crops_per_frame=args.crops or None)
         policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
@@ -120,7 +114,6 @@ def main() -> None:
         "crops_per_frame": args.crops or model.contract.crops_per_frame,
         "model": {"dir": str(model.model_dir), "id": model.model_id,
                   "training_command": model.contract.training.get("command")},
-        "members": [{"dir": str(m.model_dir), "id": m.model_id} for m in members],
         **summary,
         "status_rule": {"max_elevation_deg": estimator.status_rule().max_elevation_deg},
         "elevation": elevation_excess(pooled, None if trained is None else trained[1]),

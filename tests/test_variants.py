@@ -9,11 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks.variants import ClampEstimator, EnsembleEstimator, MirrorEstimator, clamp_elevation, estimator_for
+from benchmarks.variants import ClampEstimator, MirrorEstimator, clamp_elevation
 from estimator.calibration import mean_direction
 from estimator.models import resolve_model_dir
 from estimator.runtime import OnnxModel
-from rig.errors import ValidationError
 from rig.geometry import angle_between, az_el_from_enu, enu_from_az_el
 
 # The shipped model's windows on the bundled drive are a few degrees off (test_shipped_model.py);
@@ -91,33 +90,3 @@ def test_clamp_lifts_answers_below_the_trained_range_along_their_azimuth(demo_wi
     for p, c in zip(plain, clamped, strict=True):
         assert math.degrees(c.elevation_rad) == pytest.approx(25.0)
         assert _az_el_deg(c.sun_enu)[0] == pytest.approx(_az_el_deg(p.sun_enu)[0])
-
-
-def test_an_ensemble_member_sees_the_same_crops_and_headings_as_the_model(demo_windows):
-    # The shipped model as its own member: its tokens must come out exactly as the model's. A member
-    # fed other crops, other view angles or another frame's yaw would not.
-    model, plain, _, _ = demo_windows
-    ensemble = _demo_windows(EnsembleEstimator(model, members=[model]))
-    assert len(ensemble) == len(plain)
-    for p, e in zip(plain, ensemble, strict=True):
-        n = len(p.token_enu)
-        assert len(e.token_enu) == 2 * n
-        np.testing.assert_allclose(e.token_enu[n:], p.token_enu, atol=1e-5)
-        np.testing.assert_allclose(e.sun_enu, p.sun_enu, atol=1e-6)
-
-
-def test_an_ensemble_refuses_a_member_cut_to_other_crops_and_other_variants_refuse_members(demo_windows):
-    import dataclasses
-
-    model = demo_windows[0]
-    wider = dataclasses.replace(model.contract, crop_fov_deg=26.0)
-
-    class Other:  # a model whose crops span another angle
-        contract, model_dir = wider, "elsewhere"
-
-    with pytest.raises(ValidationError, match="crop_fovs_deg"):
-        EnsembleEstimator(model, members=[Other()])
-    with pytest.raises(ValidationError, match="at least one"):
-        EnsembleEstimator(model, members=[])
-    with pytest.raises(ValidationError, match="--members"):
-        estimator_for("mirror", [model])
