@@ -36,7 +36,7 @@ from estimator.contract import (
     ModelContract,
     format_checksums,
 )
-from estimator.nets import TINY, Aggregator, Backbone, EnsembleAggregator, EnsembleBackbone, NetConfig
+from estimator.nets import TINY, Aggregator, Backbone, NetConfig
 from rig.errors import MissingExtraError, ModelError, ValidationError, require_torch
 
 require_torch()  # a missing torch names the extra to install
@@ -61,20 +61,18 @@ _EXAMPLE_B, _EXAMPLE_T = 2, 5
 
 
 def export_model(
-    backbone: Backbone | EnsembleBackbone,
-    aggregator: Aggregator | EnsembleAggregator,
+    backbone: Backbone,
+    aggregator: Aggregator,
     contract: ModelContract,
     out_dir: str | os.PathLike,
     *,
     exporter: str = "dynamo",
-    store_float16: bool = False,
 ) -> Path:
     """Write ``backbone.onnx`` and ``aggregator.onnx`` for ``contract`` into ``out_dir``.
 
     Both graphs are traced in eval mode (dropout off, batch-norm statistics frozen); the modules'
     own training flags are restored afterwards. Each file is checked with ``onnx.checker`` and moved
     into place only when complete, so a failed export never leaves a half-valid folder behind.
-    ``store_float16`` stores the weights at half the size (:func:`store_weights_float16`).
     """
     _check_against_contract(backbone, aggregator, contract)
     out = Path(out_dir)
@@ -103,7 +101,6 @@ def export_model(
                     METADATA_CONTRACT_KEY: contract.to_json(),
                     METADATA_GRAPH_KEY: "backbone",
                 },
-                store_float16=store_float16,
             ),
             AGGREGATOR_FILE: export_graph(
                 aggregator,
@@ -120,7 +117,6 @@ def export_model(
                     METADATA_CONTRACT_KEY: contract.to_json(),
                     METADATA_GRAPH_KEY: "aggregator",
                 },
-                store_float16=store_float16,
             ),
         }
         digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in staged.items()}
@@ -144,7 +140,6 @@ def export_graph(
     dynamic_axes: Mapping[str, Mapping[int, str]],
     exporter: str = "dynamo",
     metadata: Mapping[str, str] | None = None,
-    store_float16: bool = False,
 ) -> Path:
     """Export one module to a single self-contained ONNX file, add ``metadata`` and check it.
 
@@ -196,45 +191,10 @@ def export_graph(
             f"expected {list(input_names)} and {list(output_names)}; try exporter='legacy'"
         )
     set_metadata(model, metadata or {})
-    if store_float16:
-        store_weights_float16(model)
     onnx.checker.check_model(model, full_check=True)
     # save_as_external_data=False: one file per graph, so a model folder is just two files.
     onnx.save_model(model, str(path), save_as_external_data=False)
     return path
-
-
-# Smaller float tensors stay float32: biases and norms are a few kB in all, and the precision of
-# a norm's scale matters more than its size.
-_FLOAT16_MIN_ELEMENTS = 1024
-
-
-def store_weights_float16(model: onnx.ModelProto) -> None:
-    """Store the graph's large float32 weights as float16, each cast back to float32 by a Cast
-    node at the top of the graph: the file is half the size and the graph computes in float32 as
-    before (onnxruntime folds the casts once, when it loads the graph). The weights lose what
-    float16 cannot hold (about 3 significant digits, as ``weights.npz`` keeps them); the answers
-    move by far less than a degree (tests/test_nets_export.py). A model of two members needs it to
-    stay within the 30 MB a shipped model may take."""
-    import numpy as np
-    from onnx import TensorProto, helper, numpy_helper
-
-    casts = []
-    for init in model.graph.initializer:
-        if init.data_type != TensorProto.FLOAT or int(np.prod(init.dims)) < _FLOAT16_MIN_ELEMENTS:
-            continue
-        values = numpy_helper.to_array(init)
-        if not np.all(np.abs(values) < float(np.finfo(np.float16).max)):
-            raise ModelError(f"weight {init.name} does not fit float16 (largest {np.abs(values).max():.3g}); "
-                             "export without store_float16")
-        name = init.name
-        init.CopyFrom(numpy_helper.from_array(values.astype(np.float16), name=f"{name}.float16"))
-        casts.append(helper.make_node("Cast", [f"{name}.float16"], [name], to=TensorProto.FLOAT,
-                                      name=f"{name}.to_float32"))
-    # Nodes must stay in topological order: the casts first, before any node reads their outputs.
-    nodes = casts + list(model.graph.node)
-    del model.graph.node[:]
-    model.graph.node.extend(nodes)
 
 
 def set_metadata(model: onnx.ModelProto, entries: Mapping[str, str]) -> None:
@@ -246,9 +206,7 @@ def set_metadata(model: onnx.ModelProto, entries: Mapping[str, str]) -> None:
         model.metadata_props.add(key=key, value=value)
 
 
-def build_random_nets(
-    config: NetConfig, seed: int
-) -> tuple[Backbone | EnsembleBackbone, Aggregator | EnsembleAggregator]:
+def build_random_nets(config: NetConfig, seed: int) -> tuple[Backbone, Aggregator]:
     """Untrained modules in eval mode with reproducible, deliberately non-trivial weights.
 
     Fresh batch norms are identity maps (mean 0, var 1, weight 1, bias 0) and fresh layer norms
@@ -295,7 +253,7 @@ def build_random_model(
 
 
 def _check_against_contract(
-    backbone: Backbone | EnsembleBackbone, aggregator: Aggregator | EnsembleAggregator, contract: ModelContract
+    backbone: Backbone, aggregator: Aggregator, contract: ModelContract
 ) -> None:
     """Refuse to write a contract the graphs would not keep."""
     problems = []
@@ -308,17 +266,16 @@ def _check_against_contract(
             f"aggregator embedding_dim {aggregator.embedding_dim} "
             f"!= contract {contract.embedding_dim}"
         )
-    encodings = aggregator.encodings if isinstance(aggregator, EnsembleAggregator) else [aggregator.encoding]
-    for encoding in encodings:  # every member encodes the angles as the contract says
-        for key, value in encoding.params().items():
-            want = contract.encoding.get(key)
-            same = (
-                math.isclose(value, want)
-                if isinstance(value, float) and isinstance(want, int | float)
-                else value == want
-            )
-            if not same:
-                problems.append(f"encoding.{key}: aggregator {value!r} != contract {want!r}")
+    enc = aggregator.encoding.params()
+    for key, value in enc.items():
+        want = contract.encoding.get(key)
+        same = (
+            math.isclose(value, want)
+            if isinstance(value, float) and isinstance(want, int | float)
+            else value == want
+        )
+        if not same:
+            problems.append(f"encoding.{key}: aggregator {value!r} != contract {want!r}")
     if problems:
         raise ValidationError(
             "export_model: the modules do not fit the contract: " + "; ".join(problems)

@@ -283,42 +283,6 @@ class Aggregator(nn.Module):
         return torch.where(valid, out, torch.zeros_like(out))
 
 
-class EnsembleBackbone(nn.Module):
-    """Several backbones on the same crops: [N, 3, S, S] -> their embeddings side by side,
-    [N, sum of D]. With :class:`EnsembleAggregator`, a model of independently trained members
-    that the runtime runs as one (one graph pair, one contract)."""
-
-    def __init__(self, members: list[Backbone]) -> None:
-        super().__init__()
-        if len(members) < 2:
-            raise ValidationError(f"an ensemble needs at least 2 members, got {len(members)}")
-        self.members = nn.ModuleList(members)
-        self.embedding_dim = sum(m.embedding_dim for m in members)
-
-    def forward(self, crops: Tensor) -> Tensor:
-        return torch.cat([m(crops) for m in self.members], dim=-1)
-
-
-class EnsembleAggregator(nn.Module):
-    """Each member's transformer on its own backbone's share of the embeddings; the per-token
-    vectors averaged over the members. The window's estimate, the mean of its calibrated tokens,
-    is then the mean of every member's tokens: members that differ by their training seed miss on
-    different windows (docs/model.md), and their mean misses by less than either."""
-
-    def __init__(self, members: list[Aggregator]) -> None:
-        super().__init__()
-        if len(members) < 2:
-            raise ValidationError(f"an ensemble needs at least 2 members, got {len(members)}")
-        self.members = nn.ModuleList(members)
-        self.parts = [m.embedding_dim for m in members]
-        self.embedding_dim = sum(self.parts)
-        self.encodings = [m.encoding for m in members]  # typed, for the export's contract check
-
-    def forward(self, embeddings: Tensor, angles: Tensor, mask: Tensor) -> Tensor:
-        parts = torch.split(embeddings, self.parts, dim=-1)
-        return torch.stack([m(e, angles, mask) for m, e in zip(self.members, parts, strict=True)]).mean(0)
-
-
 # --------------------------------------------------------------------------------------------
 # Loss and frames
 
@@ -378,13 +342,9 @@ class NetConfig:
     base: float = 10000.0
     depth_per_angle: int | None = None
     blocks: tuple[int, ...] = (2, 2, 2, 2)
-    # Independently trained copies of this network run as one (EnsembleBackbone/-Aggregator).
-    members: int = 1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "blocks", tuple(int(b) for b in self.blocks))
-        if not (isinstance(self.members, int) and self.members >= 1):
-            raise ValidationError(f"NetConfig.members: expected a positive integer, got {self.members!r}")
         if self.depth_per_angle is None:
             object.__setattr__(self, "depth_per_angle", default_depth_per_angle(self.width))
         if not (isinstance(self.crop_size, int) and self.crop_size >= 16):
@@ -394,7 +354,7 @@ class NetConfig:
 
     @property
     def embedding_dim(self) -> int:
-        return self.members * self.base_width * 2 ** (len(self.blocks) - 1)
+        return self.base_width * 2 ** (len(self.blocks) - 1)
 
     def encoding(self) -> dict[str, Any]:
         """The contract's ``encoding`` entry. ``yaw_input`` is how callers must form the yaw angle
@@ -411,8 +371,6 @@ class NetConfig:
         """JSON-native description for the contract (lists, not tuples, so it round-trips)."""
         arch = asdict(self)
         arch["blocks"] = list(self.blocks)
-        if self.members == 1:
-            del arch["members"]  # a single network is described as before ensembles were made
         return {"backbone": "resnet-basic", "aggregator": "vit-hybrid", **arch}
 
     @classmethod
@@ -427,18 +385,8 @@ class NetConfig:
         except TypeError as exc:
             raise ValidationError(f"architecture: cannot rebuild a NetConfig ({exc})") from None
 
-    def build(self, seed: int | None = None) -> tuple[Backbone | EnsembleBackbone, Aggregator | EnsembleAggregator]:
-        """Fresh (untrained) modules; ``seed`` makes their initial weights reproducible. An
-        ensemble's members are built one after the other from that seed, so each starts apart."""
-        if seed is not None:
-            torch.manual_seed(seed)
-        if self.members > 1:
-            pairs = [self.build_member() for _ in range(self.members)]
-            return EnsembleBackbone([b for b, _ in pairs]), EnsembleAggregator([a for _, a in pairs])
-        return self.build_member()
-
-    def build_member(self, seed: int | None = None) -> tuple[Backbone, Aggregator]:
-        """One fresh network (one member of an ensemble), whatever ``members`` says."""
+    def build(self, seed: int | None = None) -> tuple[Backbone, Aggregator]:
+        """Fresh (untrained) modules; ``seed`` makes their initial weights reproducible."""
         if seed is not None:
             torch.manual_seed(seed)
         backbone = Backbone(self.base_width, self.blocks)

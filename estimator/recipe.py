@@ -27,9 +27,6 @@ class TrainConfig:
     # else the paper's 17.6 deg (PAPER_CROP_FOV_DEG).
     crop_fov_deg: float | tuple[float, ...] = 0.0
     seed: int = 0
-    # Networks trained as one (an ensemble, nets.NetConfig.members): not a choice of its own but
-    # the --init model's (sunrig ensemble makes ensembles of separate runs); 0 until a run knows it.
-    members: int = 0
     threads: int = 0  # 0: all cores
     checkpoint_every_s: float = 300.0
     # Recorded in the contract; filled by the CLI.

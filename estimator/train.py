@@ -432,17 +432,13 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
                               f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
+    net_cfg = nets.PRESETS[cfg.preset]
     out_dir = Path(out_dir)
     ckpt_path = out_dir / CHECKPOINT
     state = _resumable_state(out_dir, cfg)
     # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
-    init_start = _checked_init(Path(cfg.init), nets.PRESETS[cfg.preset]) if cfg.init and state is None else None
+    init_start = _checked_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
     init_weights = init_start[0] if init_start is not None else None
-    # An ensemble's fine-tune trains all its members (on their averaged answer), a resume its run's.
-    members = (int((state or {}).get("config", {}).get("members") or 0)
-               or (_members(init_start[1].contract) if init_start is not None else 1))
-    cfg = replace(cfg, members=members)
-    net_cfg = _net_config(cfg)
     if state is not None:
         if _run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
             log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
@@ -736,12 +732,10 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
         training["init"] = state.get("init_info") or _init_provenance(Path(cfg.init))
     if export_command:
         training["export_command"] = export_command
-    net_cfg = _net_config(cfg)
-    contract = net_cfg.contract(
+    contract = nets.PRESETS[cfg.preset].contract(
         crops_per_frame=run_crops_per_frame or cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
         crop_fov_deg=list(fovs_deg(cfg.crop_fov_deg)), training=training)
-    # float16 weights keep an ensemble within the size of a shipped model (combine_models).
-    out = export_model(backbone, aggregator, contract, out_dir, store_float16=net_cfg.members > 1)
+    out = export_model(backbone, aggregator, contract, out_dir)
     save_weights(backbone, aggregator, out)
     return out
 
@@ -754,19 +748,6 @@ def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
     path = Path(out_dir) / WEIGHTS
     _write_atomically(path, lambda tmp: np.savez_compressed(tmp, **arrays))
     return path
-
-
-def _members(contract: Any) -> int:
-    """How many networks a model's contract says it runs as one (1: not an ensemble)."""
-    n = contract.architecture.get("members", 1)
-    if not (isinstance(n, int) and n >= 1):
-        raise ValidationError(f"the model's architecture has members {n!r}; expected a positive integer")
-    return n
-
-
-def _net_config(cfg: TrainConfig) -> nets.NetConfig:
-    """The networks a run trains: its preset's, as many as its members (1 before ensembles)."""
-    return replace(nets.PRESETS[cfg.preset], members=cfg.members or 1)
 
 
 def check_init(model_dir: Path, net_cfg: nets.NetConfig) -> Path:
@@ -788,10 +769,9 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
     start = OnnxModel.load(model_dir)
     contract = start.contract
     arch = contract.architecture
-    # The preset is the members' architecture; how many members the start has is its own.
-    want = replace(net_cfg, members=_members(contract)).architecture()
-    if arch != want:
-        diff = sorted(k for k in set(arch) | set(want) if arch.get(k) != want.get(k))
+    if arch != net_cfg.architecture():
+        diff = sorted(k for k in set(arch) | set(net_cfg.architecture())
+                      if arch.get(k) != net_cfg.architecture().get(k))
         preset = (contract.training.get("recipe") or {}).get("preset")
         which = f"--preset {preset}" if preset in nets.PRESETS else "the preset it was trained with"
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
@@ -808,10 +788,6 @@ def _load_npz(path: Path, backbone: Any, aggregator: Any) -> None:
     with np.load(path, allow_pickle=False) as z:
         for part, module in (("backbone", backbone), ("aggregator", aggregator)):
             own = module.state_dict()
-            missing = [k for k in own if f"{part}/{k}" not in z.files]
-            if missing:  # e.g. one network's weights for an ensemble's modules, or the other way
-                raise ValidationError(f"{path} holds other networks than these ({part}/{missing[0]} is missing); "
-                                      "load it into modules built from its own model's architecture")
             state = {k: torch.from_numpy(z[f"{part}/{k}"].astype(own[k].numpy().dtype)) for k in own}
             module.load_state_dict(state)
 
@@ -827,16 +803,12 @@ def _init_provenance(model_dir: Path, start: Any = None) -> dict[str, Any]:
             start = OnnxModel.load(model_dir)
         except SunrigError as exc:  # moved or deleted since the run started
             return {"dir": str(model_dir), "unavailable": str(exc)}
-    return {"dir": str(model_dir), "model_id": start.model_id, **_provenance_of(start)}
-
-
-def _provenance_of(model: Any) -> dict[str, Any]:
-    """How a model (an ``OnnxModel``) was made, from its contract: enough to remake it."""
-    t = model.contract.training
-    sun_range = model.contract.trained_sun_elevation_deg  # its own chain's, for the status rule
-    return {**{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init", "members") if t.get(k) is not None},
+    t = start.contract.training
+    sun_range = start.contract.trained_sun_elevation_deg  # its own chain's, for the status rule
+    return {"dir": str(model_dir), "model_id": start.model_id,
+            **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None},
             **({"sun_elevation_deg": list(sun_range)} if sun_range else {}),
-            "crops_per_frame": model.contract.crops_per_frame, "crop_fov_deg": model.contract.crop_fov_deg}
+            "crops_per_frame": start.contract.crops_per_frame, "crop_fov_deg": start.contract.crop_fov_deg}
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: int = 0,
@@ -882,72 +854,10 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
                                   "pass the run's training logs, or none")
         if "sun_elevation_deg" not in counts:
             counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
-    backbone, aggregator = _net_config(cfg).build()
+    backbone, aggregator = nets.PRESETS[cfg.preset].build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
     return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command)
-
-
-def combine_models(member_dirs: Sequence[Path], out_dir: Path, run_crops_per_frame: int = 0,
-                   command: str = "") -> Path:
-    """One model of several trained ones (``sunrig ensemble``): the same crops through each
-    member's backbone and transformer, their per-token vectors averaged (``nets.EnsembleBackbone``,
-    ``nets.EnsembleAggregator``), exported as one graph pair that the runtime runs like any model.
-
-    The members must be single models of one architecture that cut the same crops (angle, size,
-    normalisation) into windows of the same length. The contract records each member's id and
-    how it was trained, and the suns of all their training data (the status rule's range). The
-    graphs store their weights as float16 (``store_float16``), so that two members of the fast
-    preset (17 MB each as float32) stay within the 30 MB a shipped model may take.
-    """
-    from estimator.runtime import OnnxModel
-
-    if len(member_dirs) < 2:
-        raise ValidationError(f"an ensemble needs at least 2 models, got {len(member_dirs)}")
-    if run_crops_per_frame < 0:
-        raise ValidationError(f"crops per frame: expected at least 1 (0: the members'), got {run_crops_per_frame}")
-    first = OnnxModel.load(Path(member_dirs[0])).contract
-    net_cfg = replace(nets.NetConfig.from_architecture(first.architecture), members=1)
-    members = []
-    for d in member_dirs:
-        # check_init: a weights.npz there, and the first member's architecture (else a one-line error).
-        weights, model = _checked_init(Path(d), net_cfg)
-        c = model.contract
-        if _members(c) != 1:
-            raise ValidationError(f"{d} is an ensemble already; pass the single models it was made of")
-        differs = [k for k in ("crop_size_px", "crop_fov_deg", "frames_per_window", "input_norm", "encoding")
-                   if getattr(c, k) != getattr(first, k)]
-        if differs:
-            raise ValidationError(f"{d} differs from {member_dirs[0]} in {', '.join(differs)}; the members of an "
-                                  "ensemble must see the same crops of the same windows")
-        if not run_crops_per_frame and c.crops_per_frame != first.crops_per_frame:
-            raise ValidationError(f"{d} runs {c.crops_per_frame} crops a frame and {member_dirs[0]} "
-                                  f"{first.crops_per_frame}; pass --crops to say how many the ensemble runs")
-        if c.training.get("trained") is not True:
-            raise ValidationError(f"{d} was never trained (its contract says so); pass trained models")
-        backbone, aggregator = net_cfg.build_member()
-        _load_npz(weights, backbone, aggregator)
-        members.append((model, backbone, aggregator))
-    ranges = [m.contract.trained_sun_elevation_deg for m, _, _ in members]
-    known = [r for r in ranges if r is not None]
-    training = {
-        "trained": True,
-        "command": command,
-        "members": [{"dir": str(d), "model_id": m.model_id, **_provenance_of(m)}
-                    for d, (m, _, _) in zip(member_dirs, members, strict=True)],
-        "recipe": {"preset": (first.training.get("recipe") or {}).get("preset")},
-    }
-    if len(known) == len(ranges):  # else one member's suns are unknown, and so the ensemble's
-        training["data"] = {"sun_elevation_deg": [min(r[0] for r in known), max(r[1] for r in known)]}
-    ensemble_cfg = replace(net_cfg, members=len(members))
-    contract = ensemble_cfg.contract(crops_per_frame=run_crops_per_frame or first.crops_per_frame,
-                                     frames_per_window=first.frames_per_window,
-                                     crop_fov_deg=list(first.crop_fovs_deg), training=training)
-    ens_backbone = nets.EnsembleBackbone([b for _, b, _ in members])
-    ens_aggregator = nets.EnsembleAggregator([a for _, _, a in members])
-    out = export_model(ens_backbone, ens_aggregator, contract, Path(out_dir), store_float16=True)
-    save_weights(ens_backbone, ens_aggregator, out)
-    return out
 
 
 def sun_elevation_range_deg(sun_enu: Iterable[np.ndarray]) -> list[float]:

@@ -760,21 +760,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_ensemble(args: argparse.Namespace) -> int:
-    from rig.errors import require_torch
-
-    require_torch()
-    from estimator.train import combine_models, command_line
-
-    out = Path(args.out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise SunrigError(f"ensemble: --out {out} exists and is not an empty folder; pass a new one")
-    combine_models([Path(d) for d in args.models], out, run_crops_per_frame=args.crops or 0, command=command_line())
-    if not args.quiet:
-        print(f"ensemble: {len(args.models)} models written as one to {out}", file=sys.stderr)
-    return 0
-
-
 def cmd_synth(args: argparse.Namespace) -> int:
     from replay.synthetic import write_synthetic_logs
 
@@ -1085,16 +1070,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "with the run's logs, a checkpoint that predates it also records their sun elevations")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_train)
-
-    p = sub.add_parser("ensemble", parents=[debug],
-                       help="several trained models as one: the same crops through each, their answers averaged "
-                            "(needs sunrig[train])")
-    p.add_argument("models", nargs="+", metavar="MODEL_DIR", help="model folders written by `sunrig train` (2 or more)")
-    p.add_argument("--out", required=True, metavar="DIR", help="the ensemble's model folder (new or empty)")
-    p.add_argument("--crops", type=_positive_int, metavar="N",
-                   help="crops per frame the ensemble runs (default: its members')")
-    p.add_argument("--quiet", action="store_true", help="no message on stderr")
-    p.set_defaults(func=cmd_ensemble)
 
     p = sub.add_parser("synth", parents=[debug], help="write procedural street drives with the true sun as native logs")
     p.add_argument("out", help="output folder (drives already there are kept: a run resumes)")
