@@ -39,23 +39,28 @@ BLANK_IMAGES = {
 }
 
 
+PLACES = [f"{az} {el}" for az, _, _ in AZIMUTH_BANDS_DEG for el, _, _ in ELEVATION_BANDS_DEG]
+
+
 def answer_place(azimuth_from_heading_deg: float, elevation_deg: float) -> str:
-    """The band (e.g. ``behind high``) that holds an answer ``azimuth_from_heading_deg`` (either
-    side, in [-180, 180]) from the camera's heading and ``elevation_deg`` up."""
+    """The band of PLACES (e.g. ``behind high``) that holds an answer ``azimuth_from_heading_deg``
+    (either side, in [-180, 180]) from the camera's heading and ``elevation_deg`` up."""
     a = abs(azimuth_from_heading_deg)
-    az = next(name for name, lo, hi in AZIMUTH_BANDS_DEG if lo <= a < hi)
-    el = next(name for name, lo, hi in ELEVATION_BANDS_DEG if lo <= elevation_deg < hi)
-    return f"{az} {el}"
+    az = next(i for i, (_, lo, hi) in enumerate(AZIMUTH_BANDS_DEG) if lo <= a < hi)
+    el = next(i for i, (_, lo, hi) in enumerate(ELEVATION_BANDS_DEG) if lo <= elevation_deg < hi)
+    return PLACES[az * len(ELEVATION_BANDS_DEG) + el]
 
 
 def by_answer_place(places: list[str], errors_deg: list[float]) -> dict[str, dict]:
     """For each band: its share of the windows, their mean error and how many are over TAIL_DEG."""
+    grouped: dict[str, list[float]] = {place: [] for place in PLACES}
+    for place, err in zip(places, errors_deg, strict=True):
+        grouped[place].append(err)
     out = {}
-    for az, _, _ in AZIMUTH_BANDS_DEG:
-        for el, _, _ in ELEVATION_BANDS_DEG:
-            e = np.asarray([x for p, x in zip(places, errors_deg, strict=True) if p == f"{az} {el}"])
-            out[f"{az} {el}"] = {"share": e.size / len(places), "mean_deg": float(e.mean()) if e.size else None,
-                                 f"over_{TAIL_DEG:.0f}_deg": int((e > TAIL_DEG).sum())}
+    for place, errs in grouped.items():
+        e = np.asarray(errs)
+        out[place] = {"share": e.size / len(places), "mean_deg": float(e.mean()) if e.size else None,
+                      f"over_{TAIL_DEG:.0f}_deg": int((e > TAIL_DEG).sum())}
     return out
 
 
