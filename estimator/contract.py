@@ -103,6 +103,12 @@ class ModelContract:
     angle first (:func:`estimator.crops.crops_per_scale`), so narrow crops see shading and shadow
     detail and wide ones the layout of sky and street (docs/model.md). A runtime that predates
     lists refuses such a model rather than misreading it.
+
+    ``mirror_windows``: the runtime also runs every window mirrored left to right (each crop
+    flipped, headings and horizontal view angles negated, as training mirrors windows) and
+    averages the two runs' answers, turned back into this world. A mirrored street is a real
+    street lit by the mirrored sun, so the second run is a second look, not a guess; it costs
+    twice the backbone and aggregator work (docs/model.md, "Mirrored at run time").
     """
 
     crop_size_px: int
@@ -110,6 +116,7 @@ class ModelContract:
     crop_fov_deg: float | list[float] = PAPER_CROP_FOV_DEG
     crops_per_frame: int = PAPER_CROPS_PER_FRAME
     frames_per_window: int = 8
+    mirror_windows: bool = False
     encoding: dict[str, Any] = field(default_factory=_encoding_default)
     input_norm: dict[str, Any] = field(default_factory=_input_norm_default)
     architecture: dict[str, Any] = field(default_factory=dict)
@@ -122,6 +129,8 @@ class ModelContract:
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0:
                 problems.append(f"{name}: expected a positive integer, got {v!r}")
+        if not isinstance(self.mirror_windows, bool):
+            problems.append(f"mirror_windows: expected true or false, got {self.mirror_windows!r}")
         fovs = self.crop_fov_deg
         if isinstance(fovs, tuple):  # JSON has no tuples: a list keeps to_json/from_json/differences exact
             object.__setattr__(self, "crop_fov_deg", fovs := list(fovs))

@@ -119,6 +119,33 @@ def _joint_tokens(model: SunModel, tokens: WindowTokens) -> np.ndarray:
     return np.asarray(out[0], dtype=np.float64)
 
 
+def _mirrored_joint_world(model: SunModel, tokens: WindowTokens, window: Sequence[FrameFeatures]) -> np.ndarray:
+    """The transformer's world vectors (T, 3) of a window and of its mirror image, token by token
+    the mean of the two (the contract's ``mirror_windows``).
+
+    The mirror image is the window as training mirrors it (``estimator.train.mirror_window``): each
+    crop flipped left to right, relative yaws and horizontal view angles negated, and its answer's
+    east negated, with the headings, on the way back. Both runs go through the aggregator as one
+    batch of two. Averaging each token's two vectors leaves the window's mean, and so its answer,
+    what averaging all 2T of them would give, while ``n_tokens`` and the spread still count crops.
+    """
+    missing = [f.frame.seq for f in window if f.embeddings_mirrored is None]
+    if missing:
+        raise EstimationError(f"frames {missing[:5]} were encoded without mirrored embeddings, which this "
+                              "model runs with (mirror_windows); encode them with this estimator")
+    emb_mirrored = np.concatenate([f.embeddings_mirrored for f in window]).astype(np.float32, copy=False)
+    angles_mirrored = tokens.angles_rad.copy()
+    angles_mirrored[:, :2] *= -1.0  # relative yaw and horizontal view angle turn the other way
+    t = len(tokens.embeddings)
+    out = np.asarray(model.aggregate(np.stack([tokens.embeddings, emb_mirrored]),
+                                     np.stack([tokens.angles_rad, angles_mirrored]),
+                                     np.ones((2, t), dtype=bool)), dtype=np.float64)
+    plain = world_from_tokens(out[0], tokens.yaw_rad)
+    mirrored = world_from_tokens(out[1], -tokens.yaw_rad)
+    mirrored[:, 0] *= -1.0  # from the mirrored world back to this one: east negated
+    return 0.5 * (plain + mirrored)
+
+
 def _independent_tokens(model: SunModel, tokens: WindowTokens) -> np.ndarray:
     """Each token alone (a batch of one-token windows): (T, 3) heading-frame vectors."""
     t = len(tokens.embeddings)
@@ -130,7 +157,8 @@ class SunEstimator:
     """Crops + backbone per frame (:meth:`encode`), aggregator per window (:meth:`estimate`)."""
 
     def __init__(self, model: SunModel, *, aggregator: str = "transformer", seed: int = 0,
-                 crops_per_frame: int | None = None, crop_layout: str = "spread") -> None:
+                 crops_per_frame: int | None = None, crop_layout: str = "spread",
+                 mirror_windows: bool | None = None) -> None:
         if aggregator not in AGGREGATORS:
             raise ValidationError(f"aggregator: expected one of {', '.join(AGGREGATORS)}, got {aggregator!r}")
         if crop_layout not in CROP_LAYOUTS:
@@ -141,6 +169,8 @@ class SunEstimator:
         self.seed = int(seed)
         contract = model.contract
         self.crops_per_frame = int(crops_per_frame or contract.crops_per_frame)
+        # None: as the model's contract says (the shipped model runs mirrored too).
+        self.mirror_windows = bool(contract.mirror_windows if mirror_windows is None else mirror_windows)
         self.crop_size_px = int(contract.crop_size_px)
         # (angle, crops of that angle) per frame: fixed for the estimator, so not redone per frame.
         fovs_rad = [math.radians(f) for f in contract.crop_fovs_deg]
@@ -173,11 +203,16 @@ class SunEstimator:
         if not frames:
             return []
         parts = [self._crops(f) for f in frames]
-        emb = self.model.embed(np.concatenate([p[2] for p in parts]))
+        crops = np.concatenate([p[2] for p in parts])
+        n_all = len(crops)
+        if self.mirror_windows:  # one backbone run: the crops, then the same crops flipped left to right
+            crops = np.concatenate([crops, crops[:, :, ::-1]])
+        emb = self.model.embed(crops)
         out, start = [], 0
         for frame, (boxes, angles, _) in zip(frames, parts, strict=True):
             n = len(boxes)
-            out.append(FrameFeatures(frame, boxes, angles, emb[start : start + n], self.model.model_id))
+            mirrored = emb[n_all + start : n_all + start + n] if self.mirror_windows else None
+            out.append(FrameFeatures(frame, boxes, angles, emb[start : start + n], self.model.model_id, mirrored))
             start += n
         return out
 
@@ -196,7 +231,10 @@ class SunEstimator:
         results = {}
         for name in aggregators:
             if name == "transformer":
-                world = world_from_tokens(_joint_tokens(self.model, tokens), tokens.yaw_rad)
+                if self.mirror_windows:
+                    world = _mirrored_joint_world(self.model, tokens, window)
+                else:
+                    world = world_from_tokens(_joint_tokens(self.model, tokens), tokens.yaw_rad)
                 unit, spread = mean_direction(world)
             else:
                 if independent is None:

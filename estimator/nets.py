@@ -409,6 +409,7 @@ class NetConfig:
         crops_per_frame: int = PAPER_CROPS_PER_FRAME,
         frames_per_window: int = 8,
         crop_fov_deg: float | list[float] = PAPER_CROP_FOV_DEG,
+        mirror_windows: bool = False,
         training: dict[str, Any] | None = None,
     ) -> ModelContract:
         return ModelContract(
@@ -417,6 +418,7 @@ class NetConfig:
             crop_fov_deg=crop_fov_deg,
             crops_per_frame=crops_per_frame,
             frames_per_window=frames_per_window,
+            mirror_windows=mirror_windows,
             encoding=self.encoding(),
             architecture=self.architecture(),
             training=dict(training or {}),

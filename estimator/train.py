@@ -710,14 +710,17 @@ def _exported_step(out_dir: Path) -> int | None:
 
 
 def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, Any], out_dir: Path,
-            run_crops_per_frame: int = 0, export_command: str = "") -> Path:
+            run_crops_per_frame: int = 0, export_command: str = "", run_mirror_windows: bool | None = None) -> Path:
     """The two graphs with a contract that records the recipe, the data and how far training got.
 
     The contract's ``crops_per_frame`` is what the runtime feeds the model: ``run_crops_per_frame``
     if given, else the run's own (a fine-tune's start's, recorded in the checkpoint), else the
-    training count (the recipe keeps it).
+    training count (the recipe keeps it). Its ``mirror_windows`` is ``run_mirror_windows`` if
+    given, else a fine-tune's start's, else off.
     """
     run_crops_per_frame = run_crops_per_frame or int(state.get("run_crops_per_frame") or 0)
+    if run_mirror_windows is None:
+        run_mirror_windows = bool((state.get("init_info") or {}).get("mirror_windows", False))
     training = {
         "trained": True,
         "command": cfg.command,
@@ -734,7 +737,7 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
         training["export_command"] = export_command
     contract = nets.PRESETS[cfg.preset].contract(
         crops_per_frame=run_crops_per_frame or cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
-        crop_fov_deg=list(fovs_deg(cfg.crop_fov_deg)), training=training)
+        crop_fov_deg=list(fovs_deg(cfg.crop_fov_deg)), mirror_windows=run_mirror_windows, training=training)
     out = export_model(backbone, aggregator, contract, out_dir)
     save_weights(backbone, aggregator, out)
     return out
@@ -808,17 +811,20 @@ def _init_provenance(model_dir: Path, start: Any = None) -> dict[str, Any]:
     return {"dir": str(model_dir), "model_id": start.model_id,
             **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None},
             **({"sun_elevation_deg": list(sun_range)} if sun_range else {}),
-            "crops_per_frame": start.contract.crops_per_frame, "crop_fov_deg": start.contract.crop_fov_deg}
+            "crops_per_frame": start.contract.crops_per_frame, "crop_fov_deg": start.contract.crop_fov_deg,
+            "mirror_windows": start.contract.mirror_windows}
 
 
 def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: int = 0,
-                      export_command: str = "", log_paths: Sequence[Path] = (), data_note: str = "") -> Path:
+                      export_command: str = "", log_paths: Sequence[Path] = (), data_note: str = "",
+                      run_mirror_windows: bool | None = None) -> Path:
     """Export the model in ``checkpoint_dir``'s checkpoint as it stands (e.g. while it trains).
 
     ``run_crops_per_frame`` sets the crops per frame the runtime will feed it (default: the
     run's own, which for a fine-tune is its start's; else as trained). The aggregator takes any
     number of tokens, and more crops than it was trained with average out more of the luck of
-    where crops land (docs/model.md measures it).
+    where crops land (docs/model.md measures it). ``run_mirror_windows`` sets whether it also runs
+    each window mirrored (default: as a fine-tune's start ran, else not).
 
     ``log_paths``: the run's training logs, for a checkpoint written before training recorded
     its data's sun elevations (the status rule's limit, :meth:`ModelContract.trained_sun_elevation_deg`).
@@ -857,7 +863,8 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     backbone, aggregator = nets.PRESETS[cfg.preset].build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
-    return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command)
+    return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command,
+                   run_mirror_windows)
 
 
 def sun_elevation_range_deg(sun_enu: Iterable[np.ndarray]) -> list[float]:

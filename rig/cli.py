@@ -691,14 +691,19 @@ def cmd_train(args: argparse.Namespace) -> int:
         # Logs beside --export-only: a checkpoint from before training recorded its data's sun
         # elevations takes them from its logs (checked to be the run's by their fingerprint).
         logs = _expand_logs(args.logs) if args.logs else []
+        mirror = args.mirror_windows
         out = export_checkpoint(Path(args.out), Path(args.export_only), run_crops_per_frame=args.crops or 0,
-                                export_command=command_line() if args.crops or logs or args.data_note else "",
-                                log_paths=logs, data_note=args.data_note or "")
+                                export_command=command_line() if args.crops or logs or args.data_note
+                                or mirror is not None else "",
+                                log_paths=logs, data_note=args.data_note or "", run_mirror_windows=mirror)
         if not args.quiet:
             print(f"train: exported the checkpoint in {args.out} to {out}", file=sys.stderr)
         return 0
     if not args.logs:
         raise SunrigError("train: no logs given; pass native logs or folders of them")
+    if args.mirror_windows is not None:
+        raise SunrigError("train: --mirror-windows sets how an exported model runs; pass it with --export-only "
+                          "once the run is done (a fine-tune keeps its --init model's)")
     paths = _expand_logs(args.logs)
     from replay.sources import open_frames
 
@@ -1068,6 +1073,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-only", metavar="DIR",
                    help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run); "
                         "with the run's logs, a checkpoint that predates it also records their sun elevations")
+    p.add_argument("--mirror-windows", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --export-only: the exported model also runs every window mirrored left to right "
+                        "and averages the two answers (twice the work a frame; docs/model.md). Default: as the "
+                        "--init model ran (the shipped model: mirrored), else not")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_train)
 

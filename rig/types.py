@@ -223,6 +223,8 @@ class FrameFeatures:
     ``crop_boxes_px`` rows are (x0, y0, side_x, side_y) in image pixels; ``crop_angles_rad`` rows are
     (horizontal, vertical) view angles of the crop centres; ``embeddings`` rows are the backbone's
     output per crop. ``model_id`` names the backbone that made them, so a cache never mixes models.
+    ``embeddings_mirrored``, for a model run mirrored (its contract's ``mirror_windows``), are the
+    same crops' embeddings flipped left to right, row for row; None otherwise.
     """
 
     frame: Frame
@@ -230,6 +232,7 @@ class FrameFeatures:
     crop_angles_rad: np.ndarray
     embeddings: np.ndarray
     model_id: str
+    embeddings_mirrored: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.crop_boxes_px)
@@ -245,7 +248,16 @@ class FrameFeatures:
             raise ValidationError(f"FrameFeatures.embeddings: expected shape ({n}, D), got {np.shape(emb)}")
         if emb.dtype != np.float32:
             raise ValidationError(f"FrameFeatures.embeddings: expected dtype float32, got {emb.dtype}")
-        for name in ("crop_boxes_px", "crop_angles_rad", "embeddings"):
+        mirrored = self.embeddings_mirrored
+        if mirrored is not None and (not isinstance(mirrored, np.ndarray) or mirrored.shape != emb.shape
+                                     or mirrored.dtype != np.float32):
+            got = getattr(mirrored, "dtype", type(mirrored).__name__)
+            raise ValidationError(f"FrameFeatures.embeddings_mirrored: expected float32 of shape {emb.shape}, "
+                                  f"got {got} of shape {np.shape(mirrored)}")
+        names = ["crop_boxes_px", "crop_angles_rad", "embeddings"]
+        if mirrored is not None:
+            names.append("embeddings_mirrored")
+        for name in names:
             arr = np.array(getattr(self, name), copy=True)
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)

@@ -656,6 +656,31 @@ def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
     assert shlex.split(named["export_command"])[-2:] == [note, "--quiet"]
 
 
+def test_export_only_sets_whether_the_model_runs_mirrored_and_a_fine_tune_keeps_it(tmp_path):
+    from estimator.runtime import OnnxModel
+    from replay.sources import DEMO_LOG
+
+    out = tmp_path / "m"
+    args = ["train", str(DEMO_LOG), "--preset", "tiny", "--batch", "1", "--steps", "1", "--quiet"]
+    res = run_cli(*args, "--out", str(out), "--mirror-windows")
+    assert res.returncode == 2 and "pass it with --export-only" in res.stderr and "Traceback" not in res.stderr
+    assert run_cli(*args, "--out", str(out)).returncode == 0
+    assert OnnxModel.load(out).contract.mirror_windows is False  # not unless asked
+    res = run_cli("train", "--out", str(out), "--export-only", str(tmp_path / "mirrored"), "--mirror-windows",
+                  "--quiet")
+    assert res.returncode == 0, res.stderr
+    mirrored = OnnxModel.load(tmp_path / "mirrored").contract
+    assert mirrored.mirror_windows is True and "--mirror-windows" in mirrored.training["export_command"]
+    # A fine-tune runs as its start ran, unless its export says otherwise.
+    res = run_cli(*args, "--out", str(tmp_path / "ft"), "--init", str(tmp_path / "mirrored"))
+    assert res.returncode == 0, res.stderr
+    assert OnnxModel.load(tmp_path / "ft").contract.mirror_windows is True
+    res = run_cli("train", "--out", str(tmp_path / "ft"), "--export-only", str(tmp_path / "plain"),
+                  "--no-mirror-windows", "--quiet")
+    assert res.returncode == 0, res.stderr
+    assert OnnxModel.load(tmp_path / "plain").contract.mirror_windows is False
+
+
 def test_every_option_of_every_command_says_what_it_does():
     # `sunrig CMD --help` is the reference a rig user has at hand: no option without a line.
     import argparse

@@ -246,3 +246,71 @@ def test_status_rule_limit_follows_the_highest_training_sun(model):
 def test_encoding_no_frames_is_no_features(model):
     # A replay whose frame count is a multiple of the batch ends with an empty batch to encode.
     assert SunEstimator(model).encode_batch([]) == []
+
+
+# -- mirrored windows (the contract's mirror_windows) -----------------------------------------
+
+
+def _mirror_image(ff: FrameFeatures) -> FrameFeatures:
+    """The same frame as the mirrored street would give it: the two embeddings swapped, the heading,
+    the horizontal view angles and the true sun's east negated (a mirror about the north-up plane)."""
+    f = ff.frame
+    truth = np.asarray(f.sun_enu_truth) * [-1.0, 1.0, 1.0]
+    frame = dataclasses.replace(f, attitude=dataclasses.replace(f.attitude, heading_rad=-f.attitude.heading_rad),
+                                sun_enu_truth=truth)
+    return FrameFeatures(frame, ff.crop_boxes_px, ff.crop_angles_rad * [-1.0, 1.0], ff.embeddings_mirrored,
+                         ff.model_id, ff.embeddings)
+
+
+def test_mirror_windows_follows_the_contract_unless_told(model):
+    frames = make_frames(2)
+    assert model.contract.mirror_windows is False  # the tiny test model's export
+    plain = SunEstimator(model).encode_batch(frames)
+    assert SunEstimator(model).mirror_windows is False and plain[0].embeddings_mirrored is None
+    mirrored = SunEstimator(model, mirror_windows=True).encode_batch(frames)
+    for p, m in zip(plain, mirrored, strict=True):
+        np.testing.assert_array_equal(p.crop_boxes_px, m.crop_boxes_px)  # the same crops ...
+        np.testing.assert_allclose(p.embeddings, m.embeddings, atol=1e-5)
+        flipped = model.embed(np.ascontiguousarray(
+            SunEstimator(model)._crops(p.frame)[2][:, :, ::-1]))  # ... and their flips' embeddings beside them
+        np.testing.assert_allclose(m.embeddings_mirrored, flipped, atol=1e-5)
+
+
+def test_a_mirrored_estimate_of_the_mirror_image_is_the_mirror_image_of_the_estimate(model):
+    # Run mirrored, the estimator is exactly symmetric: the mirrored street's answer is this street's
+    # answer with east negated. A sign left out anywhere (yaw, view angle, east) breaks this.
+    est = SunEstimator(model, mirror_windows=True, seed=2)
+    window = est.encode_batch(make_frames(8, heading_offset_deg=37.0))
+    a = est.estimate(window)
+    b = est.estimate([_mirror_image(ff) for ff in window])
+    np.testing.assert_allclose(b.sun_enu, a.sun_enu * [-1.0, 1.0, 1.0], atol=1e-5)
+    np.testing.assert_allclose(b.token_enu, a.token_enu * [-1.0, 1.0, 1.0], atol=1e-5)
+    assert b.error_rad == pytest.approx(a.error_rad, abs=1e-5)
+    # Not so unmirrored: a random model is no mirror of itself, which is what makes the test bite.
+    plain = SunEstimator(model, seed=2)
+    c = plain.estimate(window)
+    d = plain.estimate([_mirror_image(ff) for ff in window])
+    assert math.degrees(angle_between(d.sun_enu, c.sun_enu * [-1.0, 1.0, 1.0])) > 1.0
+
+
+def test_a_mirrored_estimate_averages_each_crop_s_two_runs_and_counts_crops(model):
+    est = SunEstimator(model, mirror_windows=True, seed=4)
+    window = est.encode_batch(make_frames(8))
+    results = est.estimate_many(window, AGGREGATORS)
+    t = 8 * model.contract.crops_per_frame
+    assert results["transformer"].n_tokens == t and results["transformer"].token_enu.shape == (t, 3)
+    # The baselines are the paper's, run on the crops as they are.
+    unmirrored = SunEstimator(model, seed=4).estimate_many(SunEstimator(model, seed=4).encode_batch(make_frames(8)),
+                                                           AGGREGATORS)
+    for name in ("mean", "meanshift", "single"):
+        np.testing.assert_allclose(results[name].sun_enu, unmirrored[name].sun_enu, atol=1e-5)
+    assert math.degrees(angle_between(results["transformer"].sun_enu, unmirrored["transformer"].sun_enu)) > 0.1
+
+
+def test_a_mirrored_estimator_refuses_frames_encoded_without_their_mirror(model):
+    window = SunEstimator(model).encode_batch(make_frames(3))
+    with pytest.raises(EstimationError, match=r"frames \[0, 1, 2\] were encoded without mirrored embeddings"):
+        SunEstimator(model, mirror_windows=True).estimate(window)
+    ff = window[0]
+    with pytest.raises(ValidationError, match="embeddings_mirrored: expected float32 of shape"):
+        FrameFeatures(ff.frame, ff.crop_boxes_px, ff.crop_angles_rad, ff.embeddings, ff.model_id, ff.embeddings[:1])

@@ -3,6 +3,7 @@ not fit its contract with a one-line message that names the difference."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -148,6 +149,7 @@ CONTRACT = ModelContract(crop_size_px=64, embedding_dim=32)
         ({"input_norm": {**CONTRACT.input_norm, "mean": [0.5] * 4}}, "input_norm.mean"),  # one per colour
         # the encoding interlaces a sin(phi) and a cos(phi) branch per frequency (nets.py): depth is even
         ({"encoding": {**CONTRACT.encoding, "depth_per_angle": 171}}, "depth_per_angle"),
+        ({"mirror_windows": "yes"}, "mirror_windows"),  # JSON's true or false, not a word that reads as one
     ],
 )
 def test_contract_refuses_values_no_model_can_have(changes, named):
@@ -162,6 +164,16 @@ def test_a_contract_carries_one_crop_angle_as_a_number_and_several_as_a_list():
     one = ModelContract(crop_size_px=64, embedding_dim=32, crop_fov_deg=[26.0])
     assert one.crop_fov_deg == 26.0 and one.crop_fovs_deg == (26.0,)  # as a model of one angle writes it
     assert not one.differences(ModelContract(crop_size_px=64, embedding_dim=32, crop_fov_deg=26.0))
+
+
+def test_a_contract_without_mirror_windows_runs_unmirrored_and_one_with_it_keeps_it():
+    # Models exported before session 23 have no such field: they ran, and still run, unmirrored.
+    without = json.loads(CONTRACT.to_json())
+    del without["mirror_windows"]
+    assert ModelContract.from_json(json.dumps(without)).mirror_windows is False
+    mirrored = dataclasses.replace(CONTRACT, mirror_windows=True)
+    assert ModelContract.from_json(mirrored.to_json()) == mirrored
+    assert mirrored.differences(CONTRACT) == ["mirror_windows: True != False"]
 
 
 def test_trained_sun_elevations_are_read_only_as_a_range():
