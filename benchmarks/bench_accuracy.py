@@ -16,9 +16,11 @@ suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DE
 
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
-                                         [--crops N] [--variant plain|mirror|clamp]
+                                         [--crops N] [--mirror-windows on|off] [--variant plain|clamp]
 
-``--variant`` measures a run-time change that was tried and not adopted (benchmarks/variants.py).
+``--mirror-windows`` runs the model mirrored or not whatever its contract says (the shipped
+model's says mirrored); ``--variant`` measures a run-time change that was tried and not adopted
+(benchmarks/variants.py).
 """
 
 from __future__ import annotations
@@ -75,6 +77,8 @@ def main() -> None:
                     help="where each frame's crops go (default spread, as every command; uniform: the paper's draws)")
     ap.add_argument("--crops", type=_positive, default=0, metavar="N",
                     help="crops per frame instead of the model's (its contract's; more costs backbone time per frame)")
+    ap.add_argument("--mirror-windows", choices=("on", "off"),
+                    help="run every window mirrored too, or not (default: as the model's contract says)")
     ap.add_argument("--variant", default="plain", choices=VARIANTS,
                     help="a run-time change tried and not adopted (benchmarks/variants.py; default plain)")
     args = ap.parse_args()
@@ -87,7 +91,8 @@ def main() -> None:
     pooled, per_seed = None, {}
     make_estimator = estimator_for(args.variant)
     for seed in args.seeds:
-        estimator = make_estimator(model, seed=seed, crop_layout=args.crop_layout, crops_per_frame=args.crops or None)
+        estimator = make_estimator(model, seed=seed, crop_layout=args.crop_layout, crops_per_frame=args.crops or None,
+                                   mirror_windows=None if args.mirror_windows is None else args.mirror_windows == "on")
         policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
         result = evaluate([(p.name, open_frames(p)) for p in paths], estimator, policy)
         per_seed[str(seed)] = {**error_summary(result.errors_deg["transformer"]),
@@ -110,6 +115,7 @@ def main() -> None:
         "data": {"held_out_seed": args.drive_seed, "drives": args.drives, "frames_per_drive": args.frames},
         "crop_layout": args.crop_layout,
         "variant": args.variant,
+        "mirror_windows": estimator.mirror_windows,
         "crop_seeds": args.seeds,
         "crops_per_frame": args.crops or model.contract.crops_per_frame,
         "model": {"dir": str(model.model_dir), "id": model.model_id,
