@@ -599,7 +599,9 @@ def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
 
 def test_a_run_switched_from_steps_to_minutes_decays_from_where_it_stopped(logs, tmp_path):
     # The same --minutes as the steps run carried (as the CLI's default does): only --steps went.
-    cfg = TrainConfig(preset="tiny", max_steps=4, batch_windows=1, minutes=0.1)  # 6 s: more than 4 steps take
+    # 18 s, far more than 4 tiny steps take even on a loaded machine: a budget the steps run had
+    # already spent would leave the minutes run nothing to resume (6 s once did, beside a benchmark).
+    cfg = TrainConfig(preset="tiny", max_steps=4, batch_windows=1, minutes=0.3)
     out = train(logs, tmp_path / "m", cfg)
     train(logs, out, replace(cfg, max_steps=0))
     assert torch.load(out / CHECKPOINT, weights_only=False)["schedule"]["start_step"] == 4  # not back to warmup
