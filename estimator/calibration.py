@@ -42,3 +42,24 @@ def mean_direction(v_world: np.ndarray) -> tuple[np.ndarray, float]:
         )
     unit = mean / norm
     return unit, spread_rad(v, unit)
+
+
+# A window mirrored left to right (about the north-up plane) is a real window of the mirrored
+# street under the mirrored sun. Training mirrors windows so (estimator.train.mirror_window) and
+# the runtime runs them so (the contract's mirror_windows): both take the signs from here, so the
+# two cannot come to mirror differently. Headings are negated too; that needs no helper.
+
+
+def mirrored_angles(angles_rad: np.ndarray) -> np.ndarray:
+    """Token angles (..., 3: yaw relative to the newest frame, horizontal, vertical view angle) of
+    the mirrored window: the two that turn left-right are negated. A new array of the same dtype."""
+    out = np.array(angles_rad, copy=True)
+    out[..., :2] *= -1.0
+    return out
+
+
+def mirrored_enu(v_enu: np.ndarray) -> np.ndarray:
+    """ENU vectors (..., 3) in the mirrored world, or back from it: east negated. A new array."""
+    out = np.array(v_enu, copy=True)
+    out[..., 0] *= -1.0
+    return out

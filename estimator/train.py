@@ -51,6 +51,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from estimator.calibration import mirrored_angles, mirrored_enu
 from estimator.contract import (
     CHECKPOINT,
     PAPER_CROP_FOV_DEG,
@@ -296,9 +297,9 @@ def mirror_window(batch: Batch, b: int) -> None:
     physically consistent: the sky brighter on the sun's side, shadows away from it. It doubles
     the layouts a model sees per drive without rendering any."""
     batch.crops[b] = batch.crops[b, :, :, ::-1]
-    batch.angles[b, :, :2] *= -1.0  # relative yaw and horizontal view angle
+    batch.angles[b] = mirrored_angles(batch.angles[b])
     batch.yaw[b] *= -1.0
-    batch.truth[b, 0] *= -1.0
+    batch.truth[b] = mirrored_enu(batch.truth[b])
 
 
 # ------------------------------------------------------------------------------------------
