@@ -23,7 +23,14 @@ from typing import Protocol
 
 import numpy as np
 
-from estimator.calibration import EstimationError, mean_direction, spread_rad, world_from_tokens
+from estimator.calibration import (
+    EstimationError,
+    mean_direction,
+    mirrored_angles,
+    mirrored_enu,
+    spread_rad,
+    world_from_tokens,
+)
 from estimator.contract import ModelContract
 from estimator.crops import (
     crop_angles_rad,
@@ -62,6 +69,7 @@ class WindowTokens:
     """A window flattened to tokens: what the aggregator graph and the calibration need."""
 
     embeddings: np.ndarray  # (T, D) float32
+    embeddings_mirrored: np.ndarray | None  # (T, D) float32 of the flipped crops, if every frame has them
     angles_rad: np.ndarray  # (T, 3) float32: yaw relative to the newest frame, horizontal, vertical
     yaw_rad: np.ndarray  # (T,) absolute yaw of each token's frame, for calibration
     newest: FrameFeatures
@@ -102,8 +110,10 @@ def window_tokens(window: Sequence[FrameFeatures]) -> WindowTokens:
         rel = np.full((f.n_crops, 1), wrap_pi(psi - yaw_ref))
         ang.append(np.concatenate([rel, f.crop_angles_rad], axis=1))
         yaw.append(np.full(f.n_crops, psi))
+    mirrored = [f.embeddings_mirrored for f, _ in with_attitude if f.embeddings_mirrored is not None]
     return WindowTokens(
         embeddings=np.concatenate(emb).astype(np.float32, copy=False),
+        embeddings_mirrored=np.concatenate(mirrored) if len(mirrored) == len(with_attitude) else None,
         angles_rad=np.concatenate(ang).astype(np.float32),
         yaw_rad=np.concatenate(yaw),
         newest=newest,
@@ -129,20 +139,16 @@ def _mirrored_joint_world(model: SunModel, tokens: WindowTokens, window: Sequenc
     batch of two. Averaging each token's two vectors leaves the window's mean, and so its answer,
     what averaging all 2T of them would give, while ``n_tokens`` and the spread still count crops.
     """
-    missing = [f.frame.seq for f in window if f.embeddings_mirrored is None]
-    if missing:
+    if tokens.embeddings_mirrored is None:
+        missing = [f.frame.seq for f in window if f.embeddings_mirrored is None]  # only to name them
         raise EstimationError(f"frames {missing[:5]} were encoded without mirrored embeddings, which this "
                               "model runs with (mirror_windows); encode them with this estimator")
-    emb_mirrored = np.concatenate([f.embeddings_mirrored for f in window]).astype(np.float32, copy=False)
-    angles_mirrored = tokens.angles_rad.copy()
-    angles_mirrored[:, :2] *= -1.0  # relative yaw and horizontal view angle turn the other way
     t = len(tokens.embeddings)
-    out = np.asarray(model.aggregate(np.stack([tokens.embeddings, emb_mirrored]),
-                                     np.stack([tokens.angles_rad, angles_mirrored]),
+    out = np.asarray(model.aggregate(np.stack([tokens.embeddings, tokens.embeddings_mirrored]),
+                                     np.stack([tokens.angles_rad, mirrored_angles(tokens.angles_rad)]),
                                      np.ones((2, t), dtype=bool)), dtype=np.float64)
     plain = world_from_tokens(out[0], tokens.yaw_rad)
-    mirrored = world_from_tokens(out[1], -tokens.yaw_rad)
-    mirrored[:, 0] *= -1.0  # from the mirrored world back to this one: east negated
+    mirrored = mirrored_enu(world_from_tokens(out[1], -tokens.yaw_rad))  # back from the mirrored world
     return 0.5 * (plain + mirrored)
 
 
