@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from estimator.calibration import EstimationError
+from estimator.crops import cut_crops
 from estimator.estimator import AGGREGATORS, SunEstimator, window_tokens
 from rig.errors import ValidationError
 from rig.geometry import angle_between, world_from_heading
@@ -271,8 +272,8 @@ def test_mirror_windows_follows_the_contract_unless_told(model):
     for p, m in zip(plain, mirrored, strict=True):
         np.testing.assert_array_equal(p.crop_boxes_px, m.crop_boxes_px)  # the same crops ...
         np.testing.assert_allclose(p.embeddings, m.embeddings, atol=1e-5)
-        flipped = model.embed(np.ascontiguousarray(
-            SunEstimator(model)._crops(p.frame)[2][:, :, ::-1]))  # ... and their flips' embeddings beside them
+        crops = cut_crops(p.frame.image_bgr, p.crop_boxes_px, model.contract.crop_size_px)
+        flipped = model.embed(np.ascontiguousarray(crops[:, :, ::-1]))  # ... and their flips' embeddings beside them
         np.testing.assert_allclose(m.embeddings_mirrored, flipped, atol=1e-5)
 
 
