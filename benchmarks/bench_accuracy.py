@@ -16,7 +16,7 @@ suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DE
 
     python3 benchmarks/bench_accuracy.py [--model DIR] [--data DIR] [--drives 100] [--plot OUT.png]
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
-                                         [--crops N] [--mirror-windows on|off] [--variant plain|clamp]
+                                         [--crops N] [--mirror-windows on|off] [--variant NAME]
 
 ``--mirror-windows`` runs the model mirrored or not whatever its contract says (the shipped
 model's says mirrored); ``--variant`` measures a run-time change that was tried and not adopted
