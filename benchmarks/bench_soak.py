@@ -164,6 +164,16 @@ def sample(pid: int) -> dict | None:
     return {"rss_mb": int(fields["VmRSS"].split()[0]) / 1024.0, "threads": int(fields["Threads"]), "fds": fds}
 
 
+def stop_rig(proc: subprocess.Popen) -> None:
+    """Stop the rig as a service manager would, and kill it if it has not ended within 10 s."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
 def slope_per_hour(ts: list[float], ys: list[float]) -> float | None:
     """Least-squares slope of ys over ts (seconds), per hour."""
     import numpy as np
@@ -210,15 +220,22 @@ def main() -> None:
     # thread's stack into its stderr file, to show where it hangs.
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "PYTHONFAULTHANDLER": "1"}
     samples: list[dict] = []
+    # SIGTERM (a shell's kill, a CI timeout) ends the benchmark through the except above, as Ctrl-C
+    # does, so the rig it started does not outlive it.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     with open(stderr_path, "w") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, env=env)
         t0 = time.monotonic()
         end = t0 + 60.0 * args.minutes
-        while time.monotonic() < end and proc.poll() is None:
-            s = sample(proc.pid)
-            if s is not None:
-                samples.append({"t_s": round(time.monotonic() - t0, 1), **s})
-            time.sleep(SAMPLE_EVERY_S)
+        try:
+            while time.monotonic() < end and proc.poll() is None:
+                s = sample(proc.pid)
+                if s is not None:
+                    samples.append({"t_s": round(time.monotonic() - t0, 1), **s})
+                time.sleep(SAMPLE_EVERY_S)
+        except BaseException:  # Ctrl-C, or SIGTERM (below): stop the rig too, not leave it running
+            stop_rig(proc)
+            raise
         ended_early = proc.poll() is not None
         t_int = time.monotonic()
         if not ended_early:
