@@ -7,12 +7,13 @@ the spread of its error over the draws, with where the answers put the sun from 
 heading against where it was. A window whose error stays put whatever the crops is the model's
 belief; one whose error ranges widely is a crop lottery, which more or better-placed crops narrow.
 
-    python3 benchmarks/bench_crop_draws.py [--model DIR] [--window LOG:FIRST_FRAME ...] [--crop-seeds 60]
+    python3 benchmarks/bench_crop_draws.py [--model DIR] [--window LOG:NEWEST_FRAME ...] [--crop-seeds 60]
                                            [--variants plain,tiled] [--crops 8,64]
 
-The default windows are the worst held-out and validation windows of the shipped model: frames
-0-7 of held-out drive_2000_0084 and frames 6-13 of validation drive_2500_0194 (make the drives
-with bench_accuracy.py, or ``sunrig synth``, first).
+A window is named by its log and its newest frame (counted from 0), and its frames are the ones
+the live window policy picks up to there, as in bench_accuracy.py. The default windows are the
+worst held-out and validation windows of the shipped model (make the drives with
+bench_accuracy.py, or ``sunrig synth``, first).
 """
 
 from __future__ import annotations
@@ -32,17 +33,29 @@ from benchmarks.common import comma_list, machine  # noqa: E402
 from benchmarks.variants import VARIANTS, estimator_for  # noqa: E402
 from rig.geometry import az_el_from_enu, wrap_pi  # noqa: E402
 
-DEFAULT_WINDOWS = ("data/heldout/drive_2000_0084.mcap:0", "data/val/drive_2500_0194.mcap:6")
+DEFAULT_WINDOWS = ("data/heldout/drive_2000_0084.mcap:7", "data/val/drive_2500_0194.mcap:12")
+SPAN_S = 4.0  # the live policy's, as bench_accuracy.py forms windows
 OVER_DEG = 30.0
 
 
 def window_arg(text: str) -> tuple[Path, int]:
-    """``LOG:FIRST_FRAME`` -> (path, first frame index)."""
-    path, sep, first = text.rpartition(":")
-    if not sep or not path or not first.isdigit():
-        raise argparse.ArgumentTypeError(f"expected LOG:FIRST_FRAME (e.g. data/val/drive_2500_0194.mcap:6), "
+    """``LOG:NEWEST_FRAME`` -> (path, index of the window's newest frame)."""
+    path, sep, newest = text.rpartition(":")
+    if not sep or not path or not newest.isdigit():
+        raise argparse.ArgumentTypeError(f"expected LOG:NEWEST_FRAME (e.g. data/heldout/drive_2000_0084.mcap:7), "
                                          f"got {text!r}")
-    return Path(path), int(first)
+    return Path(path), int(newest)
+
+
+def window_frames(frames: list, newest: int, n_frames: int) -> list:
+    """The frames the live window policy picks for the window whose newest frame is ``frames[newest]``."""
+    from types import SimpleNamespace
+
+    from rig.window import SpreadWindowPolicy
+
+    policy = SpreadWindowPolicy(n_frames=n_frames, span_s=SPAN_S)
+    picked = policy.select([SimpleNamespace(frame=f) for f in frames[: newest + 1]])
+    return [c.frame for c in picked]
 
 
 def draw_summary(errors_deg: list[float], answer_rel_az_deg: list[float], answer_el_deg: list[float]) -> dict:
@@ -72,8 +85,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", help="model folder (default: the shipped model)")
     ap.add_argument("--window", dest="windows", type=window_arg, action="append",
-                    help="a window as LOG:FIRST_FRAME, its model's frames-per-window frames from there "
-                         f"(repeat for more; default {' and '.join(DEFAULT_WINDOWS)})")
+                    help="a window as LOG:NEWEST_FRAME (repeat for more; default "
+                         f"{' and '.join(DEFAULT_WINDOWS)})")
     ap.add_argument("--crop-seeds", type=int, default=60, help="crop draws per window: seeds 0..N-1 (default 60)")
     ap.add_argument("--variants", type=comma_list(str, f"names from {', '.join(VARIANTS)}",
                                                   lambda xs: all(x in VARIANTS for x in xs)),
@@ -96,10 +109,14 @@ def main() -> None:
     model = OnnxModel.load(resolve_model_dir(args.model))
     n_frames = int(model.contract.frames_per_window)
     out = []
-    for path, first in windows:
-        frames = list(open_frames(path))[first : first + n_frames]
+    for path, newest in windows:
+        log_frames = list(open_frames(path))
+        if newest >= len(log_frames):
+            ap.error(f"{path} has {len(log_frames)} frames (0 to {len(log_frames) - 1}); pick a newest frame in them")
+        frames = window_frames(log_frames, newest, n_frames)
         if len(frames) < n_frames:
-            ap.error(f"{path} has no {n_frames} frames from frame {first}; pick an earlier first frame")
+            ap.error(f"{path} has no full window of {n_frames} frames ending at frame {newest}; "
+                     f"pick a newest frame from {n_frames - 1} to the log's last")
         runs = []
         for variant in args.variants:
             for crops in args.crops:
@@ -109,11 +126,11 @@ def main() -> None:
                     angles.append(_angles_deg(estimator.estimate(estimator.encode_batch(frames))))
                 err, rel_az, el = (list(col) for col in zip(*angles, strict=True))
                 runs.append({"variant": variant, "crops_per_frame": crops, **draw_summary(err, rel_az, el)})
-                print(f"{path.name}:{first} {variant} x{crops}: mean {runs[-1]['mean_deg']:.1f} deg, "
+                print(f"{path.name}:{newest} {variant} x{crops}: mean {runs[-1]['mean_deg']:.1f} deg, "
                       f"{runs[-1]['min_deg']:.1f}-{runs[-1]['max_deg']:.1f}", file=sys.stderr)
         truth = frames[-1]  # the window's newest frame, whose heading the answers are relative to
         taz, tel = az_el_from_enu(truth.sun_enu_truth)
-        out.append({"log": str(path), "first_frame": first, "frames": n_frames,
+        out.append({"log": str(path), "newest_frame": newest, "frames_seq": [f.seq for f in frames],
                     "truth": {"rel_azimuth_deg": math.degrees(float(wrap_pi(taz - truth.attitude.heading_rad))),
                               "elevation_deg": math.degrees(tel)},
                     "runs": runs})

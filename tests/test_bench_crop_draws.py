@@ -11,11 +11,11 @@ import pytest
 from benchmarks.bench_crop_draws import draw_summary, main, window_arg
 
 
-def test_window_arg_takes_the_last_colon_as_the_first_frame():
+def test_window_arg_takes_the_last_colon_as_the_newest_frame():
     assert window_arg("data/val/drive_2500_0194.mcap:6") == (Path("data/val/drive_2500_0194.mcap"), 6)
     assert window_arg("C:/logs/d.mcap:0") == (Path("C:/logs/d.mcap"), 0)
     for bad in ("data/val/d.mcap", "d.mcap:", ":3", "d.mcap:-1", "d.mcap:x"):
-        with pytest.raises(argparse.ArgumentTypeError, match="LOG:FIRST_FRAME"):
+        with pytest.raises(argparse.ArgumentTypeError, match="LOG:NEWEST_FRAME"):
             window_arg(bad)
 
 
@@ -30,11 +30,11 @@ def test_summary_counts_only_errors_strictly_over_30_deg():
 def test_the_crop_draws_alone_move_a_windows_answer(monkeypatch, capsys):
     from replay.sources import DEMO_LOG
 
-    monkeypatch.setattr(sys, "argv", ["bench_crop_draws.py", "--window", f"{DEMO_LOG}:0", "--crop-seeds", "3",
+    monkeypatch.setattr(sys, "argv", ["bench_crop_draws.py", "--window", f"{DEMO_LOG}:7", "--crop-seeds", "3",
                                       "--variants", "plain,tiled"])
     main()
     (window,) = json.loads(capsys.readouterr().out)["windows"]
-    assert window["frames"] == 8 and -180 <= window["truth"]["rel_azimuth_deg"] < 180
+    assert window["frames_seq"] == list(range(8)) and -180 <= window["truth"]["rel_azimuth_deg"] < 180
     plain, tiled = window["runs"]
     assert (plain["variant"], tiled["variant"]) == ("plain", "tiled")
     for run in (plain, tiled):
@@ -42,10 +42,23 @@ def test_the_crop_draws_alone_move_a_windows_answer(monkeypatch, capsys):
     assert plain["max_deg"] > plain["min_deg"]  # the crops alone change the answer
 
 
-def test_a_window_past_the_end_of_the_log_is_a_usage_error(monkeypatch, capsys):
+@pytest.mark.parametrize(("newest", "says"), [(10000, "pick a newest frame in them"), (6, "no full window of 8")])
+def test_a_window_the_log_cannot_give_is_a_usage_error(monkeypatch, capsys, newest, says):
     from replay.sources import DEMO_LOG
 
-    monkeypatch.setattr(sys, "argv", ["bench_crop_draws.py", "--window", f"{DEMO_LOG}:10000", "--crop-seeds", "1"])
+    monkeypatch.setattr(sys, "argv", ["bench_crop_draws.py", "--window", f"{DEMO_LOG}:{newest}", "--crop-seeds", "1"])
     with pytest.raises(SystemExit) as exc:
         main()
-    assert exc.value.code == 2 and "pick an earlier first frame" in capsys.readouterr().err
+    assert exc.value.code == 2 and says in capsys.readouterr().err
+
+
+def test_a_window_is_the_frames_the_live_policy_picks():
+    """Past the first full window the live policy spreads its frames over the last 4 s, so the
+    window ending at a frame is not the 8 frames before it."""
+    from benchmarks.bench_crop_draws import window_frames
+    from replay.sources import DEMO_LOG, open_frames
+
+    frames = list(open_frames(DEMO_LOG))
+    assert [f.seq for f in window_frames(frames, 7, 8)] == [f.seq for f in frames[:8]]
+    late = [f.seq for f in window_frames(frames, 30, 8)]
+    assert len(late) == 8 and late[-1] == frames[30].seq and late != [f.seq for f in frames[23:31]]
