@@ -22,7 +22,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import VALIDATION_SEED, comma_list, machine, transformer_errors_deg  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    VALIDATION_SEED,
+    comma_list,
+    machine,
+    relative_azimuth_deg,
+    transformer_errors_deg,
+)
 
 # Each sky: the DriveParams fields it overrides (replay/synthetic/drive.py).
 SKIES: dict[str, dict[str, float]] = {
@@ -35,13 +41,6 @@ SKIES: dict[str, dict[str, float]] = {
 DEFAULT_INDICES = (194, 98, 231, 13, 45)
 OVER_DEG = 30.0
 _indices = comma_list(int, "drive indices >= 0", lambda xs: all(x >= 0 for x in xs))
-
-
-def relative_azimuth_deg(sun_azimuth_rad: float, heading_rad: float) -> float:
-    """Where the sun stands from the camera's heading, clockwise in [-180, 180) (0 ahead, 90 right)."""
-    from rig.geometry import wrap_pi
-
-    return math.degrees(float(wrap_pi(sun_azimuth_rad - heading_rad)))
 
 
 def summarise(errors_deg: list[float]) -> dict:

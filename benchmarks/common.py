@@ -7,6 +7,7 @@ warm-up, and the machine and library versions it ran on.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import platform
 import statistics
@@ -99,3 +100,10 @@ def transformer_errors_deg(frames: list, estimator) -> tuple[list[float], list[f
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window)
     result = evaluate([("drive", iter(frames))], estimator, policy, aggregators=["transformer"])
     return list(result.errors_deg["transformer"]), list(result.elevation_deg["transformer"])
+
+
+def relative_azimuth_deg(sun_azimuth_rad: float, heading_rad: float) -> float:
+    """Where the sun stands from the camera's heading, clockwise in [-180, 180) (0 ahead, 90 right)."""
+    from rig.geometry import wrap_pi
+
+    return math.degrees(float(wrap_pi(sun_azimuth_rad - heading_rad)))
