@@ -27,14 +27,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
-
-from benchmarks.common import comma_list, machine  # noqa: E402
+from benchmarks.common import comma_list, machine, relative_azimuth_deg  # noqa: E402
 from benchmarks.variants import VARIANTS, estimator_for  # noqa: E402
-from rig.geometry import az_el_from_enu, wrap_pi  # noqa: E402
+from rig.geometry import az_el_from_enu  # noqa: E402
 
 DEFAULT_WINDOWS = ("data/heldout/drive_2000_0084.mcap:7", "data/val/drive_2500_0194.mcap:12")
-SPAN_S = 4.0  # the live policy's, as bench_accuracy.py forms windows
 OVER_DEG = 30.0
 
 
@@ -53,7 +50,7 @@ def window_frames(frames: list, newest: int, n_frames: int) -> list:
 
     from rig.window import SpreadWindowPolicy
 
-    policy = SpreadWindowPolicy(n_frames=n_frames, span_s=SPAN_S)
+    policy = SpreadWindowPolicy(n_frames=n_frames)  # the live policy's span, as bench_accuracy.py's
     picked = policy.select([SimpleNamespace(frame=f) for f in frames[: newest + 1]])
     return [c.frame for c in picked]
 
@@ -76,9 +73,7 @@ def draw_summary(errors_deg: list[float], answer_rel_az_deg: list[float], answer
 
 def _angles_deg(est) -> tuple[float, float, float]:
     """(error, answer azimuth from the heading clockwise, answer elevation) of one estimate, deg."""
-    az, el = az_el_from_enu(est.sun_enu)
-    err = math.degrees(math.acos(float(np.clip(est.sun_enu @ est.truth_enu, -1.0, 1.0))))
-    return err, math.degrees(float(wrap_pi(az - est.heading_rad))), math.degrees(el)
+    return math.degrees(est.error_rad), math.degrees(est.relative_bearing_rad), math.degrees(est.elevation_rad)
 
 
 def main() -> None:
@@ -131,7 +126,7 @@ def main() -> None:
         truth = frames[-1]  # the window's newest frame, whose heading the answers are relative to
         taz, tel = az_el_from_enu(truth.sun_enu_truth)
         out.append({"log": str(path), "newest_frame": newest, "frames_seq": [f.seq for f in frames],
-                    "truth": {"rel_azimuth_deg": math.degrees(float(wrap_pi(taz - truth.attitude.heading_rad))),
+                    "truth": {"rel_azimuth_deg": relative_azimuth_deg(taz, truth.attitude.heading_rad),
                               "elevation_deg": math.degrees(tel)},
                     "runs": runs})
     print(json.dumps({"benchmark": "crop_draws", "model": {"dir": str(model.model_dir), "id": model.model_id},
