@@ -30,7 +30,14 @@ from typing import Any
 import numpy as np
 
 from estimator.calibration import mean_direction, mirrored_angles, mirrored_enu, world_from_tokens
-from estimator.crops import crop_angles_rad, crop_side_px, cut_crops, frame_rng, spread_crop_boxes
+from estimator.crops import (
+    crop_angles_rad,
+    crop_side_px,
+    cut_crops,
+    frame_rng,
+    spread_crop_boxes,
+    stratified_positions,
+)
 from estimator.estimator import SunEstimator, window_tokens
 from rig.errors import ValidationError
 from rig.geometry import az_el_from_enu, enu_from_az_el
@@ -61,11 +68,7 @@ def _stratify_top_edges(boxes: np.ndarray, intrinsics: Intrinsics, rng: np.rando
     """``boxes`` (of one side) with their top edges redrawn stratified: the valid range cut into as
     many equal strata as boxes, each box's top edge uniform within its own, the strata paired with
     the boxes at random. With left edges spread or tiled, a Latin hypercube of the valid corners."""
-    n, side_px = len(boxes), int(boxes[0, 3])
-    span = intrinsics.height - side_px + 1  # number of valid top edges
-    edges = np.linspace(0.0, span, n + 1)
-    y0 = np.floor(edges[:-1] + rng.random(n) * np.diff(edges)).astype(np.int64)
-    boxes[:, 1] = np.minimum(rng.permutation(y0), span - 1)
+    boxes[:, 1] = rng.permutation(stratified_positions(intrinsics.height - int(boxes[0, 3]) + 1, len(boxes), rng))
     return boxes
 
 

@@ -69,11 +69,16 @@ def spread_crop_boxes(intrinsics: Intrinsics, n: int, side_px: int, rng: np.rand
     Training keeps independent uniform crops: there they are augmentation, not observations.
     """
     _check_boxes(intrinsics, n, side_px)
-    span = intrinsics.width - side_px + 1  # number of valid left edges
-    edges = np.linspace(0.0, span, n + 1)
-    x0 = np.floor(edges[:-1] + rng.random(n) * np.diff(edges)).astype(np.int64)
+    x0 = stratified_positions(intrinsics.width - side_px + 1, n, rng)
     y0 = rng.integers(0, intrinsics.height - side_px + 1, size=n)
-    return _boxes(np.minimum(rng.permutation(x0), span - 1), y0, side_px)
+    return _boxes(rng.permutation(x0), y0, side_px)
+
+
+def stratified_positions(span: int, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` integer positions in [0, span): the range cut into ``n`` equal strata, one position
+    uniform within each, in stratum order (callers permute them)."""
+    edges = np.linspace(0.0, span, n + 1)
+    return np.minimum(np.floor(edges[:-1] + rng.random(n) * np.diff(edges)).astype(np.int64), span - 1)
 
 
 def crop_angles_rad(boxes_px: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
