@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from estimator.calibration import mean_direction, mirrored_angles, mirrored_enu, world_from_tokens
+from estimator.calibration import mean_direction
 from estimator.crops import (
     crop_angles_rad,
     crop_side_px,
@@ -38,7 +38,7 @@ from estimator.crops import (
     spread_crop_boxes,
     stratified_positions,
 )
-from estimator.estimator import SunEstimator, window_tokens
+from estimator.estimator import SunEstimator, mirrored_joint_runs, window_tokens
 from rig.errors import ValidationError
 from rig.geometry import az_el_from_enu, enu_from_az_el
 from rig.types import Frame, FrameFeatures, Intrinsics, SunEstimate
@@ -173,15 +173,9 @@ class SplitEstimator(SunEstimator):
         if not all(isinstance(f, SplitFeatures) for f in window):
             raise ValidationError("the split variant needs frames encoded by its own encode_batch")
         tokens = window_tokens(window)
-        assert tokens.embeddings_mirrored is not None  # every SplitFeatures has them
-        other_angles = tokens.angles_rad.copy()  # the same relative yaws; the other crops' view angles
-        other_angles[:, 1:] = np.concatenate([f.crop_angles_mirrored_rad for f in window])  # type: ignore[attr-defined]
-        t = len(tokens.embeddings)
-        out = np.asarray(self.model.aggregate(np.stack([tokens.embeddings, tokens.embeddings_mirrored]),
-                                              np.stack([tokens.angles_rad, mirrored_angles(other_angles)]),
-                                              np.ones((2, t), dtype=bool)), dtype=np.float64)
-        world = np.concatenate([world_from_tokens(out[0], tokens.yaw_rad),
-                                mirrored_enu(world_from_tokens(out[1], -tokens.yaw_rad))])
+        other_angles = np.concatenate([f.crop_angles_mirrored_rad for f in window])  # type: ignore[attr-defined]
+        # Other crops in each run, so their tokens stand side by side rather than averaged in pairs.
+        world = np.concatenate(mirrored_joint_runs(self.model, tokens, window, other_angles))
         unit, spread = mean_direction(world)
         results["transformer"] = self._make_estimate("transformer", tokens, unit, spread, world)
         return results

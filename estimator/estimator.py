@@ -129,27 +129,32 @@ def _joint_tokens(model: SunModel, tokens: WindowTokens) -> np.ndarray:
     return np.asarray(out[0], dtype=np.float64)
 
 
-def _mirrored_joint_world(model: SunModel, tokens: WindowTokens, window: Sequence[FrameFeatures]) -> np.ndarray:
-    """The transformer's world vectors (T, 3) of a window and of its mirror image, token by token
-    the mean of the two (the contract's ``mirror_windows``).
+def mirrored_joint_runs(model: SunModel, tokens: WindowTokens, window: Sequence[FrameFeatures],
+                        mirrored_view_angles_rad: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The transformer's world vectors (T, 3) of a window and of its mirror image, the second
+    turned back into this world: the two runs of the contract's ``mirror_windows``.
 
     The mirror image is the window as training mirrors it (``estimator.train.mirror_window``): each
-    crop flipped left to right, relative yaws and horizontal view angles negated, and its answer's
-    east negated, with the headings, on the way back. Both runs go through the aggregator as one
-    batch of two. Averaging each token's two vectors leaves the window's mean, and so its answer,
-    what averaging all 2T of them would give, while ``n_tokens`` and the spread still count crops.
+    crop flipped left to right (``tokens.embeddings_mirrored``), relative yaws and horizontal view
+    angles negated, and its answer's east negated, with the headings, on the way back. Both runs go
+    through the aggregator as one batch of two. ``mirrored_view_angles_rad`` (T, 2) are the view
+    angles of the crops the mirrored embeddings were flipped from, when they are not the plain
+    run's own (a benchmark variant's); they are given unmirrored.
     """
     if tokens.embeddings_mirrored is None:
         missing = [f.frame.seq for f in window if f.embeddings_mirrored is None]  # only to name them
         raise EstimationError(f"frames {missing[:5]} were encoded without mirrored embeddings, which this "
                               "model runs with (mirror_windows); encode them with this estimator")
+    angles = tokens.angles_rad
+    if mirrored_view_angles_rad is not None:
+        angles = angles.copy()
+        angles[:, 1:] = mirrored_view_angles_rad
     t = len(tokens.embeddings)
     out = np.asarray(model.aggregate(np.stack([tokens.embeddings, tokens.embeddings_mirrored]),
-                                     np.stack([tokens.angles_rad, mirrored_angles(tokens.angles_rad)]),
+                                     np.stack([tokens.angles_rad, mirrored_angles(angles)]),
                                      np.ones((2, t), dtype=bool)), dtype=np.float64)
     plain = world_from_tokens(out[0], tokens.yaw_rad)
-    mirrored = mirrored_enu(world_from_tokens(out[1], -tokens.yaw_rad))  # back from the mirrored world
-    return 0.5 * (plain + mirrored)
+    return plain, mirrored_enu(world_from_tokens(out[1], -tokens.yaw_rad))  # back from the mirrored world
 
 
 def _independent_tokens(model: SunModel, tokens: WindowTokens) -> np.ndarray:
@@ -238,7 +243,11 @@ class SunEstimator:
         for name in aggregators:
             if name == "transformer":
                 if self.mirror_windows:
-                    world = _mirrored_joint_world(self.model, tokens, window)
+                    # Each token the mean of its two runs: the window's mean, and so its answer, is
+                    # what averaging all 2T vectors would give, while n_tokens and the spread still
+                    # count crops.
+                    plain, mirrored = mirrored_joint_runs(self.model, tokens, window)
+                    world = 0.5 * (plain + mirrored)
                 else:
                     world = world_from_tokens(_joint_tokens(self.model, tokens), tokens.yaw_rad)
                 unit, spread = mean_direction(world)

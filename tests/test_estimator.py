@@ -9,7 +9,7 @@ import pytest
 
 from estimator.calibration import EstimationError
 from estimator.crops import cut_crops
-from estimator.estimator import AGGREGATORS, SunEstimator, window_tokens
+from estimator.estimator import AGGREGATORS, SunEstimator, mirrored_joint_runs, window_tokens
 from rig.errors import ValidationError
 from rig.geometry import angle_between, world_from_heading
 from rig.protocol import ELEVATION_MARGIN_DEG
@@ -315,3 +315,18 @@ def test_a_mirrored_estimator_refuses_frames_encoded_without_their_mirror(model)
     ff = window[0]
     with pytest.raises(ValidationError, match="embeddings_mirrored: expected float32 of shape"):
         FrameFeatures(ff.frame, ff.crop_boxes_px, ff.crop_angles_rad, ff.embeddings, ff.model_id, ff.embeddings[:1])
+
+
+def test_the_mirrored_run_takes_other_crops_view_angles_when_given_and_the_plain_run_does_not(model):
+    # mirrored_joint_runs' last argument is for a mirrored run on other crops (benchmarks/variants.py
+    # "split"): their view angles must reach the mirrored run, and only it.
+    est = SunEstimator(model, mirror_windows=True, seed=5)
+    window = est.encode_batch(make_frames(8))
+    tokens = window_tokens(window)
+    plain, mirrored = mirrored_joint_runs(model, tokens, window)
+    same = mirrored_joint_runs(model, tokens, window, tokens.angles_rad[:, 1:])
+    np.testing.assert_allclose(same[0], plain, atol=1e-6)
+    np.testing.assert_allclose(same[1], mirrored, atol=1e-6)
+    other = mirrored_joint_runs(model, tokens, window, tokens.angles_rad[:, 1:] + np.float32(0.2))
+    np.testing.assert_allclose(other[0], plain, atol=1e-6)
+    assert np.max(np.degrees(angle_between(other[1], mirrored))) > 0.1
