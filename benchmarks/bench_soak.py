@@ -164,14 +164,21 @@ def sample(pid: int) -> dict | None:
     return {"rss_mb": int(fields["VmRSS"].split()[0]) / 1024.0, "threads": int(fields["Threads"]), "fds": fds}
 
 
-def stop_rig(proc: subprocess.Popen) -> None:
-    """Stop the rig as a service manager would, and kill it if it has not ended within 10 s."""
+def stop_rig(proc: subprocess.Popen, wait_s: float) -> int | None:
+    """Stop the rig as a service manager would (SIGTERM); one that has not ended within ``wait_s``
+    gets SIGABRT (its thread dump, with PYTHONFAULTHANDLER) and then is killed. Its exit code, or
+    None if it had to be killed."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
+    try:
+        return proc.wait(timeout=wait_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)  # the thread dump, then the end
         try:
             proc.wait(timeout=10.0)
         except subprocess.TimeoutExpired:
             proc.kill()
+        return None
 
 
 def slope_per_hour(ts: list[float], ys: list[float]) -> float | None:
@@ -233,22 +240,12 @@ def main() -> None:
                 if s is not None:
                     samples.append({"t_s": round(time.monotonic() - t0, 1), **s})
                 time.sleep(SAMPLE_EVERY_S)
-        except BaseException:  # Ctrl-C, or SIGTERM (below): stop the rig too, not leave it running
-            stop_rig(proc)
+        except BaseException:  # Ctrl-C, or SIGTERM (above): stop the rig too, not leave it running
+            stop_rig(proc, wait_s=10.0)
             raise
         ended_early = proc.poll() is not None
         t_int = time.monotonic()
-        if not ended_early:
-            proc.send_signal(signal.SIGTERM)  # how a service manager stops it
-        try:
-            code = proc.wait(timeout=30.0)
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGABRT)  # the thread dump, then the end
-            try:
-                proc.wait(timeout=10.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-            code = None
+        code = stop_rig(proc, wait_s=30.0)
         stop_s = time.monotonic() - t_int
     stop.set()
     http.shutdown()
