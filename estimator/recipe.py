@@ -19,6 +19,7 @@ class TrainConfig:
     subset_prob: float = 0.3
     hard_share: float = 0.5  # windows whose drive is drawn by its running error
     mirror_share: float = 0.5  # windows mirrored left to right (mirror_window)
+    live_share: float = 0.0  # windows whose frames are those the rig's window policy picks
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8

@@ -66,6 +66,7 @@ from estimator.recipe import TrainConfig
 from rig.errors import SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.types import Frame, HeadingRef
+from rig.window import SpreadWindowPolicy
 
 require_torch()  # a missing torch names the extra to install
 import torch  # noqa: E402  (imported, not require_torch's value, so mypy types it)
@@ -109,6 +110,7 @@ class Drive:
     views: tuple[DriveView, ...]
     yaw_rad: np.ndarray  # (F,)
     sun_enu: np.ndarray  # (F, 3)
+    t_s: np.ndarray  # (F,) monotonic time of each frame, for windows drawn as the rig draws them
 
     @property
     def images(self) -> np.ndarray:
@@ -158,7 +160,8 @@ def load_drive(frames: Sequence[Frame], name: str, crop_size: int,
         yaw_rad.append(f.attitude.heading_rad)
         sun_enu.append(f.sun_enu_truth)
     return Drive(name=name, views=tuple(_view(usable, name, crop_size, fov) for fov in fovs),
-                 yaw_rad=np.array(yaw_rad), sun_enu=np.stack(sun_enu))
+                 yaw_rad=np.array(yaw_rad), sun_enu=np.stack(sun_enu),
+                 t_s=np.array([f.t_mono_s for f in usable], dtype=np.float64))
 
 
 def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float | Sequence[float],
@@ -194,6 +197,7 @@ class Batch:
     mask: np.ndarray  # (B, T) bool
     truth: np.ndarray  # (B, 3) float64 ENU (with the random global offset)
     drive: np.ndarray  # (B,) int index of each window's drive in the sampler
+    frame_index: np.ndarray  # (B, F) int: each window's frames in its drive, ascending (the last the newest)
 
 
 class WindowSampler:
@@ -204,6 +208,15 @@ class WindowSampler:
     (:meth:`record`); the rest in proportion to drive length, so every frame is equally likely.
     A drive not yet seen counts as :data:`UNSEEN_ERR_DEG`, so early hard draws explore.
     A ``mirror_share`` of windows is mirrored left to right (:func:`mirror_window`).
+
+    A ``live_share`` of windows takes its frames as the rig does: the newest frame anywhere in the
+    drive where the live window policy (:class:`rig.window.SpreadWindowPolicy`) finds ``frames``
+    frames, and the frames that policy picks before it. The rest are ``frames`` frames drawn at
+    random from the whole drive, whose newest is then nearly always near the drive's end (of 24
+    frames, frame 20 or later in 83 % of windows) and whose frames span most of it. The rig's
+    first windows of a drive, a short span of frames close together, are then all but never
+    drawn (newest frame 7, the rig's first window: 1 in 735 471); they are where the held-out
+    errors are largest (``docs/model.md``).
     """
 
     UNSEEN_ERR_DEG = 90.0
@@ -211,12 +224,16 @@ class WindowSampler:
 
     def __init__(self, drives: Sequence[Drive], frames: int, crops: int, crop_size: int,
                  subset_prob: float, rng: np.random.Generator, hard_share: float = 0.0,
-                 mirror_share: float = 0.0) -> None:
+                 mirror_share: float = 0.0, live_share: float = 0.0) -> None:
         self.drives = list(drives)
         self.frames, self.crops, self.size = frames, crops, crop_size
         self.subset_prob = subset_prob
         self.hard_share = hard_share
         self.mirror_share = mirror_share
+        self.live_share = live_share
+        self.policy = SpreadWindowPolicy(n_frames=frames)
+        # Per drive: the frames that can be a live window's newest, those with a full window.
+        self.live_newest = [self._full_window_ends(d.t_s) for d in self.drives]
         self.rng = rng
         lengths = np.array([len(d.images) for d in self.drives], dtype=np.float64)
         self.p = lengths / lengths.sum()
@@ -226,6 +243,21 @@ class WindowSampler:
         # The view each crop of a frame is cut from, grouped by angle in the contract's order.
         self.crop_view = np.repeat(np.arange(n_views.pop()), crops_per_scale(crops, len(self.drives[0].views)))
         self.err_deg = np.full(len(self.drives), self.UNSEEN_ERR_DEG)
+
+    def _full_window_ends(self, t_s: np.ndarray) -> np.ndarray:
+        first = np.searchsorted(t_s, t_s - self.policy.span_s, side="left")
+        return np.flatnonzero(np.arange(len(t_s)) - first + 1 >= self.frames)
+
+    def _frame_indices(self, drive_index: int) -> np.ndarray:
+        """The window's frames of the drive, ascending (the last is the newest)."""
+        rng, d = self.rng, self.drives[drive_index]
+        # Drawn only when asked for, so a run without live windows draws what it always did.
+        ends = self.live_newest[drive_index]
+        if self.live_share > 0.0 and rng.random() < self.live_share and len(ends):
+            newest = int(rng.choice(ends))
+            return np.array(self.policy.select_indices(d.t_s[: newest + 1], d.yaw_rad[: newest + 1]))
+        n = len(d.images)
+        return np.sort(rng.choice(n, size=self.frames, replace=n < self.frames))
 
     def record(self, drive_index: np.ndarray, err_deg: np.ndarray) -> None:
         """Fold full windows' errors into their drives' running errors."""
@@ -249,13 +281,13 @@ class WindowSampler:
             mask=np.ones((batch, t), bool),
             truth=np.empty((batch, 3)),
             drive=np.empty(batch, np.int64),
+            frame_index=np.empty((batch, self.frames), np.int64),
         )
         rng = self.rng
         for b in range(batch):
             out.drive[b] = self._drive_index()
             d = self.drives[out.drive[b]]
-            n = len(d.images)
-            idx = np.sort(rng.choice(n, size=self.frames, replace=n < self.frames))
+            idx = out.frame_index[b] = self._frame_indices(int(out.drive[b]))
             newest = idx[-1]
             offset = rng.uniform(0.0, 2.0 * math.pi)
             views = [d.views[v] for v in self.crop_view]  # per crop of a frame
@@ -415,7 +447,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     """Train (or resume) and export; returns the model folder."""
     if cfg.preset not in nets.PRESETS:
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
-    for name in ("hard_share", "mirror_share"):
+    for name in ("hard_share", "mirror_share", "live_share"):
         if not 0.0 <= getattr(cfg, name) <= 1.0:
             raise ValidationError(f"{name}: expected a share in [0, 1], got {getattr(cfg, name)}")
     if not cfg.max_steps and not (math.isfinite(cfg.minutes) and cfg.minutes > 0):
@@ -515,7 +547,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if not cfg.crops_per_frame:
         cfg = replace(cfg, crops_per_frame=PAPER_CROPS_PER_FRAME)
     sampler = WindowSampler(drives, cfg.frames_per_window, cfg.crops_per_frame, net_cfg.crop_size,
-                            cfg.subset_prob, rng, hard_share=cfg.hard_share, mirror_share=cfg.mirror_share)
+                            cfg.subset_prob, rng, hard_share=cfg.hard_share, mirror_share=cfg.mirror_share,
+                            live_share=cfg.live_share)
     if drive_err is not None and len(drive_err) == len(drives):
         sampler.err_deg[:] = drive_err
     bf16 = use_bf16(cfg.precision)
@@ -638,9 +671,10 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
 # What makes a run itself: resuming with any of these changed would make a contract that lies
 # about how its model was trained.
 _RUN_IDENTITY = {"preset": "--preset", "lr": "--lr", "batch_windows": "--batch", "seed": "--seed",
-                 "hard_share": "--hard-share", "mirror_share": "--mirror-share"}
-# What a checkpoint written before a setting was recorded ran with (none mirrored its windows).
-_RAN_BEFORE_RECORDED = {"mirror_share": 0.0}
+                 "hard_share": "--hard-share", "mirror_share": "--mirror-share", "live_share": "--live-share"}
+# What a checkpoint written before a setting was recorded ran with (none mirrored its windows or
+# drew them as the rig does).
+_RAN_BEFORE_RECORDED = {"mirror_share": 0.0, "live_share": 0.0}
 # Settings whose 0 means "the run's own" (so a resume need not repeat them): the flag, what a
 # checkpoint written before the setting was recorded ran with, the setting's value as compared
 # (an angle setting of 17.6 and one of [17.6] are one angle) and as the flag takes it.

@@ -712,7 +712,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
                       crop_fov_deg=args.crop_fov,
-                      hard_share=args.hard_share, mirror_share=args.mirror_share, precision=args.precision,
+                      hard_share=args.hard_share, mirror_share=args.mirror_share,
+                      live_share=args.live_share, precision=args.precision,
                       init=str(resolve_init_dir(args.init)) if args.init else "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
@@ -1057,6 +1058,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="share of windows mirrored left to right, the sun's east and every heading with them "
                         f"(default {recipe.mirror_share:g}; 0 for the recipe before, which a run begun then "
                         "resumes with)")
+    p.add_argument("--live-share", type=_float_in(0.0, 1.0, lo_included=True), default=recipe.live_share,
+                   help="share of windows whose frames are those the rig would pick: the newest anywhere in the "
+                        "drive, the others by the live window policy; the rest are random frames of the whole "
+                        f"drive (default {recipe.live_share:g})")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=recipe.precision,
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=recipe.seed,

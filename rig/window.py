@@ -57,19 +57,26 @@ class SpreadWindowPolicy:
             return []
         newest = with_attitude[-1][1]
         usable = [(c, a) for c, a in with_attitude if (a.reference, a.epoch) == (newest.reference, newest.epoch)]
-        t = np.array([c.frame.t_mono_s for c, _ in usable])
-        first = int(np.searchsorted(t, t[-1] - self.span_s, side="left"))
-        pool = usable[first:]
-        if len(pool) <= self.n_frames:
-            return [c for c, _ in pool]
-        t = t[first:] / self.span_s
-        yaw = np.array([a.heading_rad for _, a in pool])
+        t_s = np.array([c.frame.t_mono_s for c, _ in usable])
+        heading_rad = np.array([a.heading_rad for _, a in usable])
+        return [usable[i][0] for i in self.select_indices(t_s, heading_rad)]
+
+    def select_indices(self, t_s: np.ndarray, heading_rad: np.ndarray) -> list[int]:
+        """The window of frames at times ``t_s`` (ascending, the last the newest) with headings
+        ``heading_rad`` in one reference: their indices, ascending. The rule of :meth:`select`, on
+        arrays, for training to draw its windows as the rig does (``estimator/train.py``)."""
+        first = int(np.searchsorted(t_s, t_s[-1] - self.span_s, side="left"))
+        n_pool = len(t_s) - first
+        if n_pool <= self.n_frames:
+            return list(range(first, len(t_s)))
+        t = t_s[first:] / self.span_s
+        yaw = heading_rad[first:]
         dist = np.hypot(t[:, None] - t[None, :], wrap_pi(yaw[:, None] - yaw[None, :]) / self.yaw_scale_rad)
-        chosen = [len(pool) - 1]  # the newest frame is always in
+        chosen = [n_pool - 1]  # the newest frame is always in
         nearest = dist[-1].copy()
         for _ in range(self.n_frames - 1):
             # Ties (e.g. equal distances) go to the newer frame: argmax of the reversed array.
-            best = len(pool) - 1 - int(np.argmax(nearest[::-1]))
+            best = n_pool - 1 - int(np.argmax(nearest[::-1]))
             chosen.append(best)
             nearest = np.minimum(nearest, dist[best])
-        return [pool[i][0] for i in sorted(chosen)]
+        return [first + i for i in sorted(chosen)]

@@ -334,6 +334,9 @@ def test_resume_with_another_mirror_share_is_refused_also_from_a_checkpoint_befo
     torch.save(state, out / CHECKPOINT)
     with pytest.raises(ValidationError, match="--mirror-share 0.0, not 0.5"):
         train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1))
+    # Nor did it draw live windows.
+    with pytest.raises(ValidationError, match="--live-share 0.0, not 0.5"):
+        train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0, live_share=0.5))
     # Given as the refusal says, it resumes.
     train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0))
     assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 2
@@ -347,7 +350,8 @@ def test_the_cli_and_the_library_train_with_the_same_defaults():
     args = build_parser().parse_args(["train", "x.mcap", "--out", "m"])
     cfg = TrainConfig()
     for flag, key in (("preset", "preset"), ("batch", "batch_windows"), ("lr", "lr"), ("hard_share", "hard_share"),
-                      ("mirror_share", "mirror_share"), ("precision", "precision"), ("seed", "seed"),
+                      ("mirror_share", "mirror_share"), ("live_share", "live_share"), ("precision", "precision"),
+                      ("seed", "seed"),
                       ("minutes", "minutes"), ("crop_fov", "crop_fov_deg")):
         assert getattr(args, flag) == getattr(cfg, key), flag
 
@@ -366,9 +370,62 @@ def test_the_cli_takes_one_crop_angle_or_a_list_and_refuses_what_no_crop_spans(c
             in capsys.readouterr().err, bad
 
 
-def test_mirror_share_is_refused_outside_a_share(logs, tmp_path):
-    with pytest.raises(ValidationError, match="mirror_share"):
-        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, mirror_share=1.5))
+@pytest.mark.parametrize("share", ["mirror_share", "live_share"])
+def test_a_window_share_is_refused_outside_a_share(logs, tmp_path, share):
+    with pytest.raises(ValidationError, match=share):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, **{share: 1.5}))
+
+
+def _turning_drive(n, fps):
+    """A drive of n frames at fps whose heading turns 3 deg a frame, then holds (a turn, a straight)."""
+    frames = [replace(f, t_mono_s=i / fps, attitude=Attitude(math.radians(3.0 * min(i, 12)), HeadingRef.TRUE))
+              for i, f in enumerate(_frames(n, 0))]
+    return load_drive(frames, "d", crop_size=16, crop_fov_rad=math.radians(17.6))
+
+
+def test_live_windows_are_the_windows_the_rig_picks():
+    from rig.window import SpreadWindowPolicy
+
+    drive = _turning_drive(60, fps=10.0)  # 6 s: longer than the policy's 4 s span
+    kw = dict(frames=8, crops=4, crop_size=16, subset_prob=0.0)
+    live = WindowSampler([drive], rng=np.random.default_rng(0), live_share=1.0, **kw).sample(1200)
+    policy = SpreadWindowPolicy(n_frames=8)
+    for idx in live.frame_index:
+        newest = idx[-1]
+        assert list(idx) == policy.select_indices(drive.t_s[: newest + 1], drive.yaw_rad[: newest + 1])
+        assert drive.t_s[newest] - drive.t_s[idx[0]] <= policy.span_s
+    # Every frame with a full window before it is a newest frame, about equally often: the rig's
+    # first window (frames 0-7) too, which random frames of the drive (below) all but never give.
+    newest = live.frame_index[:, -1]
+    assert set(newest) == set(range(7, 60))
+    counts = np.bincount(newest)[7:]  # 22.6 a frame on average
+    assert counts.min() > 0.3 * counts.mean() and counts.max() < 2.0 * counts.mean()
+    assert list(live.frame_index[newest == 7][0]) == list(range(8))
+    uniform = WindowSampler([drive], rng=np.random.default_rng(0), **kw).sample(600)
+    assert np.median(uniform.frame_index[:, -1]) > 50 and (uniform.frame_index[:, -1] == 7).sum() == 0
+    # The newest frame's tokens are at relative yaw 0, the others at their frames' turn from it.
+    for b in range(5):
+        rel = live.angles[b, ::4, 0]
+        want = drive.yaw_rad[live.frame_index[b]] - drive.yaw_rad[live.frame_index[b, -1]]
+        np.testing.assert_allclose(rel, want, atol=1e-6)
+
+
+def test_live_share_draws_its_share_and_nothing_when_off():
+    drive = _turning_drive(24, fps=10.0)
+    kw = dict(frames=8, crops=4, crop_size=16, subset_prob=0.3)
+    for share, per_window in ((0.0, 1), (1e-12, 2)):  # as for mirror_share: off, the old stream
+        rng = _CountingRng(3)
+        WindowSampler([drive], rng=rng, live_share=share, **kw).sample(20)
+        assert rng.randoms == 20 * per_window
+    half = WindowSampler([drive], rng=np.random.default_rng(3), live_share=0.5, **kw).sample(400)
+    early = half.frame_index[:, -1] <= 15  # live: 9 in 17; random frames of the drive: 1 in 57
+    assert 0.2 < early.mean() < 0.33
+
+
+def test_a_drive_too_short_for_a_live_window_draws_random_frames():
+    drive = _turning_drive(6, fps=10.0)
+    b = WindowSampler([drive], 8, 4, 16, 0.0, np.random.default_rng(0), live_share=1.0).sample(10)
+    assert b.frame_index.shape == (10, 8) and (b.frame_index < 6).all()  # with repeats, as before
 
 
 def test_schedule_warms_up_decays_and_never_rises_on_a_longer_resume():
