@@ -10,6 +10,9 @@ of 35, 85 and 80 deg on the same windows. So every window is estimated once per 
 headline numbers pool all of them (3 x 1700 estimates by default); ``per_seed`` gives each seed's,
 with the drives of its worst windows (``worst_logs``).
 
+``by_newest_frame`` groups the windows by their newest frame: a drive's first windows, eight frames
+back to back, are its hardest (docs/model.md).
+
 ``status`` says what a controller would have been told of those windows (the model's status rule,
 docs/protocol.md), and ``elevation`` how far above the truth the answers for the highest training
 suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DEG).
@@ -123,6 +126,7 @@ def main() -> None:
         **summary,
         "status_rule": {"max_elevation_deg": estimator.status_rule().max_elevation_deg},
         "elevation": elevation_excess(pooled, None if trained is None else trained[1]),
+        "by_newest_frame": {"transformer": pooled.by_newest_frame("transformer")},
         "per_seed": {"transformer": per_seed},
         "machine": machine(),
     }, indent=2))

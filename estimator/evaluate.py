@@ -31,6 +31,7 @@ TAIL_KEY = f"windows_over_{TAIL_DEG:g}_deg"
 # and which ones is the first thing to know about it.
 WORST_LOGS = 5
 LOG_KEYS = ("n_windows", "mean_deg", "max_deg", TAIL_KEY)  # of error_summary, per log
+SEQ_KEYS = ("n_windows", "mean_deg", "p99_deg", "max_deg", TAIL_KEY)  # of error_summary, per newest frame
 
 
 def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int]:
@@ -78,7 +79,9 @@ class EvalResult:
     truth_elevation_deg: list[float] = field(default_factory=list)
     samples: list[dict[str, SunEstimate]] = field(default_factory=list)  # a few windows, for plots
     logs: list[str] = field(default_factory=list)
-    window_logs: list[str] = field(default_factory=list)  # each window's log, in the order of every errors_deg list
+    # Each window's newest frame (its seq in the log), then its log, in the order of every errors_deg list.
+    window_seqs: list[int] = field(default_factory=list)
+    window_logs: list[str] = field(default_factory=list)
     frames: int = 0
     frames_without_heading: int = 0  # left out of windows, as in a replay
     frames_bad_exposure: int = 0  # too dark, bright or flat to show the sun (rig/exposure.py)
@@ -100,6 +103,7 @@ class EvalResult:
             for name, values in getattr(other, per_agg).items():
                 getattr(self, per_agg).setdefault(name, []).extend(values)
         self.truth_elevation_deg.extend(other.truth_elevation_deg)
+        self.window_seqs.extend(other.window_seqs)
         self.window_logs.extend(other.window_logs)
         self.interrupted |= other.interrupted  # pooled with a cut-short run: so is the pool
         for name in self.COUNTS:
@@ -113,6 +117,7 @@ class EvalResult:
             for values in per_agg.values():
                 del values[n:]
         del self.truth_elevation_deg[n:]
+        del self.window_seqs[n:]
 
     def by_log(self, aggregator: str) -> list[dict[str, float | int | str]]:
         """One aggregator's windows log by log (pooled evaluations of a log count together):
@@ -126,6 +131,20 @@ class EvalResult:
             s = error_summary(errs[logs == name])
             rows.append({"log": name, **{k: s[k] for k in LOG_KEYS}})
         return sorted(rows, key=lambda r: -float(r["max_deg"]))
+
+    def by_newest_frame(self, aggregator: str) -> list[dict[str, float | int]]:
+        """One aggregator's windows grouped by their newest frame's seq, ascending: how the error
+        changes as a log's windows gather frames (the first full window of a drive is its first 8
+        frames back to back; later ones spread over the policy's span and the road's turns)."""
+        errs = np.asarray(self.errors_deg[aggregator], dtype=np.float64)
+        if len(self.window_seqs) != errs.size:
+            raise ValueError(f"{aggregator}: {errs.size} window errors but {len(self.window_seqs)} window seqs")
+        seqs = np.asarray(self.window_seqs)
+        rows: list[dict[str, float | int]] = []
+        for seq in np.unique(seqs):
+            s = error_summary(errs[seqs == seq])
+            rows.append({"newest_seq": int(seq), **{k: s[k] for k in SEQ_KEYS}})
+        return rows
 
     def summary(self) -> dict:
         return {
@@ -188,6 +207,7 @@ def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estima
             result.flags[agg].append(rule.flags(est))
             result.elevation_deg[agg].append(math.degrees(est.elevation_rad))
         result.truth_elevation_deg.append(math.degrees(float(az_el_from_enu(first.truth_enu)[1])))
+        result.window_seqs.append(first.seq)
         result.window_logs.append(name)  # last: it is what makes the window count (trim_to_whole_windows)
         # The first full window of each of the first logs, for the scatter figure: each log has its
         # own sun, so the figure shows different skies.

@@ -147,6 +147,7 @@ def test_ctrl_c_keeps_the_windows_evaluated_so_far(tiny_model_dir):
     assert len(result.window_logs) == 6 and result.window_logs.count("d1") == 1
     assert all(len(v) == 6 for d in (result.errors_deg, result.flags, result.elevation_deg) for v in d.values())
     assert len(result.truth_elevation_deg) == 6 and result.frames == 22  # d1's 10 frames counted too
+    assert result.window_seqs == [7, 8, 9, 10, 11, 7]  # each window's newest frame
     s = result.summary()
     assert s["interrupted"] is True and s["aggregators"]["transformer"]["n_windows"] == 6
     assert seen[-1] == (6, 1) and (5, 1) in seen  # windows and logs done, as the CLI's progress shows them
@@ -212,6 +213,24 @@ def test_trimming_also_cuts_the_true_elevations():
                    window_logs=["d0", "d0"])
     r.trim_to_whole_windows()
     assert r.truth_elevation_deg == [5.0, 6.0]
+
+
+def test_windows_grouped_by_their_newest_frame_pool_logs_and_seeds():
+    a = EvalResult(errors_deg={"transformer": [40.0, 2.0, 10.0]}, window_seqs=[7, 8, 7], window_logs=["d0", "d0", "d1"])
+    a.extend(EvalResult(errors_deg={"transformer": [20.0, 4.0]}, window_seqs=[7, 9], window_logs=["d0", "d0"]))
+    rows = a.by_newest_frame("transformer")
+    assert [r["newest_seq"] for r in rows] == [7, 8, 9]
+    assert rows[0]["n_windows"] == 3 and rows[0]["mean_deg"] == pytest.approx(70.0 / 3)
+    assert rows[0]["max_deg"] == 40.0 and rows[0]["windows_over_30_deg"] == 1
+    assert rows[2]["mean_deg"] == 4.0 and rows[2]["windows_over_30_deg"] == 0
+    with pytest.raises(ValueError, match="2 window errors but 1 window seqs"):
+        EvalResult(errors_deg={"transformer": [1.0, 2.0]}, window_seqs=[7]).by_newest_frame("transformer")
+
+
+def test_trimming_also_cuts_the_newest_frames():
+    r = EvalResult(errors_deg={"transformer": [1.0, 2.0]}, window_seqs=[7, 8, 9], window_logs=["d0", "d0"])
+    r.trim_to_whole_windows()
+    assert r.window_seqs == [7, 8]
 
 
 @pytest.mark.torch
