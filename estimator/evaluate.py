@@ -119,32 +119,33 @@ class EvalResult:
         del self.truth_elevation_deg[n:]
         del self.window_seqs[n:]
 
+    def _grouped(self, aggregator: str, keys: list, what: str, fields: tuple[str, ...]) -> list[tuple]:
+        """One aggregator's windows grouped by ``keys`` (one per window, in the order of its errors):
+        (key, the ``fields`` of its windows' error_summary), keys in first-seen order."""
+        errs = np.asarray(self.errors_deg[aggregator], dtype=np.float64)
+        if len(keys) != errs.size:
+            raise ValueError(f"{aggregator}: {errs.size} window errors but {len(keys)} window {what}")
+        per_window = np.asarray(keys)
+        out = []
+        for key in dict.fromkeys(keys):
+            s = error_summary(errs[per_window == key])
+            out.append((key, {k: s[k] for k in fields}))
+        return out
+
     def by_log(self, aggregator: str) -> list[dict[str, float | int | str]]:
         """One aggregator's windows log by log (pooled evaluations of a log count together):
         windows, mean, max and windows over :data:`TAIL_DEG`, the worst max first."""
-        errs = np.asarray(self.errors_deg[aggregator], dtype=np.float64)
-        if len(self.window_logs) != errs.size:
-            raise ValueError(f"{aggregator}: {errs.size} window errors but {len(self.window_logs)} window logs")
-        logs = np.asarray(self.window_logs)
-        rows: list[dict[str, float | int | str]] = []
-        for name in dict.fromkeys(self.window_logs):  # first-seen order, so ties stay in log order
-            s = error_summary(errs[logs == name])
-            rows.append({"log": name, **{k: s[k] for k in LOG_KEYS}})
+        # Grouped in first-seen order, so ties stay in log order.
+        rows = [{"log": name, **s} for name, s in self._grouped(aggregator, self.window_logs, "logs", LOG_KEYS)]
         return sorted(rows, key=lambda r: -float(r["max_deg"]))
 
     def by_newest_frame(self, aggregator: str) -> list[dict[str, float | int]]:
         """One aggregator's windows grouped by their newest frame's seq, ascending: how the error
         changes as a log's windows gather frames (the first full window of a drive is its first 8
         frames back to back; later ones spread over the policy's span and the road's turns)."""
-        errs = np.asarray(self.errors_deg[aggregator], dtype=np.float64)
-        if len(self.window_seqs) != errs.size:
-            raise ValueError(f"{aggregator}: {errs.size} window errors but {len(self.window_seqs)} window seqs")
-        seqs = np.asarray(self.window_seqs)
-        rows: list[dict[str, float | int]] = []
-        for seq in np.unique(seqs):
-            s = error_summary(errs[seqs == seq])
-            rows.append({"newest_seq": int(seq), **{k: s[k] for k in SEQ_KEYS}})
-        return rows
+        rows = [{"newest_seq": int(seq), **s}
+                for seq, s in self._grouped(aggregator, self.window_seqs, "seqs", SEQ_KEYS)]
+        return sorted(rows, key=lambda r: r["newest_seq"])
 
     def summary(self) -> dict:
         return {
