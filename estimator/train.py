@@ -245,8 +245,8 @@ class WindowSampler:
         self.err_deg = np.full(len(self.drives), self.UNSEEN_ERR_DEG)
 
     def _full_window_ends(self, t_s: np.ndarray) -> np.ndarray:
-        first = np.searchsorted(t_s, t_s - self.policy.span_s, side="left")
-        return np.flatnonzero(np.arange(len(t_s)) - first + 1 >= self.frames)
+        newest = np.arange(len(t_s))
+        return np.flatnonzero(newest - self.policy.pool_start(t_s, newest) + 1 >= self.frames)
 
     def _frame_indices(self, drive_index: int) -> np.ndarray:
         """The window's frames of the drive, ascending (the last is the newest)."""

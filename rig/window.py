@@ -61,11 +61,16 @@ class SpreadWindowPolicy:
         heading_rad = np.array([a.heading_rad for _, a in usable])
         return [usable[i][0] for i in self.select_indices(t_s, heading_rad)]
 
+    def pool_start(self, t_s: np.ndarray, newest: int | np.ndarray = -1) -> np.ndarray:
+        """Of frames at times ``t_s`` (ascending): the index of the oldest within the span of the
+        frame ``newest`` (an index, or an array of them), where a window ending there may start."""
+        return np.searchsorted(t_s, t_s[newest] - self.span_s, side="left")
+
     def select_indices(self, t_s: np.ndarray, heading_rad: np.ndarray) -> list[int]:
         """The window of frames at times ``t_s`` (ascending, the last the newest) with headings
         ``heading_rad`` in one reference: their indices, ascending. The rule of :meth:`select`, on
         arrays, for training to draw its windows as the rig does (``estimator/train.py``)."""
-        first = int(np.searchsorted(t_s, t_s[-1] - self.span_s, side="left"))
+        first = int(self.pool_start(t_s))
         n_pool = len(t_s) - first
         if n_pool <= self.n_frames:
             return list(range(first, len(t_s)))
