@@ -450,6 +450,11 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     for name in ("hard_share", "mirror_share", "live_share"):
         if not 0.0 <= getattr(cfg, name) <= 1.0:
             raise ValidationError(f"{name}: expected a share in [0, 1], got {getattr(cfg, name)}")
+    if not (math.isfinite(cfg.tail_weight) and cfg.tail_weight >= 0):
+        raise ValidationError(f"tail weight: expected a finite weight >= 0 (0: the paper's loss alone), "
+                              f"got {cfg.tail_weight}")
+    if not 0.0 <= cfg.tail_margin_deg <= 180.0:
+        raise ValidationError(f"tail margin: expected an angle in [0, 180] deg, got {cfg.tail_margin_deg}")
     if not cfg.max_steps and not (math.isfinite(cfg.minutes) and cfg.minutes > 0):
         # A nan budget never ends and a negative one exports random weights as "trained".
         raise ValidationError(f"minutes: expected a finite budget > 0, got {cfg.minutes}")
@@ -560,6 +565,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                                      frames_per_window=cfg.frames_per_window, crop_fov_deg=list(fovs))
     normalise = _Normaliser(contract_stub.input_norm)
     budget_s = cfg.minutes * 60.0
+    tail_margin_rad = math.radians(cfg.tail_margin_deg)
     # The schedule's length: steps if given, else estimated from the measured step time once 20
     # steps are timed (until then a length so long the rate is flat, and no total to report).
     unknown_total = 10**9
@@ -615,6 +621,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             maskf = mask.float().unsqueeze(-1)
             mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
             window_loss = nets.sun_loss(mean, truth)
+            if cfg.tail_weight:
+                window_loss = window_loss + cfg.tail_weight * nets.tail_loss(mean, truth, tail_margin_rad)
             loss = token_loss + window_loss
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -671,10 +679,11 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
 # What makes a run itself: resuming with any of these changed would make a contract that lies
 # about how its model was trained.
 _RUN_IDENTITY = {"preset": "--preset", "lr": "--lr", "batch_windows": "--batch", "seed": "--seed",
-                 "hard_share": "--hard-share", "mirror_share": "--mirror-share", "live_share": "--live-share"}
+                 "hard_share": "--hard-share", "mirror_share": "--mirror-share", "live_share": "--live-share",
+                 "tail_weight": "--tail-weight", "tail_margin_deg": "--tail-margin"}
 # What a checkpoint written before a setting was recorded ran with (none mirrored its windows or
-# drew them as the rig does).
-_RAN_BEFORE_RECORDED = {"mirror_share": 0.0, "live_share": 0.0}
+# drew them as the rig does, and all trained on the paper's loss alone).
+_RAN_BEFORE_RECORDED = {"mirror_share": 0.0, "live_share": 0.0, "tail_weight": 0.0, "tail_margin_deg": 15.0}
 # Settings whose 0 means "the run's own" (so a resume need not repeat them): the flag, what a
 # checkpoint written before the setting was recorded ran with, the setting's value as compared
 # (an angle setting of 17.6 and one of [17.6] are one angle) and as the flag takes it.

@@ -714,6 +714,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                       crop_fov_deg=args.crop_fov,
                       hard_share=args.hard_share, mirror_share=args.mirror_share,
                       live_share=args.live_share, precision=args.precision,
+                      tail_weight=args.tail_weight, tail_margin_deg=args.tail_margin,
                       init=str(resolve_init_dir(args.init)) if args.init else "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
@@ -1062,6 +1063,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="share of windows whose frames are those the rig would pick: the newest anywhere in the "
                         "drive, the others by the live window policy; the rest are random frames of the whole "
                         f"drive (default {recipe.live_share:g})")
+    p.add_argument("--tail-weight", type=_float_in(0.0, math.inf, lo_included=True), default=recipe.tail_weight,
+                   help="weight of an extra loss on each window's estimate, the squared angle (rad) by which it "
+                        "misses beyond --tail-margin; it aims training at the worst windows "
+                        f"(default {recipe.tail_weight:g}: the paper's loss alone)")
+    p.add_argument("--tail-margin", type=_float_in(0.0, 180.0, lo_included=True), default=recipe.tail_margin_deg,
+                   metavar="DEG", help=f"miss in deg beyond which --tail-weight counts (default {recipe.tail_margin_deg:g})")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=recipe.precision,
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=recipe.seed,

@@ -35,6 +35,7 @@ from estimator.nets import (  # noqa: E402
     Backbone,
     NetConfig,
     sun_loss,
+    tail_loss,
     world_from_heading_torch,
 )
 from estimator.runtime import OnnxModel  # noqa: E402
@@ -274,6 +275,35 @@ def test_sun_loss_rejects_bad_shapes():
         sun_loss(torch.zeros(2, 3), torch.zeros(3, 3))
     with pytest.raises(ValidationError, match="mask shape"):
         sun_loss(torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(3, dtype=torch.bool))
+
+
+def test_tail_loss_counts_only_the_miss_beyond_its_margin():
+    up = [0.0, 0.0, 1.0]
+
+    def tilted(deg, length=1.0):  # ``deg`` away from the zenith, toward north
+        return [0.0, length * math.sin(math.radians(deg)), length * math.cos(math.radians(deg))]
+
+    margin = math.radians(15.0)
+    # Within the margin: nothing, and no pull (the paper's loss alone decides there).
+    near = t([tilted(10.0)]).requires_grad_(True)
+    loss = tail_loss(near, t([up]), margin)
+    loss.backward()
+    assert loss.item() == 0.0 and torch.all(near.grad == 0.0)
+    # Beyond it: the squared excess in radians, whatever the vector's length.
+    for deg, length in ((35.0, 1.0), (35.0, 0.3), (90.0, 2.0), (179.0, 1.0)):
+        got = tail_loss(t([tilted(deg, length)]), t([up]), margin).item()
+        assert got == pytest.approx(math.radians(deg - 15.0) ** 2, rel=1e-5), (deg, length)
+    # The mean over vectors, and a finite pull toward the truth even from straight opposite.
+    far = t([tilted(35.0), tilted(170.0)]).requires_grad_(True)
+    loss = tail_loss(far, t([up, up]), margin)
+    assert loss.item() == pytest.approx((math.radians(20.0) ** 2 + math.radians(155.0) ** 2) / 2, rel=1e-5)
+    loss.backward()
+    assert far.grad[0, 2] < 0 and far.grad[0, 1] > 0  # up and back toward the zenith lowers it
+    opposite = t([[0.0, 0.0, -1.0]]).requires_grad_(True)
+    tail_loss(opposite, t([up]), margin).backward()
+    assert torch.all(torch.isfinite(opposite.grad))
+    with pytest.raises(ValidationError, match="matching shapes"):
+        tail_loss(torch.zeros(2, 3), torch.zeros(3, 3), margin)
 
 
 def test_loss_trains_the_aggregator_end_to_end():

@@ -337,6 +337,9 @@ def test_resume_with_another_mirror_share_is_refused_also_from_a_checkpoint_befo
     # Nor did it draw live windows.
     with pytest.raises(ValidationError, match="--live-share 0.0, not 0.5"):
         train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0, live_share=0.5))
+    # Nor did it train with the tail loss.
+    with pytest.raises(ValidationError, match="--tail-weight 0.0, not 1.0"):
+        train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0, tail_weight=1.0))
     # Given as the refusal says, it resumes.
     train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0))
     assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 2
@@ -351,6 +354,7 @@ def test_the_cli_and_the_library_train_with_the_same_defaults():
     cfg = TrainConfig()
     for flag, key in (("preset", "preset"), ("batch", "batch_windows"), ("lr", "lr"), ("hard_share", "hard_share"),
                       ("mirror_share", "mirror_share"), ("live_share", "live_share"), ("precision", "precision"),
+                      ("tail_weight", "tail_weight"), ("tail_margin", "tail_margin_deg"),
                       ("seed", "seed"),
                       ("minutes", "minutes"), ("crop_fov", "crop_fov_deg")):
         assert getattr(args, flag) == getattr(cfg, key), flag
@@ -693,3 +697,33 @@ def test_a_finished_run_is_not_exported_again(logs, tmp_path):
     stamp = (out / "backbone.onnx").stat().st_mtime_ns
     assert train(logs, out, cfg) == out
     assert (out / "backbone.onnx").read_bytes() == contract and (out / "backbone.onnx").stat().st_mtime_ns == stamp
+
+
+def test_the_tail_loss_enters_training_only_when_weighted(logs, tmp_path, monkeypatch):
+    from estimator import nets
+
+    margins = []
+    real = nets.tail_loss
+
+    def counted(v_pred, v_gt, margin_rad):
+        margins.append(margin_rad)
+        return real(v_pred, v_gt, margin_rad)
+
+    monkeypatch.setattr(nets, "tail_loss", counted)
+    train(logs, tmp_path / "off", TrainConfig(preset="tiny", max_steps=2, batch_windows=1))
+    assert margins == []  # the paper's loss alone: the recipe as before, not a zero-weighted extra term
+    out = train(logs, tmp_path / "on", TrainConfig(preset="tiny", max_steps=2, batch_windows=1, tail_weight=1.0,
+                                                   tail_margin_deg=20.0))
+    assert margins == [pytest.approx(math.radians(20.0))] * 2  # on every step's windows, in radians
+    from estimator.runtime import OnnxModel
+
+    recipe = OnnxModel.load(out).contract.training["recipe"]
+    assert (recipe["tail_weight"], recipe["tail_margin_deg"]) == (1.0, 20.0)  # the contract says how it trained
+
+
+@pytest.mark.parametrize("weight, margin", [(-1.0, 15.0), (math.nan, 15.0), (1.0, -1.0), (1.0, 181.0)])
+def test_a_bad_tail_setting_is_refused_before_training(logs, tmp_path, weight, margin):
+    with pytest.raises(ValidationError, match="tail (weight|margin): expected"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, tail_weight=weight,
+                                                tail_margin_deg=margin))
+    assert not (tmp_path / "m").exists()
