@@ -312,9 +312,10 @@ def sun_loss(v_pred: Tensor, v_gt: Tensor, mask: Tensor | None = None) -> Tensor
     return (per_vector * weights).sum() / weights.sum().clamp_min(1.0)
 
 
-def tail_loss(v_pred: Tensor, v_gt: Tensor, margin_rad: float) -> Tensor:
-    """mean(max(0, angle(v_pred, v_gt) - margin)^2), the angle in radians: nothing for an estimate
-    within ``margin_rad`` of the truth, a push that grows with the miss beyond it.
+def tail_loss(v_pred: Tensor, v_gt: Tensor, margin_rad: float, mask: Tensor | None = None) -> Tensor:
+    """mean(max(0, angle(v_pred, v_gt) - margin)^2), the angle in radians, over the vectors where
+    ``mask`` (shape [...], True = counted) holds, or all: nothing for an estimate within
+    ``margin_rad`` of the truth, a pull that grows with the miss beyond it.
 
     Not in the paper. The paper's cosine term pulls on a miss by the sine of its angle, 0.57 at
     35 deg against 0.42 at 25 deg, and the worst windows are few among many; this term adds a
@@ -330,7 +331,13 @@ def tail_loss(v_pred: Tensor, v_gt: Tensor, margin_rad: float) -> Tensor:
         torch.linalg.vector_norm(v_pred, dim=-1) * torch.linalg.vector_norm(v_gt, dim=-1)).clamp_min(_NORM_EPS)
     # Clamped inside (-1, 1): acos' slope is infinite at either end.
     angle = torch.acos(cosine.clamp(-1.0 + _NORM_EPS, 1.0 - _NORM_EPS))
-    return torch.relu(angle - margin_rad).square().mean()
+    per_vector = torch.relu(angle - margin_rad).square()
+    if mask is None:
+        return per_vector.mean()
+    if mask.shape != per_vector.shape:
+        raise ValidationError(f"tail_loss: expected mask shape {tuple(per_vector.shape)}, got {tuple(mask.shape)}")
+    weights = mask.to(per_vector.dtype)
+    return (per_vector * weights).sum() / weights.sum().clamp_min(1.0)  # none counted: 0, not NaN
 
 
 def world_from_heading_torch(vectors: Tensor, yaw: Tensor) -> Tensor:

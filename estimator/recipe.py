@@ -20,7 +20,7 @@ class TrainConfig:
     hard_share: float = 0.5  # windows whose drive is drawn by its running error
     mirror_share: float = 0.5  # windows mirrored left to right (mirror_window)
     live_share: float = 0.0  # windows whose frames are those the rig's window policy picks
-    # Weight of nets.tail_loss on each window's estimate: misses beyond the margin cost more.
+    # Weight of nets.tail_loss on each full window's estimate: misses beyond the margin cost more.
     tail_weight: float = 0.0
     tail_margin_deg: float = 15.0
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32

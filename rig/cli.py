@@ -1064,8 +1064,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "drive, the others by the live window policy; the rest are random frames of the whole "
                         f"drive (default {recipe.live_share:g})")
     p.add_argument("--tail-weight", type=_float_in(0.0, math.inf, lo_included=True), default=recipe.tail_weight,
-                   help="weight of an extra loss on each window's estimate, the squared angle (rad) by which it "
-                        "misses beyond --tail-margin; it aims training at the worst windows "
+                   help="weight of an extra loss on each full window's estimate, the squared angle (rad) by which "
+                        "it misses beyond --tail-margin; it aims training at the worst windows "
                         f"(default {recipe.tail_weight:g}: the paper's loss alone)")
     p.add_argument("--tail-margin", type=_float_in(0.0, 180.0, lo_included=True), default=recipe.tail_margin_deg,
                    metavar="DEG", help=f"miss in deg beyond which --tail-weight counts (default {recipe.tail_margin_deg:g})")

@@ -302,8 +302,14 @@ def test_tail_loss_counts_only_the_miss_beyond_its_margin():
     opposite = t([[0.0, 0.0, -1.0]]).requires_grad_(True)
     tail_loss(opposite, t([up]), margin).backward()
     assert torch.all(torch.isfinite(opposite.grad))
+    # A mask counts only its vectors, and none counted is 0, not NaN.
+    masked = tail_loss(far, t([up, up]), margin, torch.tensor([True, False])).item()
+    assert masked == pytest.approx(math.radians(20.0) ** 2, rel=1e-5)
+    assert tail_loss(far, t([up, up]), margin, torch.zeros(2, dtype=torch.bool)).item() == 0.0
     with pytest.raises(ValidationError, match="matching shapes"):
         tail_loss(torch.zeros(2, 3), torch.zeros(3, 3), margin)
+    with pytest.raises(ValidationError, match="mask shape"):
+        tail_loss(torch.zeros(2, 3), torch.zeros(2, 3), margin, torch.ones(3, dtype=torch.bool))
 
 
 def test_loss_trains_the_aggregator_end_to_end():

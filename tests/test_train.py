@@ -705,16 +705,21 @@ def test_the_tail_loss_enters_training_only_when_weighted(logs, tmp_path, monkey
     margins = []
     real = nets.tail_loss
 
-    def counted(v_pred, v_gt, margin_rad):
+    def counted(v_pred, v_gt, margin_rad, mask):
         margins.append(margin_rad)
-        return real(v_pred, v_gt, margin_rad)
+        counted_rows.append(mask.tolist())
+        return real(v_pred, v_gt, margin_rad, mask)
 
+    counted_rows = []
     monkeypatch.setattr(nets, "tail_loss", counted)
     train(logs, tmp_path / "off", TrainConfig(preset="tiny", max_steps=2, batch_windows=1))
     assert margins == []  # the paper's loss alone: the recipe as before, not a zero-weighted extra term
-    out = train(logs, tmp_path / "on", TrainConfig(preset="tiny", max_steps=2, batch_windows=1, tail_weight=1.0,
-                                                   tail_margin_deg=20.0))
-    assert margins == [pytest.approx(math.radians(20.0))] * 2  # on every step's windows, in radians
+    out = train(logs, tmp_path / "on", TrainConfig(preset="tiny", max_steps=4, batch_windows=8, tail_weight=1.0,
+                                                   tail_margin_deg=20.0, subset_prob=0.5))
+    assert margins == [pytest.approx(math.radians(20.0))] * 4  # on every step's windows, in radians
+    # Full windows count, subset windows do not (a draw of 32 windows has both).
+    rows = [row for step in counted_rows for row in step]
+    assert len(rows) == 32 and 0 < sum(rows) < 32
     from estimator.runtime import OnnxModel
 
     recipe = OnnxModel.load(out).contract.training["recipe"]
