@@ -1068,7 +1068,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "it misses beyond --tail-margin; it aims training at the worst windows "
                         f"(default {recipe.tail_weight:g}: the paper's loss alone)")
     p.add_argument("--tail-margin", type=_float_in(0.0, 180.0, lo_included=True), default=recipe.tail_margin_deg,
-                   metavar="DEG", help=f"miss in deg beyond which --tail-weight counts (default {recipe.tail_margin_deg:g})")
+                   metavar="DEG",
+                   help=f"miss in deg beyond which --tail-weight counts (default {recipe.tail_margin_deg:g})")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=recipe.precision,
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=recipe.seed,
