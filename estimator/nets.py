@@ -301,11 +301,16 @@ def sun_loss(v_pred: Tensor, v_gt: Tensor, mask: Tensor | None = None) -> Tensor
     norm = torch.linalg.vector_norm(v_pred, dim=-1)
     cosine = 1.0 - (v_gt * v_pred).sum(-1) / norm.clamp_min(_NORM_EPS)
     per_vector = cosine + (1.0 - norm) ** 2 + torch.relu(-v_pred[..., 2])
+    return _masked_mean(per_vector, mask, "sun_loss")
+
+
+def _masked_mean(per_vector: Tensor, mask: Tensor | None, name: str) -> Tensor:
+    """The mean of a loss's per-vector terms where ``mask`` holds, or of all of them."""
     if mask is None:
         return per_vector.mean()
     if mask.shape != per_vector.shape:
         raise ValidationError(
-            f"sun_loss: expected mask shape {tuple(per_vector.shape)}, got {tuple(mask.shape)}"
+            f"{name}: expected mask shape {tuple(per_vector.shape)}, got {tuple(mask.shape)}"
         )
     weights = mask.to(per_vector.dtype)
     # clamp: an all-padding batch gives 0 loss, not NaN.
@@ -331,13 +336,7 @@ def tail_loss(v_pred: Tensor, v_gt: Tensor, margin_rad: float, mask: Tensor | No
         torch.linalg.vector_norm(v_pred, dim=-1) * torch.linalg.vector_norm(v_gt, dim=-1)).clamp_min(_NORM_EPS)
     # Clamped inside (-1, 1): acos' slope is infinite at either end.
     angle = torch.acos(cosine.clamp(-1.0 + _NORM_EPS, 1.0 - _NORM_EPS))
-    per_vector = torch.relu(angle - margin_rad).square()
-    if mask is None:
-        return per_vector.mean()
-    if mask.shape != per_vector.shape:
-        raise ValidationError(f"tail_loss: expected mask shape {tuple(per_vector.shape)}, got {tuple(mask.shape)}")
-    weights = mask.to(per_vector.dtype)
-    return (per_vector * weights).sum() / weights.sum().clamp_min(1.0)  # none counted: 0, not NaN
+    return _masked_mean(torch.relu(angle - margin_rad).square(), mask, "tail_loss")
 
 
 def world_from_heading_torch(vectors: Tensor, yaw: Tensor) -> Tensor:

@@ -622,8 +622,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
             window_loss = nets.sun_loss(mean, truth)
             if cfg.tail_weight:
-                # Full windows only: the rig publishes those, and a subset window of a token or two
-                # is often far off for want of views, which this term should not chase.
+                # Full windows only: the accuracy targets are on those, and a subset window of a
+                # token or two is often far off for want of views, which this term should not chase.
                 window_loss = window_loss + cfg.tail_weight * nets.tail_loss(mean, truth, tail_margin_rad,
                                                                              mask.all(1))
             loss = token_loss + window_loss
