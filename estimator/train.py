@@ -621,11 +621,12 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             maskf = mask.float().unsqueeze(-1)
             mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
             window_loss = nets.sun_loss(mean, truth)
+            full = batch.mask.all(axis=1)  # the windows with every token: what the rig runs once filled
             if cfg.tail_weight:
                 # Full windows only: the accuracy targets are on those, and a subset window of a
                 # token or two is often far off for want of views, which this term should not chase.
                 window_loss = window_loss + cfg.tail_weight * nets.tail_loss(mean, truth, tail_margin_rad,
-                                                                             mask.all(1))
+                                                                             torch.from_numpy(full))
             loss = token_loss + window_loss
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -637,7 +638,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                 cos = (torch.nn.functional.normalize(mean, dim=-1) * truth).sum(-1).clamp(-1, 1)
                 window_err = torch.rad2deg(torch.acos(cos)).numpy()
                 err_deg = float(window_err.mean())
-                full = batch.mask.all(axis=1)  # a subset window's error says little about its drive
+                # A subset window's error says little about its drive.
                 sampler.record(batch.drive[full], window_err[full])
             loss_value = float(loss.detach())
             ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
