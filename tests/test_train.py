@@ -701,6 +701,7 @@ def test_a_finished_run_is_not_exported_again(logs, tmp_path):
 
 def test_the_tail_loss_enters_training_only_when_weighted(logs, tmp_path, monkeypatch):
     from estimator import nets
+    from estimator.runtime import OnnxModel
 
     margins = []
     real = nets.tail_loss
@@ -720,8 +721,6 @@ def test_the_tail_loss_enters_training_only_when_weighted(logs, tmp_path, monkey
     # Full windows count, subset windows do not (a draw of 32 windows has both).
     rows = [row for step in counted_rows for row in step]
     assert len(rows) == 32 and 0 < sum(rows) < 32
-    from estimator.runtime import OnnxModel
-
     recipe = OnnxModel.load(out).contract.training["recipe"]
     assert (recipe["tail_weight"], recipe["tail_margin_deg"]) == (1.0, 20.0)  # the contract says how it trained
 
