@@ -325,8 +325,7 @@ def tail_loss(v_pred: Tensor, v_gt: Tensor, margin_rad: float, mask: Tensor | No
     Not in the paper. The paper's cosine term pulls on a miss by the sine of its angle, 0.57 at
     35 deg against 0.42 at 25 deg, and the worst windows are few among many; this term adds a
     pull on those only, of 2 (angle - margin) per unit of weight: 0.70 at 35 deg with a 15 deg
-    margin. ``v_pred``
-    and ``v_gt`` are [..., 3] in the same frame.
+    margin. ``v_pred`` and ``v_gt`` are [..., 3] in the same frame.
     """
     if v_pred.shape != v_gt.shape or v_pred.shape[-1] != 3:
         raise ValidationError(
