@@ -10,6 +10,7 @@ from typing import Any
 @dataclass
 class TrainConfig:
     preset: str = "fast"
+    layers: int = 0  # transformer layers; 0: the preset's
     minutes: float = 80.0  # wall-clock budget of this and earlier (resumed) sessions together
     max_steps: int = 0  # 0: until the time budget ends
     batch_windows: int = 6

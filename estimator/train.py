@@ -369,6 +369,12 @@ class Schedule:
         return floor + (peak - floor) * 0.5 * (1.0 + math.cos(math.pi * frac))
 
 
+def net_config(cfg: TrainConfig) -> nets.NetConfig:
+    """The networks a run trains: its preset, with ``cfg.layers`` transformer layers if given."""
+    preset = nets.PRESETS[cfg.preset]
+    return replace(preset, layers=cfg.layers) if cfg.layers else preset
+
+
 def use_bf16(precision: str) -> bool:
     """Whether to train under bf16 autocast: only where the CPU computes bf16 natively, since
     emulated bf16 is slower than float32."""
@@ -447,6 +453,11 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     """Train (or resume) and export; returns the model folder."""
     if cfg.preset not in nets.PRESETS:
         raise ValidationError(f"preset: expected one of {sorted(nets.PRESETS)}, got {cfg.preset!r}")
+    if not (isinstance(cfg.layers, int) and cfg.layers >= 0):
+        raise ValidationError(f"layers: expected a count of transformer layers >= 1 (0: the preset's), "
+                              f"got {cfg.layers!r}")
+    if cfg.layers == nets.PRESETS[cfg.preset].layers:
+        cfg = replace(cfg, layers=0)  # the preset's own depth, named: the same run as not naming it
     for name in ("hard_share", "mirror_share", "live_share"):
         if not 0.0 <= getattr(cfg, name) <= 1.0:
             raise ValidationError(f"{name}: expected a share in [0, 1], got {getattr(cfg, name)}")
@@ -470,7 +481,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
                               f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
-    net_cfg = nets.PRESETS[cfg.preset]
+    net_cfg = net_config(cfg)
     out_dir = Path(out_dir)
     ckpt_path = out_dir / CHECKPOINT
     state = _resumable_state(out_dir, cfg)
@@ -682,12 +693,13 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
 
 # What makes a run itself: resuming with any of these changed would make a contract that lies
 # about how its model was trained.
-_RUN_IDENTITY = {"preset": "--preset", "lr": "--lr", "batch_windows": "--batch", "seed": "--seed",
-                 "hard_share": "--hard-share", "mirror_share": "--mirror-share", "live_share": "--live-share",
-                 "tail_weight": "--tail-weight", "tail_margin_deg": "--tail-margin"}
-# What a checkpoint written before a setting was recorded ran with (none mirrored its windows or
-# drew them as the rig does, and all trained on the paper's loss alone).
-_RAN_BEFORE_RECORDED = {"mirror_share": 0.0, "live_share": 0.0, "tail_weight": 0.0, "tail_margin_deg": 15.0}
+_RUN_IDENTITY = {"preset": "--preset", "layers": "--layers", "lr": "--lr", "batch_windows": "--batch",
+                 "seed": "--seed", "hard_share": "--hard-share", "mirror_share": "--mirror-share",
+                 "live_share": "--live-share", "tail_weight": "--tail-weight", "tail_margin_deg": "--tail-margin"}
+# What a checkpoint written before a setting was recorded ran with (all had their preset's depth
+# and trained on the paper's loss alone, and none mirrored its windows or drew them as the rig does).
+_RAN_BEFORE_RECORDED = {"layers": 0, "mirror_share": 0.0, "live_share": 0.0, "tail_weight": 0.0,
+                        "tail_margin_deg": 15.0}
 # Settings whose 0 means "the run's own" (so a resume need not repeat them): the flag, what a
 # checkpoint written before the setting was recorded ran with, the setting's value as compared
 # (an angle setting of 17.6 and one of [17.6] are one angle) and as the flag takes it.
@@ -783,7 +795,7 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
         training["init"] = state.get("init_info") or _init_provenance(Path(cfg.init))
     if export_command:
         training["export_command"] = export_command
-    contract = nets.PRESETS[cfg.preset].contract(
+    contract = net_config(cfg).contract(
         crops_per_frame=run_crops_per_frame or cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
         crop_fov_deg=list(fovs_deg(cfg.crop_fov_deg)), mirror_windows=run_mirror_windows, training=training)
     out = export_model(backbone, aggregator, contract, out_dir)
@@ -823,8 +835,11 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
     if arch != net_cfg.architecture():
         diff = sorted(k for k in set(arch) | set(net_cfg.architecture())
                       if arch.get(k) != net_cfg.architecture().get(k))
-        preset = (contract.training.get("recipe") or {}).get("preset")
+        recipe = contract.training.get("recipe") or {}
+        preset = recipe.get("preset")
         which = f"--preset {preset}" if preset in nets.PRESETS else "the preset it was trained with"
+        if recipe.get("layers"):
+            which += f" --layers {recipe['layers']}"
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
                               f"pass {which}")
     return path, start
@@ -908,7 +923,7 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
                                   "pass the run's training logs, or none")
         if "sun_elevation_deg" not in counts:
             counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
-    backbone, aggregator = nets.PRESETS[cfg.preset].build()
+    backbone, aggregator = net_config(cfg).build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
     return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command,

@@ -709,7 +709,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     for p in paths:  # fail on a bad log now, not after loading the others
         open_frames(p, utc_offset_h=args.utc_offset)
-    cfg = TrainConfig(preset=args.preset, minutes=args.minutes, max_steps=args.steps,
+    cfg = TrainConfig(preset=args.preset, layers=args.layers, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
                       crop_fov_deg=args.crop_fov,
                       hard_share=args.hard_share, mirror_share=args.mirror_share,
@@ -1038,6 +1038,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default=recipe.preset,
                    help="network preset: fast (default, the 2-core CPU recipe of docs/model.md), light, "
                         "paper (ResNet18 at 224 px), tiny (for tests)")
+    p.add_argument("--layers", type=_positive_int, default=recipe.layers, metavar="N",
+                   help="transformer layers (default: the preset's, 4 for fast and the paper's); recorded in the "
+                        "contract, so a fine-tune of such a model passes it too")
     p.add_argument("--minutes", type=_positive_float, default=recipe.minutes,
                    help=f"training time budget (default {recipe.minutes:g})")
     p.add_argument("--steps", type=_positive_int, default=0,

@@ -355,7 +355,7 @@ def test_the_cli_and_the_library_train_with_the_same_defaults():
     for flag, key in (("preset", "preset"), ("batch", "batch_windows"), ("lr", "lr"), ("hard_share", "hard_share"),
                       ("mirror_share", "mirror_share"), ("live_share", "live_share"), ("precision", "precision"),
                       ("tail_weight", "tail_weight"), ("tail_margin", "tail_margin_deg"),
-                      ("seed", "seed"),
+                      ("seed", "seed"), ("layers", "layers"),
                       ("minutes", "minutes"), ("crop_fov", "crop_fov_deg")):
         assert getattr(args, flag) == getattr(cfg, key), flag
 
@@ -730,4 +730,44 @@ def test_a_bad_tail_setting_is_refused_before_training(logs, tmp_path, weight, m
     with pytest.raises(ValidationError, match="tail (weight|margin): expected"):
         train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, tail_weight=weight,
                                                 tail_margin_deg=margin))
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_run_may_stack_more_transformer_layers_than_its_preset(logs, tmp_path):
+    from estimator import nets
+    from estimator.runtime import OnnxModel
+    from estimator.train import export_checkpoint, load_weights
+
+    out = train(logs, tmp_path / "deep", TrainConfig(preset="tiny", layers=3, max_steps=2, batch_windows=1))
+    contract = OnnxModel.load(out).contract
+    assert contract.architecture["layers"] == 3 and contract.training["recipe"]["layers"] == 3
+    deep = nets.NetConfig.from_architecture(contract.architecture)
+    backbone, aggregator = deep.build()
+    load_weights(out, deep, backbone, aggregator)  # the weights are those of three layers
+    assert len(aggregator.layers) == 3
+    # Re-exported from the checkpoint, it keeps its depth.
+    again = export_checkpoint(tmp_path / "deep", tmp_path / "again")
+    assert OnnxModel.load(again).contract.architecture["layers"] == 3
+    # A resume without the depth would train another network under the run's name.
+    with pytest.raises(ValidationError, match="--layers 3, not 0"):
+        train(logs, tmp_path / "deep", TrainConfig(preset="tiny", max_steps=3, batch_windows=1))
+    # A fine-tune from it is told to name the depth too.
+    with pytest.raises(ValidationError, match="--preset tiny --layers 3"):
+        train(logs, tmp_path / "fine", TrainConfig(preset="tiny", init=str(out), max_steps=1, batch_windows=1))
+
+
+def test_naming_the_presets_own_depth_is_the_same_run(logs, tmp_path):
+    from estimator import nets
+
+    out = tmp_path / "m"
+    train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1))
+    # tiny has one layer: --layers 1 resumes the run made without the flag.
+    train(logs, out, TrainConfig(preset="tiny", layers=nets.TINY.layers, max_steps=3, batch_windows=1))
+    assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 3
+
+
+@pytest.mark.parametrize("layers", [-1, 1.5])
+def test_a_bad_layer_count_is_refused_before_training(logs, tmp_path, layers):
+    with pytest.raises(ValidationError, match="layers: expected a count"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", layers=layers, max_steps=1))
     assert not (tmp_path / "m").exists()
