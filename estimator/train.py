@@ -840,6 +840,8 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
         which = f"--preset {preset}" if preset in nets.PRESETS else "the preset it was trained with"
         if recipe.get("layers"):
             which += f" --layers {recipe['layers']}"
+        elif "layers" in diff:
+            which += " without --layers"  # the start has its preset's depth
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
                               f"pass {which}")
     return path, start

@@ -754,6 +754,11 @@ def test_a_run_may_stack_more_transformer_layers_than_its_preset(logs, tmp_path)
     # A fine-tune from it is told to name the depth too.
     with pytest.raises(ValidationError, match="--preset tiny --layers 3"):
         train(logs, tmp_path / "fine", TrainConfig(preset="tiny", init=str(out), max_steps=1, batch_windows=1))
+    # And one from a model of its preset's depth, to leave the flag out.
+    shallow = train(logs, tmp_path / "shallow", TrainConfig(preset="tiny", max_steps=1, batch_windows=1))
+    with pytest.raises(ValidationError, match="--preset tiny without --layers"):
+        train(logs, tmp_path / "fine", TrainConfig(preset="tiny", layers=3, init=str(shallow), max_steps=1,
+                                                   batch_windows=1))
 
 
 def test_naming_the_presets_own_depth_is_the_same_run(logs, tmp_path):
