@@ -4,7 +4,7 @@ Makes a few small synthetic drives in a temporary folder, then runs ``sunrig``'s
 for ``--steps`` steps per precision and reads the step times from its metrics file (every 50
 steps), leaving out the first 50 (warm-up). Needs the train extra.
 
-    python3 benchmarks/bench_train.py [--preset fast] [--steps 200] [--drives 12]
+    python3 benchmarks/bench_train.py [--preset fast] [--layers N] [--steps 200] [--drives 12]
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from benchmarks.common import machine  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="fast")
+    ap.add_argument("--layers", type=int, default=0, help="transformer layers (default: the preset's)")
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--drives", type=int, default=12)
     args = ap.parse_args()
@@ -37,7 +38,8 @@ def main() -> None:
         logs = write_synthetic_logs(Path(tmp) / "logs", drives=args.drives, frames=24, seed=7, progress=False, jobs=2)
         for precision in ("fp32", "bf16"):
             out = Path(tmp) / precision
-            train(logs, out, TrainConfig(preset=args.preset, max_steps=args.steps, precision=precision))
+            train(logs, out, TrainConfig(preset=args.preset, layers=args.layers, max_steps=args.steps,
+                                                     precision=precision))
             rows = [json.loads(line) for line in (out / METRICS).read_text().splitlines()]
             first, last = rows[0], rows[-1]
             results[precision] = {
@@ -47,6 +49,7 @@ def main() -> None:
     print(json.dumps({
         "benchmark": "train_step",
         "preset": args.preset,
+        "layers": args.layers or None,
         "batch_windows": TrainConfig().batch_windows,
         "native_bf16": use_bf16("auto"),
         "results": results,
