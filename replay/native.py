@@ -14,7 +14,8 @@ Two choices carry the robustness:
 - The reader streams records front to back and never seeks, so a file without its summary and
   footer (the usual state of a killed recording) replays up to its last complete chunk. A chunk
   that fails its CRC or does not decompress is skipped and counted; a damaged record header, after
-  which nothing can be framed, ends the replay like a truncation.
+  which nothing can be framed, ends the replay like a truncation. Each record is parsed from its
+  own bytes, so a damaged field inside one cannot read past it (:func:`_framed_records`).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, cast
 
 import cv2
 import numpy as np
@@ -39,10 +40,12 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from google.protobuf.message import DecodeError
 from google.protobuf.timestamp_pb2 import Timestamp
-from mcap.exceptions import McapError
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import EndOfFile, McapError, RecordLengthLimitExceeded
+from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import breakup_chunk, read_magic
 from mcap.writer import LIBRARY_IDENTIFIER as MCAP_LIBRARY
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
@@ -790,10 +793,30 @@ class _LogInfo:
     metadata: dict[str, str] = field(default_factory=dict)
 
 
+class _BoundedReads:
+    """A log file whose reads stop at its end. mcap reads a record's fields straight from the
+    file, and a file object allocates the bytes it is asked for before it reads them: one damaged
+    length field inside a record would ask for up to 2**64 bytes (a MemoryError, or on a small
+    board the OOM killer) where the file has only megabytes left."""
+
+    def __init__(self, f: IO[bytes], size: int) -> None:
+        self._f, self._size = f, size
+
+    def read(self, n: int | None = -1) -> bytes:
+        left = max(self._size - self._f.tell(), 0)
+        return self._f.read(left if n is None or n < 0 else min(n, left))
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._f.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._f.tell()
+
+
 def _summary(f: IO[bytes], size: int) -> Any:
     """A finished log's summary (with its channels), or None when it has none (truncated)."""
     try:
-        summary = SeekingReader(f, record_size_limit=size).get_summary()
+        summary = SeekingReader(cast(IO[bytes], _BoundedReads(f, size)), record_size_limit=size).get_summary()
     except _SUMMARY_ERRORS:
         return None
     finally:
@@ -872,6 +895,51 @@ def _inspect(path: Path) -> _LogInfo:
     return info  # a damaged first chunk: the summary named the channels, the later chunks replay
 
 
+# The records sunrig reads from a data section; others (message indexes, attachments, ...) are
+# framed and passed over.
+_RECORD_TYPES: dict[int, Any] = {Opcode.HEADER: Header, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
+                                 Opcode.MESSAGE: Message, Opcode.METADATA: Metadata, Opcode.CHUNK: Chunk,
+                                 Opcode.DATA_END: DataEnd, Opcode.FOOTER: Footer}
+
+
+def _framed_records(f: IO[bytes], size: int) -> Iterator[Any]:
+    """The records of an MCAP byte stream, each parsed from its own body's bytes.
+
+    mcap's StreamReader parses a record's fields straight from the file, so a damaged length
+    inside one (a chunk's data length, say) reads past the record, asks the file for up to 2**64
+    bytes and loses the framing of every record after it. Here a record's outer length frames it:
+    a field that overruns the body fails that record alone (a chunk then is skipped as corrupt),
+    and the next record is found where its length says. The outer length itself cannot exceed the
+    file (a damaged one ends the stream, as the module docstring says).
+    """
+    read_magic(ReadDataStream(f))
+    while True:
+        head = f.read(9)
+        if len(head) < 9:
+            raise EndOfFile()  # no DataEnd: the log was cut off
+        opcode, length = struct.unpack("<BQ", head)
+        if length > max(size, 1):
+            raise RecordLengthLimitExceeded(opcode, length, size)
+        body = f.read(length)
+        if len(body) < length:
+            raise EndOfFile()
+        kind = _RECORD_TYPES.get(opcode)
+        if kind is Message:
+            yield Message.read(ReadDataStream(io.BytesIO(body)), length)
+        elif kind is Chunk:
+            yield _ChunkBody(body)  # parsed by _records, where a bad one is skipped
+        elif kind is not None:
+            yield kind.read(ReadDataStream(io.BytesIO(body)))
+
+
+@dataclass(frozen=True)
+class _ChunkBody:
+    body: bytes
+
+    def chunk(self) -> Chunk:
+        return Chunk.read(ReadDataStream(io.BytesIO(self.body)))
+
+
 def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> Iterator[Any]:
     """Every record of the data section in file order, chunks opened; never seeks.
 
@@ -881,9 +949,7 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
     ``None`` so consumers can drop state that chunk may have changed.
     """
     size = stats.bytes_total
-    # A record cannot be longer than the file: a damaged length field must not allocate gigabytes.
-    reader = StreamReader(f, emit_chunks=True, record_size_limit=max(size, 1))
-    records = reader.records
+    records = _framed_records(f, size)
     while True:
         try:
             record = next(records)
@@ -900,9 +966,9 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
                     logger.warning("%s: the log ends early at byte %d of %d (a damaged record: %s); replayed "
                                    "what came before", name, stats.bytes_read, size, exc)
             return
-        if isinstance(record, Chunk):
+        if isinstance(record, _ChunkBody):
             try:
-                inner = breakup_chunk(record, validate_crc=True)
+                inner = breakup_chunk(record.chunk(), validate_crc=True)
             except _DECODE_ERRORS as exc:
                 if f.tell() >= size:  # the last chunk, partly written: a truncation
                     stats.truncated = True

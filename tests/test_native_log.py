@@ -14,6 +14,7 @@ import logging
 import math
 import os
 import signal
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -612,10 +613,13 @@ def test_a_refused_calibration_drops_frames_until_the_next_one(tmp_path, monkeyp
     assert src.stats.corrupt_skipped == 3  # the calibration and the two images after it
 
 
+@pytest.mark.parametrize("damage", ["bytes", "name-length"])
 @pytest.mark.parametrize("which", ["middle", "first"])
-def test_a_corrupt_chunk_loses_only_its_own_frames(tmp_path, caplog, which):
+def test_a_corrupt_chunk_loses_only_its_own_frames(tmp_path, caplog, which, damage):
     # The first chunk is where the data section declares the channels; the summary at the end
     # of a finished log repeats them, so the chunks after a damaged first one still replay.
+    # "name-length": the length of the chunk's compression name, damaged, overruns the chunk;
+    # read straight from the file it would have swallowed the chunks after it.
     frames = make_frames(24)
     path = write_log(tmp_path / "chunks.mcap", frames, chunk_size=2500)
     whole = list(read_frames(path))
@@ -623,8 +627,11 @@ def test_a_corrupt_chunk_loses_only_its_own_frames(tmp_path, caplog, which):
         chunks = make_reader(f).get_summary().chunk_indexes
     victim = chunks[len(chunks) // 2] if which == "middle" else chunks[0]
     data = bytearray(path.read_bytes())
-    mid = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2
-    data[mid : mid + 16] = bytes(b ^ 0x5A for b in data[mid : mid + 16])
+    if damage == "bytes":
+        mid = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2
+        data[mid : mid + 16] = bytes(b ^ 0x5A for b in data[mid : mid + 16])
+    else:
+        data[_chunk_name_length_at(victim) + 2] = 0x7F
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(bytes(data))
     src = open_log(damaged)
@@ -640,6 +647,34 @@ def test_a_corrupt_chunk_loses_only_its_own_frames(tmp_path, caplog, which):
     assert src.stats.corrupt_skipped == 1
     assert not src.truncated
     assert any("corrupt chunk" in r.getMessage() for r in caplog.records)
+
+
+def _chunk_name_length_at(chunk_index) -> int:
+    """Where a chunk record's compression-name length is: after its opcode and length (9 bytes),
+    its message start and end times and uncompressed size (24) and its CRC (4)."""
+    return chunk_index.chunk_start_offset + 9 + 28
+
+
+def test_a_damaged_records_length_in_a_chunk_loses_nothing(tmp_path):
+    # One byte of a chunk's records-length field made it 2**47: mcap read the field straight from
+    # the file, and the file object tried to allocate that much (a MemoryError that ended the
+    # replay). Framed by the chunk record's own length, the records are all there and pass the
+    # chunk's CRC, so nothing is lost.
+    frames = make_frames(24)
+    path = write_log(tmp_path / "chunks.mcap", frames, chunk_size=2500)
+    whole = list(read_frames(path))
+    with open(path, "rb") as f:
+        victim = make_reader(f).get_summary().chunk_indexes[1]
+    data = bytearray(path.read_bytes())
+    name_at = _chunk_name_length_at(victim)
+    field_at = name_at + 4 + struct.unpack_from("<I", data, name_at)[0]
+    assert struct.unpack_from("<Q", data, field_at)[0] == victim.compressed_size
+    data[field_at + 5] = 0x7F
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    src = open_log(damaged)
+    assert_same_frames(list(src), whole)
+    assert src.stats.corrupt_skipped == 0 and not src.truncated
 
 
 # ---------------------------------------------------------------------------------------------
@@ -824,3 +859,17 @@ def test_source_is_reiterable_and_resets_its_stats(tmp_path):
         json.loads(native.CHANNELS[TOPIC_ESTIMATE].schema_bytes())["title"] == "sunrig.SunEstimate"
     )
     assert os.path.getsize(path) > 0
+
+
+def test_summary_reads_stop_at_the_end_of_the_file(tmp_path):
+    # The summary is read by mcap straight from the file: a damaged length there must not ask the
+    # file object for more bytes than the file has (it allocates them before reading).
+    path = write_log(tmp_path / "a.mcap", make_frames(3))
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        bounded = native._BoundedReads(f, size)
+        bounded.seek(-10, os.SEEK_END)
+        assert bounded.read(1 << 62) == path.read_bytes()[-10:]
+        assert bounded.read(5) == b"" and bounded.tell() == size
+        bounded.seek(0)
+        assert bounded.read(8) == native.MCAP_MAGIC
