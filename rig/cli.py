@@ -59,7 +59,10 @@ def _machine_error(exc: BaseException) -> str | None:
 
 
 def _int_in(lo: int, hi: int | None = None):
-    """An argparse type: an integer from ``lo`` (to ``hi``)."""
+    """An argparse type: an integer from ``lo`` (to ``hi``; at most rig.config.INT_MAX, beyond
+    which no count or size here means anything)."""
+    from rig.config import INT_MAX
+
     if hi is not None:
         what = f"an integer from {lo} to {hi}"
     else:
@@ -70,8 +73,11 @@ def _int_in(lo: int, hi: int | None = None):
             value = int(text)
         except ValueError:
             value = None
+        shown = repr(text) if len(text) <= 40 else f"{text[:20]!r}... ({len(text)} characters)"
         if value is None or value < lo or (hi is not None and value > hi):
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"expected {what}, got {shown}")
+        if value > INT_MAX:
+            raise argparse.ArgumentTypeError(f"expected {what} up to {INT_MAX}, got {shown}")
         return value
     return parse
 
@@ -1101,7 +1107,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drives", type=_positive_int, default=10, help="how many drives (default 10)")
     p.add_argument("--frames", type=_positive_int, default=40, help="frames per drive (default 40)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="drive i of seed S is always the same drive")
-    p.add_argument("--fps", type=_positive_float, default=10.0, help="frame rate of the drives (default 10)")
+    # At least 1 frame in 1000 s: a drive's timestamps are int64 nanoseconds.
+    p.add_argument("--fps", type=_float_in(1e-3, lo_included=True), default=10.0,
+                   help="frame rate of the drives (default 10)")
     p.add_argument("--jobs", type=_positive_int, default=1, help="drives rendered in parallel (default 1)")
     p.add_argument("--render-scale", type=_float_in(0.0, 1.0), default=0.5,
                    help="internal render size relative to the output (default 0.5, upsampled)")

@@ -100,14 +100,27 @@ RANGES: dict[tuple[str, str], tuple[float, float, bool]] = {
 
 def describe_range(lo: float, hi: float, lo_included: bool) -> str:
     """``>= 0``, ``> 0`` or ``in [0, 179]``: how an error says what was expected."""
+    def shown(x: float) -> str:  # INT_MAX in full, not 2.14748e+09
+        return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
     if hi == _INF:
-        return f"{'>=' if lo_included else '>'} {lo:g}"
-    return f"in {'[' if lo_included else '('}{lo:g}, {hi:g}]"
+        return f"{'>=' if lo_included else '>'} {shown(lo)}"
+    return f"in {'[' if lo_included else '('}{shown(lo)}, {shown(hi)}]"
+
+
+# The largest integer any option takes: each ends in a C int somewhere (OpenCV's frame size,
+# termios' baud, a queue's length), and a 400-digit one is a typo that must not reach them.
+INT_MAX = 2**31 - 1
 
 
 def in_range(value: float, lo: float, hi: float, lo_included: bool) -> bool:
-    """A finite ``value`` within the range (inf is never meant: a budget that never ends)."""
-    return math.isfinite(value) and (lo <= value if lo_included else lo < value) and value <= hi
+    """A finite ``value`` within the range (inf is never meant: a budget that never ends); an
+    integer also at most :data:`INT_MAX`."""
+    if isinstance(value, int):  # math.isfinite() overflows on a huge one
+        hi = min(hi, INT_MAX)
+    elif not math.isfinite(value):
+        return False
+    return (lo <= value if lo_included else lo < value) and value <= hi
 
 
 def check_option(section: str, key: str, value: Any) -> Any:
@@ -127,8 +140,16 @@ def check_option(section: str, key: str, value: Any) -> Any:
     unset = expected is float and math.isnan(default) and math.isnan(value)
     if bounds is not None and not unset and not in_range(value, *bounds):
         kind = "an integer" if expected is int else "a finite number"
-        raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {value!r}")
+        if expected is int and value > INT_MAX:  # the cap is named only to one who passed it
+            bounds = (bounds[0], INT_MAX, bounds[2])
+        raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {_shown(value)}")
     return value
+
+
+def _shown(value: Any) -> str:
+    """``value`` for an error line: a 400-digit number is cut, so the message stays one line."""
+    text = repr(value)
+    return text if len(text) <= 40 else f"{text[:20]}... ({len(text)} characters)"
 
 
 def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:

@@ -521,6 +521,13 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
         (["run", "--camera", f"file:{DEMO_LOG}", "--width", "-1"], "argument --width"),
         (["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--declination-deg", "inf"],
          "argument --declination-deg"),
+        # A 400-digit integer: math.isfinite() overflowed on it (a traceback from argparse), or it
+        # reached an int64 timestamp or a C int as an internal error.
+        (["record", "--camera", f"file:{DEMO_LOG}", "--out", str(keep), "--overwrite", "--width", "9" * 400],
+         "argument --width"),
+        (["synth", str(tmp_path / "s"), "--frames", "9" * 400], "argument --frames"),
+        (["run", "--camera", f"file:{DEMO_LOG}", "--baud", "9" * 400], "argument --baud"),
+        (["synth", str(tmp_path / "s"), "--fps", "1e-300"], "argument --fps"),
     )
     for args, names in cases:
         res = run_cli(*args)

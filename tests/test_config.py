@@ -73,6 +73,9 @@ def test_file_then_flags(tmp_path):
         ("[window]\nspan_s = -4\n", "[window] span_s: expected a finite number > 0, got -4.0"),
         ("[window]\nyaw_scale_deg = 0\n", "[window] yaw_scale_deg: expected a finite number in (0, 180]"),
         ("[rig]\nqueue_size = 0\n", "[rig] queue_size: expected an integer > 0, got 0"),
+        # math.isfinite() overflowed on it: an internal error, not this line.
+        (f"[rig]\nqueue_size = {'9' * 400}\n",
+         "[rig] queue_size: expected an integer in (0, 2147483647], got 99999999999999999999... (400 characters)"),
         ("[source]\nmax_gap_s = nan\n", "[source] max_gap_s: expected a finite number > 0, got nan"),
         ("[source]\nhfov_deg = -1.0\n", "[source] hfov_deg: expected a finite number in [0, 179]"),
         ("[source]\ndeclination_deg = inf\n", "[source] declination_deg: expected a finite number in [-180, 180]"),
