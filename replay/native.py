@@ -385,11 +385,16 @@ def encode_utc(utc_ns: int, seq: int) -> bytes:
     return _dumps({"utc": {"sec": sec, "nsec": nsec}, "utc_iso": utc_iso(int(utc_ns)), "seq": seq})
 
 
+_UTC_SEC_END = 253_402_300_800  # 10000-01-01T00:00:00Z, past datetime's last year
+
+
 def decode_utc(data: bytes) -> int:
     utc = _loads(data)["utc"]
     sec, nsec = utc["sec"], utc["nsec"]
     if not (isinstance(sec, int) and isinstance(nsec, int) and 0 <= nsec < 1_000_000_000):
         raise ValueError(f"utc: expected integer sec and nsec in [0, 1e9), got {utc!r}")
+    if not 0 <= sec < _UTC_SEC_END:  # a date no clock meant, which no datetime can show either
+        raise ValueError(f"utc: expected a time from 1970 to 9999, got sec {sec}")
     return sec * 1_000_000_000 + nsec
 
 

@@ -558,6 +558,8 @@ def test_corrupt_heading_drops_only_that_message(tmp_path, monkeypatch):
     ("encoder", "bad", "field"),
     [
         ("encode_utc", b'{"utc": {"sec": 1317042145, "nsec": 1000000000}, "seq": 12}', "utc_ns"),  # nsec past 1 s
+        # past year 9999: it replayed, then failed as an internal error where the JSONL showed it
+        ("encode_utc", b'{"utc": {"sec": 100000000000000000000, "nsec": 0}, "seq": 12}', "utc_ns"),
         ("encode_sun_truth", b'{"sun_enu": [0.0, 0.6, 0.8, 0.0], "seq": 12}', "sun_enu_truth"),  # 4 numbers
     ],
 )
