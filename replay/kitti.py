@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 
 from replay.groundtruth import sun_truth_enu
-from rig.errors import LogError
+from rig.errors import LogError, ValidationError
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics
 
 logger = logging.getLogger(__name__)
@@ -162,7 +162,15 @@ def intrinsics_from_calib(calib: dict[str, np.ndarray], camera: str = "02", name
         raise LogError(f"{name}: no P_rect_{camera} (12 numbers) and S_rect_{camera} (2 numbers); "
                        "is it the date's calib_cam_to_cam.txt?")
     p = p.reshape(3, 4)
-    return Intrinsics(fx=p[0, 0], fy=p[1, 1], cx=p[0, 2], cy=p[1, 2], width=round(s[0]), height=round(s[1]))
+    # round() of nan or 1e400 raised ValueError / OverflowError: an internal error, not this file's.
+    if not (np.isfinite(s).all() and (s >= 1).all() and (s <= 1e6).all()):
+        raise LogError(f"{name}: S_rect_{camera} {' '.join(f'{v:g}' for v in s)} is no image size; "
+                       "is the file damaged? Compare it with the date's calib_cam_to_cam.txt from KITTI")
+    try:
+        return Intrinsics(fx=p[0, 0], fy=p[1, 1], cx=p[0, 2], cy=p[1, 2], width=round(s[0]), height=round(s[1]))
+    except ValidationError as exc:  # nan or 0 in P_rect: say which file, not only which number
+        raise LogError(f"{name}: P_rect_{camera}: {exc}; is the file damaged? Compare it with the date's "
+                       "calib_cam_to_cam.txt from KITTI") from None
 
 
 def attitude_from_oxts(roll_rad, pitch_rad, yaw_rad) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

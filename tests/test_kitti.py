@@ -29,7 +29,9 @@ from replay.kitti import (
     OXTS_FIELDS,
     KittiDrive,
     attitude_from_oxts,
+    intrinsics_from_calib,
     open_kitti,
+    parse_calib,
     parse_dataformat,
     parse_timestamps_ns,
 )
@@ -299,6 +301,25 @@ S_rect_02: 1.242000e+03 3.750000e+02
 P_rect_02: 7.215377e+02 0.000000e+00 6.095593e+02 4.485728e+01 0.000000e+00 7.215377e+02 1.728540e+02 \
 2.163791e-01 0.000000e+00 0.000000e+00 1.000000e+00 2.745884e-03
 """
+
+
+@pytest.mark.parametrize(("line", "needle"), [
+    # round() of these raised ValueError / OverflowError: internal errors, naming no file.
+    ("S_rect_02: nan 3.750000e+02", "S_rect_02 nan 375 is no image size"),
+    ("S_rect_02: 1e400 3.750000e+02", "S_rect_02 inf 375 is no image size"),
+    ("S_rect_02: 0 3.750000e+02", "S_rect_02 0 375 is no image size"),
+])
+def test_a_damaged_calibration_size_is_named_with_its_file(line, needle):
+    text = _CALIB.replace("S_rect_02: 1.242000e+03 3.750000e+02", line)
+    with pytest.raises(LogError) as info:
+        intrinsics_from_calib(parse_calib(text), name="calib_cam_to_cam.txt")
+    assert str(info.value).startswith(f"calib_cam_to_cam.txt: {needle}; is the file damaged?")
+
+
+def test_a_damaged_projection_is_named_with_its_file():
+    text = _CALIB.replace("P_rect_02: 7.215377e+02", "P_rect_02: nan")
+    with pytest.raises(LogError, match=r"^calib_cam_to_cam.txt: P_rect_02: fx: expected a finite number, got nan"):
+        intrinsics_from_calib(parse_calib(text), name="calib_cam_to_cam.txt")
 
 
 def _write_oxts(date, index, pose):
