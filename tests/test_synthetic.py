@@ -530,3 +530,17 @@ def test_a_resumed_set_keeps_its_drives_and_refuses_drives_of_another_length(tmp
     assert frame_count(tmp_path / "drive_9_0001.mcap") is None
     with pytest.raises(ValidationError, match="drive_9_0001.mcap .* holds an unfinished log"):
         write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)
+
+
+def test_an_output_that_is_a_file_is_refused_in_one_line(tmp_path):
+    # `sunrig synth drive.mcap`: mkdir's FileExistsError was an internal error.
+    from replay.synthetic import write_synthetic_logs
+    from rig.errors import ValidationError
+
+    afile = tmp_path / "drive.mcap"
+    afile.write_bytes(b"kept")
+    with pytest.raises(ValidationError, match=r"drive.mcap is a file; OUT is the folder the drives are written to"):
+        write_synthetic_logs(afile, drives=1, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    with pytest.raises(ValidationError, match=r"cannot make the folder .*drive.mcap/sub: Not a directory"):
+        write_synthetic_logs(afile / "sub", drives=1, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    assert afile.read_bytes() == b"kept"
