@@ -218,6 +218,7 @@ def open_source(camera: str, heading: str, *, options: SourceOptions | None = No
     parts: dict[str, Any] = {}
     try:
         if cam.kind == "file":
+            _warn_unused_for_a_log(cam, opts)
             return _file_source(cam, head, parts)
         # The heading device first when it is separate: a wrong serial port fails before the camera starts.
         reader = _open_gnss(head, opts, clock) if head.kind == "nmea" else None
@@ -245,6 +246,18 @@ def open_source(camera: str, heading: str, *, options: SourceOptions | None = No
     except BaseException:
         LiveSource(cam, head, (), parts).close()
         raise
+
+
+def _warn_unused_for_a_log(cam: CameraSpec, opts: SourceOptions) -> None:
+    """A log carries its own intrinsics and frame size: say that a camera model passed with it is
+    not used, where it would otherwise be dropped without a word (a rig's configuration file may
+    well set one and be run on a log: a warning, not a refusal)."""
+    unused = [flag for flag, value in (("--calibration", opts.calibration), ("--hfov-deg", opts.hfov_deg),
+                                       ("--width", opts.width), ("--height", opts.height), ("--fps", opts.fps))
+              if value]
+    if unused:
+        log.warning("%s not used with --camera file:%s: a log replays with the intrinsics, size and rate "
+                    "it was recorded with", " and ".join(unused), cam.target)
 
 
 def _file_source(cam: CameraSpec, head: HeadingSpec, parts: dict[str, Any]) -> LiveSource:

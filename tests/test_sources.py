@@ -255,6 +255,21 @@ def test_file_log_with_its_own_heading():
     assert src.stats()["log"] is not None
 
 
+def test_a_camera_model_passed_with_a_log_is_said_to_be_unused(caplog, tmp_path):
+    # It was dropped without a word, even a calibration file that does not exist.
+    opts = SourceOptions(calibration=str(tmp_path / "nope.yaml"), fps=30.0)
+    with caplog.at_level("WARNING", logger="drivers.sources"), open_source(f"file:{DEMO_LOG}", "log",
+                                                                          options=opts) as src:
+        frames = list(src)
+    assert len(frames) == 40 and frames[0].intrinsics.width == 1242  # the log's own
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and said[0].startswith("--calibration and --fps not used with --camera file:"), said
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="drivers.sources"), open_source(f"file:{DEMO_LOG}", "log") as src:
+        next(iter(src))
+    assert not caplog.records
+
+
 def test_file_log_with_visual_heading_replaces_the_recorded_one():
     with open_source(f"file:{DEMO_LOG}", "visual") as src:
         frames = list(src)
