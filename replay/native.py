@@ -342,6 +342,11 @@ def encode_attitude(att: Attitude, seq: int) -> bytes:
 
 def decode_attitude(data: bytes) -> Attitude:
     d = _loads(data)
+    heading = d["heading_deg"]
+    # The writer gives [0, 360); a heading beyond a turn either way is a damaged number (1e308 wrapped
+    # to some angle and was graded as one), so the message is skipped as corrupt.
+    if isinstance(heading, int | float) and not isinstance(heading, bool) and not -360.0 <= heading <= 360.0:
+        raise ValueError(f"heading_deg: expected an angle within [-360, 360], got {heading}")
     return Attitude(
         # A null heading_deg (a damaged payload) reaches Attitude's own check, a ValidationError.
         heading_rad=_rad(d["heading_deg"]),  # type: ignore[arg-type]
@@ -778,11 +783,13 @@ def _open_log_file(path: Path) -> tuple[IO[bytes], int]:
         f.close()
         if size == 0:
             raise LogError(
-                f"{name} is empty (0 bytes), not an MCAP log; the recording never started"
+                f"{name} is empty (0 bytes), not an MCAP log; the recording never started: record again or "
+                "pass another log"
             )
         if MCAP_MAGIC.startswith(head):
             raise LogError(
-                f"{name} is cut off inside the MCAP magic ({size} bytes); it holds no frames"
+                f"{name} is cut off inside the MCAP magic ({size} bytes); it holds no frames: record again "
+                "or pass another log"
             )
         what = next((desc for sig, desc in _SIGNATURES if head.startswith(sig)), None)
         if what is None:
@@ -893,7 +900,8 @@ def _inspect(path: Path) -> _LogInfo:
                     return info  # the first chunk of a sunrig log: no need to read further
         if stats.truncated and not seen:
             raise LogError(
-                f"{name} is an MCAP log cut off before its first complete chunk; it holds no frames"
+                f"{name} is an MCAP log cut off before its first complete chunk; it holds no frames: record "
+                "again or pass another log"
             )
         if topics is None:  # no summary vouched for the channels: the data section must have
             _check_image_channel(name, seen)

@@ -537,13 +537,16 @@ def test_channels_of_other_tools_are_ignored_not_counted(tmp_path):
     assert src.stats.corrupt_skipped == 0
 
 
-def test_corrupt_heading_drops_only_that_message(tmp_path, monkeypatch):
+@pytest.mark.parametrize("bad", [b"{not json",
+                                 # a heading no writer gives: it wrapped to some angle and was graded
+                                 b'{"heading_deg": 1e308, "reference": "true", "seq": 12}'])
+def test_corrupt_heading_drops_only_that_message(tmp_path, monkeypatch, bad):
     frames = make_frames(5)
     path = tmp_path / "badjson.mcap"
     with LogWriter(path) as w:
         for f in frames:
             if f.seq == 12:
-                monkeypatch.setattr(native, "encode_attitude", lambda *a: b"{not json")
+                monkeypatch.setattr(native, "encode_attitude", lambda *a: bad)
             w.write_frame(f)
             monkeypatch.undo()
     src = open_log(path)
