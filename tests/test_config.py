@@ -100,6 +100,16 @@ def test_missing_file():
         load_config("/nonexistent/rig.toml")
 
 
+def test_a_folder_or_non_utf8_file_is_named_with_what_to_do(tmp_path):
+    # They were "[Errno 21] Is a directory" and a codec's message, with no way out.
+    with pytest.raises(ConfigError, match=r"is a folder; pass the .toml file in it$"):
+        load_config(tmp_path)
+    latin = tmp_path / "rig.toml"
+    latin.write_bytes("[source]\ncamera = 'caméra'\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match=r"is not UTF-8 text \(byte 22\); save it as UTF-8 TOML$"):
+        load_config(latin)
+
+
 def test_defaults_are_those_of_what_they_configure():
     # `sunrig run` builds RigConfig, the pairing and the window from this table, so a default
     # changed in one place but not the other would make the CLI and the library disagree. The
