@@ -18,6 +18,7 @@ import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import NoReturn
 
 from rig.errors import SunrigError
 from rig.progress import Progress
@@ -204,7 +205,9 @@ def _recording_refusals(option: str, replace: str):
             "exists": f"exists: a recording is not replaced by accident; pass another path, put {START_FIELD} "
                       f"in the name for a new file per run, or {replace} to replace it",
             "folder": f"is a folder: name a file in it, e.g. {path / (START_FIELD + '.mcap')}",
-            "no folder": f"is in a folder that does not exist ({path.parent}): make it, or pass another path",
+            "no folder": (f"is in {path.parent}, which is a file, not a folder: pass another path"
+                          if path.parent.exists() else
+                          f"is in a folder that does not exist ({path.parent}): make it, or pass another path"),
             "stdout": "is stdout, but a recording is a file: pass a file name",
             "taken": f"and its -1 to -{MAX_SAME_START - 1} variants exist already: pass a name in another folder",
         }[exc.why]
@@ -290,7 +293,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from rig.publishers import publisher_name
 
     lost = _report_output_losses({publisher_name(p): p.stats() for p in pubs})  # below the progress line
-    return args.stop.exit_code() if interrupted else lost  # as for any Ctrl-C, with the work so far written
+    if interrupted:
+        return args.stop.exit_code()  # as for any Ctrl-C, with the work so far written
+    if not stats.frames:  # every image corrupt, or none recorded: not a replay that worked
+        print(f"sunrig: error: {log_path}: no frame of it could be read (the warnings above say why); "
+              "replay another log, or re-record this one", file=sys.stderr)
+        return EXIT_USER_ERROR
+    return lost
 
 
 def _effective_config(args: argparse.Namespace) -> dict:
@@ -344,7 +353,17 @@ def _spec_files(camera: str, heading: str) -> list[Path]:
 
 
 def _refuse_overwriting(inputs: list[Path], **outputs: str | None) -> None:
-    """An output that is one of the inputs would be truncated before a frame of it is read."""
+    """An output that is one of the inputs would be truncated before a frame of it is read, and
+    two outputs on one path would leave only the one written last."""
+    seen: dict[str, str] = {}
+    for flag, out in outputs.items():
+        if not out or out == "-":
+            continue
+        where = os.path.realpath(out)
+        if where in seen:
+            raise SunrigError(f"--{seen[where].replace('_', '-')} and --{flag.replace('_', '-')} are both {out}; "
+                              "one would overwrite the other: pass two paths")
+        seen[where] = flag
     for flag, out in outputs.items():
         if not out or out == "-" or not Path(out).exists():
             continue
@@ -443,6 +462,11 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
         if live_line:
             sys.stderr.write("\n")
         print(f"sunrig: done: {stats.status_line(stats.ended_s)}", file=sys.stderr)
+        # The status line counts frames without heading, not why. (demo's source is a log: no devices.)
+        source_stats = getattr(source, "stats", None)
+        details = _source_summary(source_stats()) if callable(source_stats) else ""
+        if details:
+            print(f"sunrig: source: {details}", file=sys.stderr)
         if recorder is not None and recorder.finished:
             print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
     if recorder is not None and not recorder.finished:
@@ -593,6 +617,11 @@ def _source_summary(stats: dict) -> str:
     for key in ("gap", "before", "after", "stale", "mixed", "overflow"):
         if pairing.get(key):
             parts.append(f"heading {key} {pairing[key]}")
+    gnss = stats.get("gnss") or {}  # why a heading port gave no headings: its bytes, as the framer saw them
+    for key in ("bad_checksum", "truncated", "overlong", "malformed", "garbage_bytes", "bad_fields", "no_data",
+                "read_errors", "reopens"):
+        if gnss.get(key):
+            parts.append(f"heading port {key.replace('_', ' ')} {gnss[key]}")
     vo = stats.get("visual_odometry") or {}
     if vo.get("lost"):
         parts.append(f"visual odometry lost {vo['lost']} of {vo['frames']} frames")
@@ -672,14 +701,22 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if result.interrupted:
         lines.insert(0, f"interrupted after {len(result.window_logs)} windows in {len(result.logs)} logs begun; "
                         "the JSON and figures hold those")
-    nothing = "no full window with ground truth in these logs"
-    if result.frames_without_heading:  # frames with truth but no heading make no window to grade
-        nothing += f": {result.frames_without_heading} of the {result.frames} frames have no heading"
     if not args.quiet:
-        progress.close("; ".join(lines) if lines else nothing)
+        progress.close("; ".join(lines) if lines else None)
     if result.interrupted:
         return args.stop.exit_code()  # as for any Ctrl-C, but with the work so far written
-    if not lines:
+    if not lines:  # an error, so said even with --quiet (which silences progress, not errors)
+        if result.frames_without_heading:  # frames with truth but no heading make no window to grade
+            why = f"{result.frames_without_heading} of the {result.frames} frames have no heading"
+        elif result.windows_without_truth:
+            why = f"{result.windows_without_truth} windows had no true sun"
+        elif result.frames_bad_exposure:
+            why = f"{result.frames_bad_exposure} of the {result.frames} frames too dark, bright or flat to use"
+        else:
+            why = f"{result.frames} frames, too few for a full window"
+        print(f"sunrig: error: eval graded nothing: no full window with ground truth in these logs ({why}); "
+              "evaluate logs from `sunrig synth`, KITTI drives, or recordings with GNSS time and position "
+              "(docs/ground-truth.md)", file=sys.stderr)
         return EXIT_USER_ERROR
     return 0
 
@@ -824,6 +861,10 @@ def cmd_gnss(args: argparse.Namespace) -> int:
         if stats["last_error"]:
             summary += f"; last error: {stats['last_error']}"
         print(f"gnss: {summary}", file=sys.stderr)
+    if not stats["sentences"] and stats["bad_checksum"]:
+        # Sentences came, all damaged: a noisy line or a wrong baud that happens to frame, not a wrong file.
+        raise SunrigError(f"gnss: every sentence from {args.source} failed its checksum ({stats['bad_checksum']}); "
+                          "check the wiring and the --baud rate, or the capture's integrity")
     if not stats["sentences"]:
         # Nothing that even looked like NMEA: the wrong file, baud rate or device, not a quiet success.
         raise SunrigError(f"gnss: no NMEA sentence from {args.source}; check it is the GNSS device or a "
@@ -847,8 +888,13 @@ def cmd_sun(args: argparse.Namespace) -> int:
             f = sys.stdin if args.csv == "-" else open(args.csv, newline="", encoding="utf-8")  # closed below
         except OSError as exc:
             raise SunrigError(f"sun: cannot read {args.csv}: {exc.strerror or exc}") from None
-        with f:
-            rows = list(csv.reader(f))
+        try:
+            with f:
+                rows = list(csv.reader(f))
+        except UnicodeDecodeError as exc:
+            raise SunrigError(f"{name}: not UTF-8 text (byte {exc.start}); save it as UTF-8 CSV") from None
+        except (OSError, csv.Error) as exc:
+            raise SunrigError(f"sun: cannot read {name} as CSV: {exc}") from None
         header = [h.strip().lower() for h in rows[0]] if rows else []
         if not {"time", "lat", "lon"} <= set(header):
             raise SunrigError(f"{name} line 1: expected a header row with time,lat,lon (and optionally "
@@ -865,7 +911,10 @@ def cmd_sun(args: argparse.Namespace) -> int:
                 el = float(cells["elevation_m"]) if cells.get("elevation_m") else args.elevation_m
                 if not (-90.0 <= la <= 90.0 and -180.0 <= lo <= 360.0 and np.isfinite(el)):
                     raise ValueError(f"lat {la}, lon {lo} or elevation {el} out of range")
-            except (KeyError, ValueError, SunrigError) as exc:
+            except KeyError as exc:  # a short row: say which column, not KeyError's repr
+                raise SunrigError(f"{name} line {n}: no {exc.args[0]} column in this row "
+                                  f"(row {','.join(row)[:60]!r}); give every row time,lat,lon") from None
+            except (ValueError, SunrigError) as exc:
                 raise SunrigError(f"{name} line {n}: {exc} (row {','.join(row)[:60]!r})") from None
             lat.append(la)
             lon.append(lo)
@@ -939,8 +988,17 @@ def _output_flags(p: argparse.ArgumentParser, defaults: bool = True) -> None:
         p.add_argument("--jsonl", metavar="PATH|-", help="also write one JSON object per estimate here")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with its errors in one line like every other error here: the usage block it
+    prints first (5-12 lines) buried the line that says what is wrong. The subcommands' parsers
+    are of this class too (argparse makes them of the main parser's)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="sunrig", description="Estimate the sun direction from a camera rig's images and heading."
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")

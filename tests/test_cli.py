@@ -49,6 +49,23 @@ def test_replay_of_a_non_log_fails_with_one_line(bad_inputs, kind):
     assert res.stdout == ""
 
 
+def test_replay_of_a_log_none_of_whose_frames_can_be_read_fails(tmp_path, monkeypatch):
+    # Each corrupt image is skipped with a warning; a log of nothing else replayed "0 frames,
+    # 0 estimates" and exited 0, as if it had worked.
+    import replay.native
+
+    log = _write_log(tmp_path / "good.mcap")
+    res = run_cli("replay", str(log), "--jsonl", str(tmp_path / "good.jsonl"))
+    assert res.returncode == 0, res.stderr
+    monkeypatch.setattr(replay.native, "encode_image", lambda *a, **k: b"not an image message")
+    log = _write_log(tmp_path / "bad.mcap")
+    res = run_cli("replay", str(log), "--jsonl", str(tmp_path / "bad.jsonl"))
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"sunrig: error: {log}: no frame of it could be read (the warnings above say why); "
+        "replay another log, or re-record this one")
+
+
 def test_debug_shows_the_traceback(bad_inputs):
     res = run_cli("--debug", "replay", str(bad_inputs["random"]))
     assert res.returncode != 0 and "Traceback" in res.stderr
@@ -79,7 +96,27 @@ def test_eval_of_logs_with_no_window_to_grade_says_why(tmp_path):
                                 intrinsics=intr, sun_enu_truth=[0.6, 0.0, 0.8]))
     res = run_cli("eval", str(log), "--json", str(tmp_path / "e.json"))
     assert res.returncode == 2, res.stderr
-    assert "no full window with ground truth in these logs: 12 of the 12 frames have no heading" in res.stderr
+    assert res.stderr.startswith("sunrig: error: eval graded nothing: no full window with ground truth in these "
+                                 "logs (12 of the 12 frames have no heading); evaluate logs from `sunrig synth`")
+    # --quiet silences progress, not errors: it exited 2 with nothing said.
+    res = run_cli("eval", str(log), "--json", str(tmp_path / "e.json"), "--quiet")
+    assert res.returncode == 2 and res.stderr.startswith("sunrig: error: eval graded nothing"), res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_eval_of_logs_without_the_true_sun_says_so(tmp_path):
+    from replay.native import LogWriter
+
+    log = tmp_path / "no_truth.mcap"
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(3)
+    with LogWriter(log) as w:  # headings, but no true sun
+        for i in range(12):
+            w.write_frame(Frame(t_mono_s=0.2 * i, seq=i, image_bgr=rng.integers(0, 256, (80, 128, 3), np.uint8),
+                                intrinsics=intr, attitude=Attitude(math.radians(10.0 * i), HeadingRef.TRUE)))
+    res = run_cli("eval", str(log), "--json", str(tmp_path / "e.json"), "--aggregators", "mean")
+    assert res.returncode == 2, res.stderr
+    assert "no full window with ground truth in these logs (5 windows had no true sun)" in res.stderr
 
 
 def test_replay_without_model_says_pass_model(tmp_path, monkeypatch):
@@ -449,6 +486,14 @@ def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
     res = run_cli("gnss", str(capture), "--jsonl", str(capture))  # a GNSS capture file
     assert res.returncode == 2 and "is the input being read" in res.stderr, res.stderr
     assert capture.read_bytes() == nmea_before
+    # Two outputs on one path: the figure overwrote the JSON, and the run exited 0.
+    out = tmp_path / "out.png"
+    for args, flags in ((["eval", str(log), "--json", str(out), "--plot", str(out)], "--json and --plot"),
+                        (["run", "--camera", f"file:{log}", "--heading", "log", "--jsonl", str(out),
+                          "--record", str(tmp_path / "." / "out.png")], "--jsonl and --record")):
+        res = run_cli(*args)
+        assert res.returncode == 2 and f"{flags} are both" in res.stderr, (args, res.stderr)
+        assert not out.exists(), args
 
 
 def test_an_existing_recording_is_refused_in_the_words_of_the_command(tmp_path):
@@ -474,6 +519,10 @@ def test_an_existing_recording_is_refused_in_the_words_of_the_command(tmp_path):
         assert f"{keep} exists" in res.stderr and says in res.stderr, (args, res.stderr)
         assert keep.read_bytes() == b"yesterday's drive", args
 
+    # A path under a file: it said "a folder that does not exist (.../drive.mcap)", which does exist.
+    res = run_cli(*record, "--out", str(keep / "x.mcap"))
+    assert res.returncode == 2 and res.stderr.strip() == (
+        f"sunrig: error: --out {keep / 'x.mcap'} is in {keep}, which is a file, not a folder: pass another path")
     res = run_cli(*record, "--out", str(keep), "--overwrite", "--quiet")
     assert res.returncode == 0, res.stderr
     assert len(list(open_frames(keep))) == 3
@@ -532,7 +581,8 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
     for args, names in cases:
         res = run_cli(*args)
         assert res.returncode == 2 and "Traceback" not in res.stderr, (args, res.stderr)
-        last = res.stderr.strip().splitlines()[-1]
+        # One line: argparse's usage block before it (5-12 lines) buried it.
+        (last,) = res.stderr.strip().splitlines()
         # The refusal is for the bad value, not a usage error of another kind (also exit 2).
         assert "error:" in last and names in last and "unrecognized" not in last, (args, res.stderr)
         assert keep.read_bytes() == b"a recording worth keeping", args
@@ -700,3 +750,26 @@ def test_every_option_of_every_command_says_what_it_does():
               for name, sub in commands.items() for a in sub._actions
               if not a.help and not isinstance(a, argparse._HelpAction)]
     assert silent == []
+
+
+def test_the_source_summary_says_why_frames_had_no_heading():
+    # `run` printed only "no heading 52": a heading port sending bad checksums looked like a silent one.
+    from rig.cli import _source_summary
+
+    stats = {"camera": {"dropped": 0}, "pairing": {"before": 53, "gap": 0},
+             "gnss": {"sentences": 0, "bad_checksum": 57, "garbage_bytes": 0, "reopens": 1, "port": "/dev/ttyUSB0"}}
+    assert _source_summary(stats) == "heading before 53, heading port bad checksum 57, heading port reopens 1"
+    assert _source_summary({"log": {"frames_read": 40}}) == ""
+
+
+def test_gnss_on_sentences_that_all_fail_their_checksum_says_so(tmp_path, capsys):
+    # It said "no NMEA sentence ... check it is the GNSS device or a capture", of a capture whose
+    # sentences were there, only damaged.
+    from rig.cli import main
+
+    capture = tmp_path / "noisy.nmea"
+    capture.write_bytes(b"$GPHDT,33.0,T*00\r\n$GPHDT,34.0,T*00\r\n")
+    assert main(["gnss", str(capture), "--jsonl", str(tmp_path / "out.jsonl"), "--quiet"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"sunrig: error: gnss: every sentence from {capture} failed its checksum (2); "
+        "check the wiring and the --baud rate, or the capture's integrity")

@@ -322,12 +322,18 @@ def test_cli_sun_csv(capsys, tmp_path):
         (["--csv"], "time,lat,lon\n2020-01-01T00:00Z,-91,2\n", "line 2"),
         (["--csv"], "when,where\n2020-01-01T00:00Z,1\n", "header"),
         (["--csv"], "", "header"),
+        # These two were internal errors: UnicodeDecodeError, and a KeyError's repr for a short row.
+        (["--csv"], b"\xff\xfe\x00time,lat,lon\n", "not UTF-8 text (byte 0); save it as UTF-8 CSV"),
+        (["--csv"], "time,lat,lon\n2020-01-01T00:00Z,1\n", "line 2: no lon column in this row"),
     ],
 )
 def test_cli_sun_bad_input_one_line_exit_2(capsys, tmp_path, args, csv_text, needle):
     if csv_text is not None:
         path = tmp_path / "bad.csv"
-        path.write_text(csv_text)
+        if isinstance(csv_text, bytes):
+            path.write_bytes(csv_text)
+        else:
+            path.write_text(csv_text)
         args = [*args, str(path)]
     rc, stdout, err = _sun(capsys, *args)
     assert rc == 2
