@@ -1005,7 +1005,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     # --debug after the subcommand too (`sunrig replay X --debug`), where people add it when an
     # error says "rerun with --debug"; SUPPRESS keeps a subcommand from resetting the main flag.
-    debug = argparse.ArgumentParser(add_help=False)
+    debug = _Parser(add_help=False)
     debug.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
     p = sub.add_parser("replay", parents=[debug], help="run a recorded log through the estimator")
