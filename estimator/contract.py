@@ -53,6 +53,13 @@ AGG_OUTPUT = "sun_heading"  # [B, T, 3] float32: per-token sun vector in its hea
 # KITTI's image_02 (fx = 721.5377) cropped at 224 px native: the paper's angular coverage per crop.
 PAPER_CROP_FOV_DEG = math.degrees(2.0 * math.atan(112.0 / 721.5377))
 PAPER_CROPS_PER_FRAME = 4  # 32 crops from 8 frames (paper Sec. 4)
+# Upper bounds of a contract's sizes, far above any model made here (the shipped one runs 8 crops a
+# frame, 8 frames, 96 px crops): a damaged or hand-edited contract asking for 100 000 crops a frame
+# ran the runtime out of memory (killed, no message) instead of being refused.
+MAX_CROPS_PER_FRAME = 256
+MAX_FRAMES_PER_WINDOW = 64
+MAX_CROP_SIZE_PX = 1024
+MAX_EMBEDDING_DIM = 8192
 YAW_INPUT = "relative-to-newest-frame"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -125,10 +132,11 @@ class ModelContract:
 
     def __post_init__(self) -> None:
         problems = []
-        for name in ("crop_size_px", "embedding_dim", "crops_per_frame", "frames_per_window"):
+        for name, most in (("crop_size_px", MAX_CROP_SIZE_PX), ("embedding_dim", MAX_EMBEDDING_DIM),
+                           ("crops_per_frame", MAX_CROPS_PER_FRAME), ("frames_per_window", MAX_FRAMES_PER_WINDOW)):
             v = getattr(self, name)
-            if not isinstance(v, int) or v <= 0:
-                problems.append(f"{name}: expected a positive integer, got {v!r}")
+            if not _is_int(v) or not 0 < v <= most:  # JSON's true is not 1 frame
+                problems.append(f"{name}: expected an integer from 1 to {most}, got {v!r}")
         if not isinstance(self.mirror_windows, bool):
             problems.append(f"mirror_windows: expected true or false, got {self.mirror_windows!r}")
         fovs = self.crop_fov_deg
@@ -141,25 +149,18 @@ class ModelContract:
             problems.append(f"crop_fov_deg: expected an angle or a list of angles within (0, 180) deg, got {fovs!r}")
         if self.version != CONTRACT_VERSION:
             problems.append(f"version: this runtime reads contract version {CONTRACT_VERSION}, got {self.version!r}")
-        enc = self.encoding
-        for key in ("alpha", "base", "depth_per_angle"):
-            if key not in enc:
-                problems.append(f"encoding.{key}: missing")
-        if enc.get("kind") != "cyclic-nested-sine":
-            problems.append(f"encoding.kind: expected 'cyclic-nested-sine', got {enc.get('kind')!r}")
-        if enc.get("yaw_input") != YAW_INPUT:
-            problems.append(f"encoding.yaw_input: this runtime feeds {YAW_INPUT!r}, got {enc.get('yaw_input')!r}")
-        depth = enc.get("depth_per_angle")
-        if isinstance(depth, int) and depth % 2:
-            problems.append(f"encoding.depth_per_angle: expected an even number, got {depth}")
-        norm = self.input_norm
-        if norm.get("color_order") not in ("RGB", "BGR"):
-            problems.append(f"input_norm.color_order: expected 'RGB' or 'BGR', got {norm.get('color_order')!r}")
-        for key in ("mean", "std"):
-            if len(norm.get(key, ())) != 3:
-                problems.append(f"input_norm.{key}: expected 3 values, got {norm.get(key)!r}")
+        # The nested parts are read with .get() and [] everywhere: one that is not an object, or a
+        # value of the wrong type in it, was an AttributeError or a KeyError at load, not this error.
+        for name in ("encoding", "input_norm", "architecture", "training"):
+            if not isinstance(getattr(self, name), dict):
+                problems.append(f"{name}: expected a JSON object, got {getattr(self, name)!r}")
+        if isinstance(self.encoding, dict):
+            problems += _encoding_problems(self.encoding)
+        if isinstance(self.input_norm, dict):
+            problems += _input_norm_problems(self.input_norm)
         if problems:
-            raise ContractMismatch("invalid model contract: " + "; ".join(problems))
+            raise ContractMismatch("invalid model contract: " + "; ".join(problems)
+                                   + "; re-export the model from its training run, or pass another --model")
 
     @property
     def crop_fovs_deg(self) -> tuple[float, ...]:
@@ -242,6 +243,48 @@ def input_affine(input_norm: dict[str, Any]) -> tuple[bool, list[float], list[fl
     gain = [scale / s for s in std]
     offset = [-m / s for m, s in zip(mean, std, strict=True)]
     return swap, gain, offset
+
+
+def _encoding_problems(enc: dict[str, Any]) -> list[str]:
+    problems = [f"encoding.{key}: missing" for key in ("alpha", "base", "depth_per_angle") if key not in enc]
+    for key in ("alpha", "base"):
+        if key in enc and not _is_positive_number(enc[key]):
+            problems.append(f"encoding.{key}: expected a finite number > 0, got {enc[key]!r}")
+    depth = enc.get("depth_per_angle")
+    if "depth_per_angle" in enc and not (
+            isinstance(depth, int) and not isinstance(depth, bool) and depth > 0 and depth % 2 == 0):
+        problems.append(f"encoding.depth_per_angle: expected an even number > 0, got {depth!r}")
+    if enc.get("kind") != "cyclic-nested-sine":
+        problems.append(f"encoding.kind: expected 'cyclic-nested-sine', got {enc.get('kind')!r}")
+    if enc.get("yaw_input") != YAW_INPUT:
+        problems.append(f"encoding.yaw_input: this runtime feeds {YAW_INPUT!r}, got {enc.get('yaw_input')!r}")
+    return problems
+
+
+def _input_norm_problems(norm: dict[str, Any]) -> list[str]:
+    problems = []
+    if norm.get("color_order") not in ("RGB", "BGR"):
+        problems.append(f"input_norm.color_order: expected 'RGB' or 'BGR', got {norm.get('color_order')!r}")
+    if not _is_positive_number(norm.get("scale")):
+        problems.append(f"input_norm.scale: expected a finite number > 0, got {norm.get('scale')!r}")
+    mean, std = norm.get("mean"), norm.get("std")
+    if not (isinstance(mean, list | tuple) and len(mean) == 3 and all(_is_number(m) for m in mean)):
+        problems.append(f"input_norm.mean: expected 3 finite numbers, got {mean!r}")
+    if not (isinstance(std, list | tuple) and len(std) == 3 and all(_is_positive_number(v) for v in std)):
+        problems.append(f"input_norm.std: expected 3 finite numbers > 0, got {std!r}")  # each divides
+    return problems
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _is_positive_number(v: Any) -> bool:
+    return _is_number(v) and v > 0
 
 
 def _elevation_range(rng: Any) -> tuple[float, float] | None:

@@ -547,3 +547,32 @@ def test_an_encoding_missing_a_parameter_is_refused_by_name():
         encoding = {k: v for k, v in CONTRACT.encoding.items() if k != key}
         with pytest.raises(ContractMismatch, match=f"encoding.{key}: missing"):
             ModelContract(crop_size_px=64, embedding_dim=32, encoding=encoding)
+
+
+@pytest.mark.parametrize(("changes", "says"), [
+    # Each was an AttributeError, KeyError, ValueError or ZeroDivisionError at load or at the first
+    # window (an internal error), or (the sizes) ran the runtime out of memory without a word.
+    ({"training": None}, "training: expected a JSON object, got None"),
+    ({"training": [1]}, "training: expected a JSON object, got [1]"),
+    ({"encoding": []}, "encoding: expected a JSON object, got []"),
+    ({"input_norm": None}, "input_norm: expected a JSON object, got None"),
+    ({"input_norm": {**CONTRACT.input_norm, "scale": "x"}}, "input_norm.scale: expected a finite number > 0, got 'x'"),
+    ({"input_norm": {k: v for k, v in CONTRACT.input_norm.items() if k != "scale"}},
+     "input_norm.scale: expected a finite number > 0, got None"),
+    ({"input_norm": {**CONTRACT.input_norm, "mean": ["a", "b", "c"]}},
+     "input_norm.mean: expected 3 finite numbers, got ['a', 'b', 'c']"),
+    ({"input_norm": {**CONTRACT.input_norm, "std": [0, 0, 0]}}, "input_norm.std: expected 3 finite numbers > 0"),
+    ({"encoding": {**CONTRACT.encoding, "depth_per_angle": "x"}},
+     "encoding.depth_per_angle: expected an even number > 0, got 'x'"),
+    ({"encoding": {**CONTRACT.encoding, "alpha": float("nan")}}, "encoding.alpha: expected a finite number > 0"),
+    ({"crops_per_frame": 100_000}, "crops_per_frame: expected an integer from 1 to 256, got 100000"),
+    ({"frames_per_window": True}, "frames_per_window: expected an integer from 1 to 64, got True"),
+])
+def test_a_contract_with_a_part_of_the_wrong_type_is_refused_by_name(changes, says):
+    with pytest.raises(ContractMismatch) as info:
+        ModelContract(**{**dataclasses.asdict(CONTRACT), **changes})
+    assert says in str(info.value)
+    assert str(info.value).endswith("; re-export the model from its training run, or pass another --model")
+    # Read from a model's metadata, the same refusal names the file (a one-line error at the CLI).
+    with pytest.raises(ContractMismatch, match=r"^backbone.onnx: invalid model contract: "):
+        ModelContract.from_json(json.dumps({**dataclasses.asdict(CONTRACT), **changes}), where="backbone.onnx")
