@@ -76,7 +76,12 @@ def export_model(
     """
     _check_against_contract(backbone, aggregator, contract)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():  # mkdir's FileExistsError was an internal error
+        raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path to export to")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a parent that is a file, or no permission
+        raise ValidationError(f"cannot make the model folder {out}: {exc.strerror}; pass another path") from None
     s = contract.crop_size_px
     gen = torch.Generator().manual_seed(0)
     crops = torch.randn(_EXAMPLE_N, 3, s, s, generator=gen)

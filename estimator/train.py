@@ -43,6 +43,8 @@ import os
 import shlex
 import sys
 import time
+import zipfile
+import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -54,6 +56,7 @@ import numpy as np
 from estimator.calibration import mirrored_angles, mirrored_enu
 from estimator.contract import (
     CHECKPOINT,
+    MAX_CROPS_PER_FRAME,
     PAPER_CROP_FOV_DEG,
     PAPER_CROPS_PER_FRAME,
     format_fovs_deg,
@@ -481,6 +484,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if cfg.crops_per_frame < 0 or cfg.batch_windows < 1:
         raise ValidationError(f"crops per frame and windows per step: expected at least 1 each "
                               f"(crops 0: the run's or the paper's), got {cfg.crops_per_frame} and {cfg.batch_windows}")
+    if cfg.crops_per_frame > MAX_CROPS_PER_FRAME:  # 10^6 asked numpy for 137 GiB mid-load
+        raise ValidationError(f"crops per frame: expected at most {MAX_CROPS_PER_FRAME} (a model's contract allows no "
+                              f"more), got {cfg.crops_per_frame}")
     net_cfg = net_config(cfg)
     out_dir = Path(out_dir)
     ckpt_path = out_dir / CHECKPOINT
@@ -823,6 +829,9 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
     from estimator.runtime import OnnxModel
 
     path = Path(model_dir) / WEIGHTS
+    if Path(model_dir).exists() and not Path(model_dir).is_dir():
+        raise ValidationError(f"--init {model_dir} is a file, not a model folder; pass a model folder written by "
+                              "`sunrig train`, e.g. the shipped model's")
     if not Path(model_dir).is_dir():
         raise ValidationError(f"--init {model_dir} does not exist; pass a model folder written by `sunrig train`, "
                               "e.g. the shipped model's")
@@ -844,6 +853,10 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
             which += " without --layers"  # the start has its preset's depth
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
                               f"pass {which}")
+    # Loaded into networks of its architecture now, not after minutes of loading data: weights.npz
+    # is not in SHA256SUMS (the runtime never reads it), so damage shows only here.
+    backbone, aggregator = net_cfg.build(seed=0)
+    _load_npz(path, backbone, aggregator)
     return path, start
 
 
@@ -853,11 +866,18 @@ def load_weights(model_dir: Path, net_cfg: nets.NetConfig, backbone: Any, aggreg
 
 
 def _load_npz(path: Path, backbone: Any, aggregator: Any) -> None:
-    with np.load(path, allow_pickle=False) as z:
-        for part, module in (("backbone", backbone), ("aggregator", aggregator)):
-            own = module.state_dict()
-            state = {k: torch.from_numpy(z[f"{part}/{k}"].astype(own[k].numpy().dtype)) for k in own}
-            module.load_state_dict(state)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            for part, module in (("backbone", backbone), ("aggregator", aggregator)):
+                own = module.state_dict()
+                state = {k: torch.from_numpy(z[f"{part}/{k}"].astype(own[k].numpy().dtype)) for k in own}
+                module.load_state_dict(state)
+    # What numpy, zipfile, zlib and torch raise for a damaged, foreign or mismatched archive (zlib's
+    # and zipfile's errors are Exceptions of their own; a wrong key is a KeyError, a wrong shape a
+    # RuntimeError): an internal error before, though the fix is the user's.
+    except (OSError, ValueError, KeyError, RuntimeError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise ValidationError(f"{path} cannot be loaded ({type(exc).__name__}: {exc}); re-export the model from its "
+                              "training run, or pass another --init") from None
 
 
 def _init_provenance(model_dir: Path, start: Any = None) -> dict[str, Any]:
@@ -900,8 +920,9 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     (the contract's ``training.data.source``). It needs ``log_paths``, so that the note is
     attached to the logs the run trained on, and it cannot rename data a run has recorded.
     """
-    if run_crops_per_frame < 0:
-        raise ValidationError(f"crops per frame: expected at least 1 (0: as trained), got {run_crops_per_frame}")
+    if not 0 <= run_crops_per_frame <= MAX_CROPS_PER_FRAME:
+        raise ValidationError(f"crops per frame: expected 1 to {MAX_CROPS_PER_FRAME} (0: as trained), "
+                              f"got {run_crops_per_frame}")
     path = Path(checkpoint_dir) / CHECKPOINT
     if not path.is_file():
         raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")

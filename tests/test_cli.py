@@ -5,6 +5,7 @@ import math
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -465,8 +466,6 @@ def test_gnss_stopped_while_its_output_opens_ends_with_the_summary(tmp_path, mon
 
 
 def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
-    import shutil
-
     from replay.sources import DEMO_LOG
     from tests.test_gnss_nmea import nmea
 
@@ -577,6 +576,9 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
         (["synth", str(tmp_path / "s"), "--frames", "9" * 400], "argument --frames"),
         (["run", "--camera", f"file:{DEMO_LOG}", "--baud", "9" * 400], "argument --baud"),
         (["synth", str(tmp_path / "s"), "--fps", "1e-300"], "argument --fps"),
+        # numpy was asked for 137 GiB of crops after the data had loaded
+        (["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--crops", "1000000"],
+         "crops per frame: expected at most 256"),
     )
     for args, names in cases:
         res = run_cli(*args)
@@ -626,13 +628,26 @@ def test_config_print_merges_file_and_flags(tmp_path):
 
 @pytest.mark.torch
 def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
+    from estimator.models import DEFAULT_MODEL_DIR
     from replay.sources import DEMO_LOG
 
-    for init, needle in ((tmp_path, "no weights.npz"), (tmp_path / "gone", "gone does not exist"),
-                         ("shipped", "; pass --preset fast")):  # the shipped model's preset, by name
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("not a model")
+    # The shipped model with its weights damaged (they are not in SHA256SUMS: the runtime never
+    # reads them): a zlib error from deep in training, after the data had loaded.
+    damaged = tmp_path / "damaged"
+    shutil.copytree(DEFAULT_MODEL_DIR, damaged)
+    weights = bytearray((damaged / "weights.npz").read_bytes())
+    weights[len(weights) // 2: len(weights) // 2 + 64] = bytes(64)
+    (damaged / "weights.npz").write_bytes(bytes(weights))
+    for init, preset, needle in ((tmp_path, "tiny", "no weights.npz"),
+                                 (tmp_path / "gone", "tiny", "gone does not exist"),
+                                 (a_file, "tiny", "notes.txt is a file, not a model folder"),
+                                 (damaged, "fast", "damaged/weights.npz cannot be loaded"),
+                                 ("shipped", "tiny", "; pass --preset fast")):  # the shipped model's preset, by name
         # The word `shipped` is the installed model, the fast preset: --init it into a tiny run is
         # refused by name (so the word reached that model, not a folder of that name).
-        args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--steps", "1", "--quiet"]
+        args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", preset, "--steps", "1", "--quiet"]
         res = run_cli(*args, "--init", str(init))
         assert res.returncode == 2, res.stderr
         lines = res.stderr.strip().splitlines()

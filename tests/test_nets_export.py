@@ -219,6 +219,17 @@ def test_export_refuses_modules_that_do_not_fit_the_contract(engines, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_export_to_a_path_that_is_a_file_is_refused_in_one_line(engines, tmp_path):
+    # `train --export-only FILE`: mkdir's FileExistsError was an internal error.
+    afile = tmp_path / "model"
+    afile.write_bytes(b"kept")
+    with pytest.raises(ValidationError, match="model is a file; a model is a folder"):
+        export_model(engines.backbone, engines.aggregator, engines.model.contract, afile)
+    with pytest.raises(ValidationError, match=r"cannot make the model folder .*model/sub: Not a directory"):
+        export_model(engines.backbone, engines.aggregator, engines.model.contract, afile / "sub")
+    assert afile.read_bytes() == b"kept"
+
+
 def test_dropout_is_active_in_training_only():
     torch.manual_seed(0)
     agg = Aggregator(16, width=24, layers=1, heads=2, mlp=32, dropout=0.5)
