@@ -19,6 +19,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any, Generic, Protocol, TypeVar, runtime_checkable
@@ -125,6 +126,11 @@ _CLOSE_DRAIN_S = 0.5
 _WAIT_FOR_WRITER_MIN_S = 1.0
 
 
+# How many of the newest messages' sizes are kept for that: a UART buffer of 4 KiB holds about
+# 60 NMEA sentences of ~70 bytes.
+_WRITTEN_SIZES_KEPT = 1024
+
+
 def _unsent_bytes(port: serial.Serial) -> int:
     """Bytes the port holds unsent (TIOCOUTQ); 0 where it cannot say (socket://, loop://)."""
     try:
@@ -161,7 +167,8 @@ class SerialPublisher:
 
     Drop policy: one-slot mailbox, newest wins. A message overwritten before the writer took it
     counts in ``dropped_overwritten``; one whose write timed out in ``dropped_write_timeout``;
-    one whose write failed in ``write_errors``. After a timeout or an error the writer closes the
+    one whose write failed in ``write_errors``; one written but then discarded unsent from the
+    port's buffer (a close after a stall) in ``dropped_unsent``. After a timeout or an error the writer closes the
     port and reopens it after a backoff that doubles from ``backoff_s[0]`` to ``backoff_s[1]``:
     from the URL when it was given one, else with ``port.open()``.
 
@@ -215,8 +222,12 @@ class SerialPublisher:
         self._resync = False
         self._last_error: str | None = None
         self._counts = dict.fromkeys(
-            ("published", "written", "dropped_overwritten", "dropped_write_timeout", "write_errors", "reopens"), 0
+            ("published", "written", "dropped_overwritten", "dropped_write_timeout", "dropped_unsent", "write_errors",
+             "reopens"), 0
         )
+        # The sizes of the newest messages written, newest last: when the port's unsent bytes are
+        # discarded (a close after a stall), the messages they held move from written to dropped_unsent.
+        self._written_sizes: deque[int] = deque(maxlen=_WRITTEN_SIZES_KEPT)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sunrig-serial {self._name}", daemon=True)
         self._thread.start()
@@ -244,7 +255,7 @@ class SerialPublisher:
                 or not self._thread.is_alive())
 
     def stats(self) -> dict[str, Any]:
-        """Counters and state. ``published`` = ``written`` + the three kinds of drop + ``pending``
+        """Counters and state. ``published`` = ``written`` + the four kinds of drop + ``pending``
         + ``in_flight``: every message is accounted for."""
         with self._cond:
             out: dict[str, Any] = dict(self._counts)
@@ -338,6 +349,8 @@ class SerialPublisher:
         with self._cond:
             self._counts[outcome] += 1
             self._in_flight = False
+            if outcome == "written":
+                self._written_sizes.append(len(data))
             if error is not None:
                 self._last_error = error
         if outcome == "written":
@@ -385,8 +398,12 @@ class SerialPublisher:
             deadline = time.monotonic() + drain_s
             while _unsent_bytes(port) and time.monotonic() < deadline:
                 time.sleep(_FULL_BUFFER_POLL_S)
-            if drain_s == 0 or _unsent_bytes(port):
+            # Only bytes the port says it holds, and counted: a flush where it cannot say (a pty
+            # reports 0) discarded sentences its reader had not read yet, still counted as written.
+            unsent = _unsent_bytes(port)
+            if unsent:
                 port.reset_output_buffer()
+                self._count_discarded(unsent)
         except PORT_ERRORS:
             pass
         try:
@@ -396,6 +413,15 @@ class SerialPublisher:
         self._resync = True
         with self._cond:
             self._cond.notify_all()  # a publish() waiting for the writer: the link is down
+
+    def _count_discarded(self, unsent_bytes: int) -> None:
+        """Move the newest written messages that ``unsent_bytes`` held (a partly sent one too: its
+        reader gets half a sentence) from ``written`` to ``dropped_unsent``."""
+        with self._cond:
+            while unsent_bytes > 0 and self._written_sizes:
+                unsent_bytes -= self._written_sizes.pop()
+                self._counts["written"] -= 1
+                self._counts["dropped_unsent"] += 1
 
     def _reopen(self) -> bool:
         """Open the port again: a fresh one from the URL, else the given object. False if not yet."""
