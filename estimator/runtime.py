@@ -283,6 +283,9 @@ def _float32(name: str, value: Any) -> np.ndarray:
 def _check_checksums(root: Path, digests: Mapping[str, str]) -> None:
     """Compare the graphs with the folder's SHA256SUMS, when it has one (an export writes it)."""
     path = root / CHECKSUMS_FILE
+    if path.exists() and not path.is_file():  # a folder of that name: not a sums file to skip quietly
+        raise ModelError(f"{path} is not a file; copy the model folder again, re-export it, or remove "
+                         f"{CHECKSUMS_FILE} to load it unchecked")
     if not path.is_file():
         return
     try:

@@ -332,6 +332,9 @@ def test_a_graph_damaged_in_a_copy_is_refused_by_its_checksum(tiny_model_dir, tm
     (folder / CHECKSUMS_FILE).write_text("".join(line + "\n" for line in sums.splitlines() if "backbone" in line))
     assert "no checksum for aggregator.onnx" in refusal(ModelError, folder)
     (folder / CHECKSUMS_FILE).unlink()
+    (folder / CHECKSUMS_FILE).mkdir()  # it loaded unchecked, as if there were no sums
+    assert "SHA256SUMS is not a file" in refusal(ModelError, folder)
+    (folder / CHECKSUMS_FILE).rmdir()
     OnnxModel.load(folder)  # a folder without sums (older, or hand-made) is not checked
     # sha256sum's own ways of naming the files (`sha256sum ./*.onnx`, binary mode) are read.
     intact = copy_model(tiny_model_dir, tmp_path / "intact")
