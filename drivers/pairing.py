@@ -59,8 +59,9 @@ class HeadingInterpolator:
     """Headings at frame times from a sequence of :class:`HeadingSample` (oldest first).
 
     ``max_gap_s``: the two samples around a frame may be at most this far apart.
-    ``max_age_s``: how long after a frame the sample following it may arrive; older frames
-    without one are stale. ``latency_s``: subtracted from every sample time.
+    ``max_age_s``: how long after a frame the sample following it may arrive, beyond the
+    latency; older frames without one are stale. ``latency_s``: subtracted from every sample time
+    (and so from the time a frame has waited).
     ``counts``: how many lookups ended in each status of :data:`FINAL` (``count=False`` lookups
     and pending ones are not counted).
     """
@@ -103,7 +104,9 @@ class HeadingInterpolator:
             # After the newest sample: wait for the next one while it can still arrive in time.
             if now_s is None:
                 return Lookup(None, "after")
-            if now_s - t > self.max_age_s:
+            # On the compass's clock, as the gap below: its sample after t arrives latency_s late by
+            # nature, so a 1 Hz compass with 1 s latency left a third of the frames stale at 1.5 s.
+            if (now_s - self.latency_s) - t > self.max_age_s:
                 return Lookup(None, "stale")
             if (now_s - self.latency_s) - times[-1] > self.max_gap_s:
                 return Lookup(None, "gap")  # whatever comes next is too far from the newest

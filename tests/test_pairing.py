@@ -97,6 +97,17 @@ def test_stale_while_live():
     assert HeadingInterpolator(max_gap_s=1.0, max_age_s=5.0).lookup(samples, 11.2, now_s=12.1).status == "gap"
 
 
+def test_the_wait_for_a_late_compass_counts_from_its_own_clock():
+    # A 1 Hz compass 1 s late: the sample after a frame at 11.2 (its 12.0) arrives at 13.0. The
+    # wait was counted on the host's clock, so at the default 1.5 s the frame went stale at 12.7,
+    # a third of all frames (196 of 599 in the review's simulation).
+    interp = HeadingInterpolator(max_gap_s=1.5, max_age_s=1.5, latency_s=1.0)
+    arrived = [sample(11.0, 0.0), sample(12.0, 10.0)]  # stamped on arrival: the compass's 10.0 and 11.0
+    assert interp.lookup(arrived, 11.2, now_s=12.9).status == "pending"
+    assert interp.lookup([*arrived, sample(13.0, 20.0)], 11.2, now_s=13.0).attitude is not None
+    assert interp.lookup(arrived, 11.2, now_s=13.8).status == "stale"  # 1.5 s past its time on the compass's clock
+
+
 def test_mixed_references_are_not_interpolated():
     interp = HeadingInterpolator()
     samples = [sample(0.0, 10.0, HeadingRef.TRUE), sample(1.0, 12.0, HeadingRef.MAGNETIC)]
