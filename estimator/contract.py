@@ -61,6 +61,9 @@ MAX_FRAMES_PER_WINDOW = 64
 MAX_CROP_SIZE_PX = 1024
 MAX_EMBEDDING_DIM = 8192
 YAW_INPUT = "relative-to-newest-frame"
+# What to do about an invalid contract. `sunrig train --init` names its own flag in its place
+# (estimator.train._checked_init): train has no --model.
+CONTRACT_REMEDY = "re-export the model from its training run, or pass another --model"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -159,8 +162,7 @@ class ModelContract:
         if isinstance(self.input_norm, dict):
             problems += _input_norm_problems(self.input_norm)
         if problems:
-            raise ContractMismatch("invalid model contract: " + "; ".join(problems)
-                                   + "; re-export the model from its training run, or pass another --model")
+            raise ContractMismatch("invalid model contract: " + "; ".join(problems) + "; " + CONTRACT_REMEDY)
 
     @property
     def crop_fovs_deg(self) -> tuple[float, ...]:

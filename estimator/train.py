@@ -56,6 +56,7 @@ import numpy as np
 from estimator.calibration import mirrored_angles, mirrored_enu
 from estimator.contract import (
     CHECKPOINT,
+    CONTRACT_REMEDY,
     MAX_CROPS_PER_FRAME,
     PAPER_CROP_FOV_DEG,
     PAPER_CROPS_PER_FRAME,
@@ -66,7 +67,7 @@ from estimator.contract import (
 )
 from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig
-from rig.errors import SunrigError, ValidationError, require_torch
+from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.types import Frame, HeadingRef
 from rig.window import SpreadWindowPolicy
@@ -838,7 +839,11 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
     if not path.is_file():
         raise ValidationError(f"--init {model_dir}: no {WEIGHTS} there; pass a model folder written by `sunrig train` "
                               "(the shipped model has one)")
-    start = OnnxModel.load(model_dir)
+    try:
+        start = OnnxModel.load(model_dir)
+    except ContractMismatch as exc:  # its remedy named --model, which train does not have
+        own = CONTRACT_REMEDY.replace("--model", "--init")
+        raise ContractMismatch(str(exc).replace(CONTRACT_REMEDY, own)) from None
     contract = start.contract
     arch = contract.architecture
     if arch != net_cfg.architecture():
@@ -876,7 +881,10 @@ def _load_npz(path: Path, backbone: Any, aggregator: Any) -> None:
     # and zipfile's errors are Exceptions of their own; a wrong key is a KeyError, a wrong shape a
     # RuntimeError): an internal error before, though the fix is the user's.
     except (OSError, ValueError, KeyError, RuntimeError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise ValidationError(f"{path} cannot be loaded ({type(exc).__name__}: {exc}); re-export the model from its "
+        # numpy calls a file that is no archive "pickled" and advises allow_pickle: not advice to pass on.
+        why = ("not an archive of arrays" if isinstance(exc, ValueError) and "pickle" in str(exc)
+               else f"{type(exc).__name__}: {exc}")
+        raise ValidationError(f"{path} cannot be loaded ({why}); re-export the model from its "
                               "training run, or pass another --init") from None
 
 

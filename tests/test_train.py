@@ -509,6 +509,48 @@ def test_init_starts_a_new_run_from_a_model_folders_weights(logs, tmp_path):
         load_weights(tmp_path, nets.TINY, backbone, aggregator)
 
 
+def test_an_init_model_with_an_invalid_contract_is_refused_with_trains_own_flag(tiny_model_dir, tmp_path):
+    import json
+
+    import onnx
+
+    from estimator import nets
+    from estimator.contract import AGGREGATOR_FILE, BACKBONE_FILE
+    from estimator.train import check_init
+    from rig.errors import ContractMismatch
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    (folder / "weights.npz").write_bytes(b"")  # the contract is refused before the weights are read
+    for name in (BACKBONE_FILE, AGGREGATOR_FILE):
+        graph = onnx.load(str(tiny_model_dir / name))
+        for prop in graph.metadata_props:
+            if prop.key == "sunrig.contract":
+                prop.value = json.dumps({**json.loads(prop.value), "training": None})
+        onnx.save(graph, str(folder / name))
+    # (No SHA256SUMS: loaded unchecked, as a hand-edited model is.)
+    with pytest.raises(ContractMismatch) as info:
+        check_init(folder, nets.TINY)
+    # The contract's own remedy names replay's --model; `sunrig train` has no such flag.
+    assert "training: expected a JSON object, got None" in str(info.value)
+    assert str(info.value).endswith("or pass another --init"), str(info.value)
+
+
+def test_an_init_whose_weights_are_no_archive_is_refused_without_numpys_pickle_advice(tiny_model_dir, tmp_path):
+    import shutil
+
+    from estimator import nets
+    from estimator.train import check_init
+    from rig.errors import ValidationError
+
+    folder = shutil.copytree(tiny_model_dir, tmp_path / "m")
+    (folder / "weights.npz").write_bytes(b"not a zip archive at all")
+    with pytest.raises(ValidationError) as info:
+        check_init(folder, nets.TINY)
+    assert "weights.npz cannot be loaded (not an archive of arrays); re-export" in str(info.value)
+    assert "allow_pickle" not in str(info.value)  # numpy's advice to load it unsafely
+
+
 @pytest.mark.parametrize("extra_load, warned", [(3.0, True), (0.0, False)])
 def test_a_minutes_budget_on_a_shared_cpu_is_warned_about(logs, tmp_path, monkeypatch, caplog, extra_load, warned):
     import os
