@@ -128,8 +128,8 @@ class RigStats:
 
 
 def publisher_losses(stats: Iterable[dict]) -> tuple[int, int]:
-    """Estimates the publishers dropped (``dropped``, ``dropped_overwritten``, ``dropped_write_timeout``:
-    a slow or stalled link) and failed to write (``write_errors``, ``errors``: a broken one), summed
+    """Estimates the publishers dropped (``dropped``, ``dropped_overwritten``, ``dropped_write_timeout``,
+    ``dropped_unsent``: a slow or stalled link) and failed to write (``write_errors``, ``errors``: a broken one), summed
     over their ``stats()``: a serial link that goes down must show in the status line."""
     drops = errors = 0
     for s in stats:

@@ -228,6 +228,9 @@ class SerialPublisher:
         # The sizes of the newest messages written, newest last: when the port's unsent bytes are
         # discarded (a close after a stall), the messages they held move from written to dropped_unsent.
         self._written_sizes: deque[int] = deque(maxlen=_WRITTEN_SIZES_KEPT)
+        # The bytes of a message whose write timed out or failed that went into the port's buffer
+        # anyway: the newest unsent bytes, but that message is already counted as dropped.
+        self._cut_bytes = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sunrig-serial {self._name}", daemon=True)
         self._thread.start()
@@ -334,6 +337,7 @@ class SerialPublisher:
         """Write one message; on a timeout or an error count the drop and close the port."""
         data = _RESYNC_PREFIX[self._format] + message if self._resync else message
         outcome, error = "written", None
+        self._cut_bytes = 0  # _write_fd counts them; pyserial's own write() cannot say how many went
         try:
             fd = _plain_posix_fd(self._port)
             if fd is not None:
@@ -374,6 +378,7 @@ class SerialPublisher:
         while view:
             try:
                 view = view[os.write(fd, view) :]
+                self._cut_bytes = len(data) - len(view) if view else 0
                 continue
             except (BlockingIOError, InterruptedError):
                 pass
@@ -403,9 +408,10 @@ class SerialPublisher:
             unsent = _unsent_bytes(port)
             if unsent:
                 port.reset_output_buffer()
-                self._count_discarded(unsent)
+                self._count_discarded(unsent - self._cut_bytes)
         except PORT_ERRORS:
             pass
+        self._cut_bytes = 0
         try:
             port.close()
         except PORT_ERRORS:

@@ -13,6 +13,7 @@ import json
 import logging
 import math
 import os
+import re
 import socket
 import threading
 import time
@@ -373,6 +374,84 @@ def test_a_normal_close_lets_the_uart_send_what_it_holds_and_discards_only_what_
     stats = pub.stats()
     assert (stats["written"], stats["dropped_unsent"]) == (1 - flushed, flushed)
     assert accounted(stats) == stats["published"] == 1
+
+
+class HeldLinePort(serial.Serial):
+    """A real pyserial port on the test's pty, written by the publisher through its fd as a UART
+    is, but whose reader holds the line (flow control): nothing is sent until the test calls
+    ``send()``. ``out_waiting`` (a UART's TIOCOUTQ; a pty reports 0) takes what the kernel holds
+    into ``held`` and reports it, and ``reset_output_buffer()`` discards that (one item of
+    ``discarded`` per flush)."""
+
+    def __init__(self, master: int, name: str) -> None:
+        self.master, self.held, self.discarded = master, bytearray(), list[bytes]()
+        super().__init__(name)
+
+    def _take_from_kernel(self) -> None:
+        import select
+
+        while select.select([self.master], [], [], 0.01)[0]:
+            try:
+                self.held += os.read(self.master, 65536)
+            except OSError:  # EIO while the publisher has the slave closed: nothing is queued
+                return
+
+    @property
+    def out_waiting(self) -> int:
+        self._take_from_kernel()
+        return len(self.held)
+
+    def reset_output_buffer(self) -> None:
+        self.discarded.append(bytes(self.held))
+        self.held.clear()
+        super().reset_output_buffer()
+
+    def send(self) -> bytes:
+        """Let the line go: what the reader gets."""
+        self._take_from_kernel()
+        sent, self.held = bytes(self.held), bytearray()
+        return sent
+
+
+def whole_sentences(data: bytes) -> int:
+    """Sentences from '$' to '*HH' CR LF in ``data`` (not a head cut off, nor a resync CR LF)."""
+    return len(re.findall(rb"\$[^$\r\n]*\*[0-9A-F]{2}\r\n", data))
+
+
+def test_a_uart_flush_moves_the_messages_it_discarded_from_written_and_no_others(pty):
+    """After a write timeout the messages still in a UART's buffer are discarded and move from
+    written to dropped_unsent. The timed-out message, already counted as dropped, may have put its
+    head there too: those bytes used to be charged to the newest written message, so a sentence
+    the reader got was counted as dropped."""
+    port = HeldLinePort(pty.master, pty.name)
+    pub = SerialPublisher(port, format="nmea", write_timeout_s=0.05, backoff_s=(0.01, 0.1))
+    rng = np.random.default_rng(7)
+    try:
+        # The line flows: sentences reach the reader (and are in the publisher's record of sizes).
+        for k in range(5):
+            publish_and_wait(pub, make_estimate(30, 20, seq=k), k)
+        delivered = port.send()
+        # The reader holds the line until a write times out and the port is flushed; again until a
+        # timed-out write had put part of its sentence in (a round whose last sentence fitted whole
+        # cannot tell the difference; sentences of random lengths make that rare).
+        for _ in range(6):
+            if port.discarded and not port.discarded[-1].endswith(b"\n"):
+                break
+            flushes, timeouts = len(port.discarded), pub.stats()["dropped_write_timeout"]
+            while len(port.discarded) == flushes:
+                assert pub.stats()["published"] < 20000, "the line never filled"
+                if pub.stats()["dropped_write_timeout"] == timeouts:  # one timeout per round
+                    pub.publish(make_estimate(30, 20, seq=int(rng.integers(0, 10 ** int(rng.integers(1, 9))))))
+                wait_until(lambda n=flushes: pub.stats()["pending"] == 0 or len(port.discarded) > n, "the writer")
+        assert not port.discarded[-1].endswith(b"\n"), "no timed-out write was cut inside its sentence"
+        within(HANG_GUARD_S, pub.close)
+        delivered += port.send()
+        stats = pub.stats()
+        assert stats["dropped_unsent"] == sum(whole_sentences(d) for d in port.discarded)
+        assert stats["written"] == whole_sentences(delivered) == 5  # every one written reached the reader
+        assert accounted(stats) == stats["published"]
+    finally:
+        within(HANG_GUARD_S, pub.close)
 
 
 def test_waiting_for_the_writer_is_bounded_when_nobody_reads(pty):
