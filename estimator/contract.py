@@ -12,7 +12,7 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import Any, TypeGuard
 
 from rig.errors import ContractMismatch
 
@@ -253,8 +253,7 @@ def _encoding_problems(enc: dict[str, Any]) -> list[str]:
         if key in enc and not _is_positive_number(enc[key]):
             problems.append(f"encoding.{key}: expected a finite number > 0, got {enc[key]!r}")
     depth = enc.get("depth_per_angle")
-    if "depth_per_angle" in enc and not (
-            isinstance(depth, int) and not isinstance(depth, bool) and depth > 0 and depth % 2 == 0):
+    if "depth_per_angle" in enc and not (_is_int(depth) and depth > 0 and depth % 2 == 0):
         problems.append(f"encoding.depth_per_angle: expected an even number > 0, got {depth!r}")
     if enc.get("kind") != "cyclic-nested-sine":
         problems.append(f"encoding.kind: expected 'cyclic-nested-sine', got {enc.get('kind')!r}")
@@ -277,7 +276,7 @@ def _input_norm_problems(norm: dict[str, Any]) -> list[str]:
     return problems
 
 
-def _is_int(v: Any) -> bool:
+def _is_int(v: Any) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
