@@ -830,11 +830,9 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
     from estimator.runtime import OnnxModel
 
     path = Path(model_dir) / WEIGHTS
-    if Path(model_dir).exists() and not Path(model_dir).is_dir():
-        raise ValidationError(f"--init {model_dir} is a file, not a model folder; pass a model folder written by "
-                              "`sunrig train`, e.g. the shipped model's")
     if not Path(model_dir).is_dir():
-        raise ValidationError(f"--init {model_dir} does not exist; pass a model folder written by `sunrig train`, "
+        what = "is a file, not a model folder" if Path(model_dir).exists() else "does not exist"
+        raise ValidationError(f"--init {model_dir} {what}; pass a model folder written by `sunrig train`, "
                               "e.g. the shipped model's")
     if not path.is_file():
         raise ValidationError(f"--init {model_dir}: no {WEIGHTS} there; pass a model folder written by `sunrig train` "
