@@ -337,7 +337,6 @@ class SerialPublisher:
         """Write one message; on a timeout or an error count the drop and close the port."""
         data = _RESYNC_PREFIX[self._format] + message if self._resync else message
         outcome, error = "written", None
-        self._cut_bytes = 0  # _write_fd counts them; pyserial's own write() cannot say how many went
         try:
             fd = _plain_posix_fd(self._port)
             if fd is not None:
@@ -378,6 +377,8 @@ class SerialPublisher:
         while view:
             try:
                 view = view[os.write(fd, view) :]
+                # What a write cut short left in the buffer (0 once whole); pyserial's own write()
+                # cannot say, so there it stays 0. _close_port() uses it and sets it back to 0.
                 self._cut_bytes = len(data) - len(view) if view else 0
                 continue
             except (BlockingIOError, InterruptedError):
