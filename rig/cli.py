@@ -62,7 +62,7 @@ def _machine_error(exc: BaseException) -> str | None:
 def _int_in(lo: int, hi: int | None = None):
     """An argparse type: an integer from ``lo`` (to ``hi``; at most rig.config.INT_MAX, beyond
     which no count or size here means anything)."""
-    from rig.config import INT_MAX
+    from rig.config import INT_MAX, shown_value
 
     if hi is not None:
         what = f"an integer from {lo} to {hi}"
@@ -74,7 +74,7 @@ def _int_in(lo: int, hi: int | None = None):
             value = int(text)
         except ValueError:
             value = None
-        shown = repr(text) if len(text) <= 40 else f"{text[:20]!r}... ({len(text)} characters)"
+        shown = shown_value(text)
         if value is None or value < lo or (hi is not None and value > hi):
             raise argparse.ArgumentTypeError(f"expected {what}, got {shown}")
         if value > INT_MAX:

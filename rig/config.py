@@ -142,11 +142,11 @@ def check_option(section: str, key: str, value: Any) -> Any:
         kind = "an integer" if expected is int else "a finite number"
         if expected is int and value > INT_MAX:  # the cap is named only to one who passed it
             bounds = (bounds[0], INT_MAX, bounds[2])
-        raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {_shown(value)}")
+        raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {shown_value(value)}")
     return value
 
 
-def _shown(value: Any) -> str:
+def shown_value(value: Any) -> str:
     """``value`` for an error line: a 400-digit number is cut, so the message stays one line."""
     text = repr(value)
     return text if len(text) <= 40 else f"{text[:20]}... ({len(text)} characters)"
