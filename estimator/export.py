@@ -38,6 +38,7 @@ from estimator.contract import (
 )
 from estimator.nets import TINY, Aggregator, Backbone, NetConfig
 from rig.errors import MissingExtraError, ModelError, ValidationError, require_torch
+from rig.files import make_output_folder
 
 require_torch()  # a missing torch names the extra to install
 import torch  # noqa: E402  (imported, not require_torch's value, so mypy knows torch.nn.Module)
@@ -75,13 +76,7 @@ def export_model(
     into place only when complete, so a failed export never leaves a half-valid folder behind.
     """
     _check_against_contract(backbone, aggregator, contract)
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():  # mkdir's FileExistsError was an internal error
-        raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path to export to")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:  # a parent that is a file, or no permission
-        raise ValidationError(f"cannot make the model folder {out}: {exc.strerror}; pass another path") from None
+    out = make_output_folder(out_dir, what="model folder", holds="a model is a folder")
     s = contract.crop_size_px
     gen = torch.Generator().manual_seed(0)
     crops = torch.randn(_EXAMPLE_N, 3, s, s, generator=gen)

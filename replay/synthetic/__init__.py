@@ -25,6 +25,7 @@ import numpy as np
 from replay.synthetic.camera import CameraEffects
 from replay.synthetic.drive import KITTI_INTRINSICS, Drive, DriveParams, kitti_intrinsics, plan_drive, synth_drive
 from rig.errors import ValidationError
+from rig.files import make_output_folder
 from rig.progress import Progress
 from rig.types import Intrinsics
 
@@ -92,14 +93,7 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
         raise ValidationError(
             f"synthetic logs: expected drives >= 0, frames >= 1 and jobs >= 1, got {drives}, {frames}, {jobs}"
         )
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():  # mkdir's FileExistsError was an internal error
-        raise ValidationError(f"synth: {out} is a file; OUT is the folder the drives are written to: "
-                              "pass a folder's path")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:  # a parent that is a file, or no permission
-        raise ValidationError(f"synth: cannot make the folder {out}: {exc.strerror}; pass another path") from None
+    out = make_output_folder(out_dir, what="folder", holds="OUT is the folder the drives are written to")
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
     kept = _kept(paths, frames)
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
