@@ -34,6 +34,7 @@ import contextlib
 import logging
 import math
 import os
+import re
 import threading
 import time
 from collections import deque
@@ -140,18 +141,34 @@ def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration
     return Calibration(k=k, width=int(width), height=int(height), distortion=d)
 
 
+# OpenCV's parse error names its own source file and function before the reason, e.g.
+# "OpenCV(5.1.0) /io/.../persistence_yml.cpp:871: error: (-212:Parsing error) parse in function
+# '/x.yaml(1): Only collections ...'". The user needs the file's line and the reason only.
+_CV_PARSE_REASON = re.compile(r"in function '.*?\((\d+)\): (.*)'?$")
+
+
+def _parse_reason(message: str) -> str:
+    last = message.strip().splitlines()[-1] if message.strip() else message
+    m = _CV_PARSE_REASON.search(last)
+    return f"line {m.group(1)}: {m.group(2).rstrip(chr(39))}" if m else last
+
+
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read an OpenCV calibration file (YAML, JSON or XML, as ``cv2.FileStorage`` writes it)."""
     p = Path(path)
+    remedy = "pass the file calibrateCamera's results were saved to, or --hfov-deg instead"
+    if p.is_dir():
+        raise CameraError(f"calibration file {p} is a folder; {remedy}")
     if not p.is_file():
-        raise CameraError(f"calibration file {p} does not exist; pass the file calibrateCamera's results "
-                          "were saved to, or --hfov-deg instead")
+        raise CameraError(f"calibration file {p} does not exist; {remedy}")
+    if p.stat().st_size == 0:  # OpenCV says only "Assertion failed: buf"
+        raise CameraError(f"calibration file {p} is empty (0 bytes); {remedy}")
     try:
         fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # OpenCV 5 wraps its parse error in a SystemError
-        reason = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        reason = _parse_reason(str(exc.__cause__ or exc))
         raise CameraError(f"calibration file {p} is not an OpenCV FileStorage file (YAML/JSON/XML): "
-                          f"{reason}") from None
+                          f"{reason}; {remedy}") from None
     try:
         if not fs.isOpened():
             raise CameraError(f"calibration file {p} cannot be read by cv2.FileStorage; expected YAML, JSON or XML")

@@ -192,9 +192,19 @@ def test_load_calibration_file(tmp_path, name, keys):
 def test_calibration_file_errors(tmp_path):
     with pytest.raises(CameraError, match="does not exist"):
         load_calibration(tmp_path / "none.yaml")
+    with pytest.raises(CameraError, match="is a folder"):
+        load_calibration(tmp_path)
+    (tmp_path / "empty.yaml").write_bytes(b"")
+    with pytest.raises(CameraError, match=r"is empty \(0 bytes\)"):
+        load_calibration(tmp_path / "empty.yaml")
     bad = tmp_path / "bad.yaml"
+    bad.write_text("%YAML:1.0\n---\nK: [1, 2\n")
+    # The file's line and OpenCV's reason, without OpenCV's own source path and function.
+    with pytest.raises(CameraError, match=r"bad.yaml is not .*: line 3: Missing , between the elements; pass") as err:
+        load_calibration(bad)
+    assert ".cpp" not in str(err.value) and "OpenCV(" not in str(err.value)
     bad.write_text("this is not: [a calibration\n")
-    with pytest.raises(CameraError):
+    with pytest.raises(CameraError, match="--hfov-deg instead"):
         load_calibration(bad)
     partial = tmp_path / "partial.yaml"
     fs = cv2.FileStorage(str(partial), cv2.FILE_STORAGE_WRITE)
