@@ -887,7 +887,8 @@ def cmd_sun(args: argparse.Namespace) -> int:
         try:
             f = sys.stdin if args.csv == "-" else open(args.csv, newline="", encoding="utf-8")  # closed below
         except OSError as exc:
-            raise SunrigError(f"sun: cannot read {args.csv}: {exc.strerror or exc}") from None
+            raise SunrigError(f"sun: cannot read {args.csv}: {exc.strerror or exc}; pass a CSV file of rows "
+                              "time,lat,lon with a header, or - for stdin") from None
         try:
             with f:
                 rows = list(csv.reader(f))

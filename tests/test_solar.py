@@ -340,3 +340,13 @@ def test_cli_sun_bad_input_one_line_exit_2(capsys, tmp_path, args, csv_text, nee
     assert stdout == ""
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("sunrig: error: ") and needle in lines[0], err
+
+
+@pytest.mark.parametrize("kind", ["folder", "missing"])
+def test_cli_sun_csv_that_cannot_be_opened_says_what_to_pass(capsys, tmp_path, kind):
+    path = tmp_path if kind == "folder" else tmp_path / "nope.csv"
+    rc, stdout, err = _sun(capsys, "--csv", str(path))
+    assert rc == 2 and stdout == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"sunrig: error: sun: cannot read {path}: ")
+    assert lines[0].endswith("pass a CSV file of rows time,lat,lon with a header, or - for stdin"), err
