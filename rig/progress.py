@@ -24,10 +24,13 @@ class Progress:
     """``label: done[/total] [unit] (rate/s[, time left]) extra``, redrawn at most every
     ``min_interval_s``; ``clock`` is injectable for tests."""
 
-    def __init__(self, label: str, *, total: int | None = None, unit: str = "", stream: TextIO = sys.stderr,
+    def __init__(self, label: str, *, total: int | None = None, unit: str = "", stream: TextIO | None = None,
                  enabled: bool | None = None, min_interval_s: float = 0.2, log_every_s: float = 60.0,
                  clock=time.monotonic) -> None:
         self.label, self.total, self.unit = label, total, unit
+        # sys.stderr as it is now, not as it was at import: a caller that redirects it (pytest's
+        # capture, contextlib.redirect_stderr) must not get a counter writing to a closed stream.
+        stream = sys.stderr if stream is None else stream
         self.stream = stream
         self.enabled = stream.isatty() if enabled is None else enabled
         # Not a terminal and not told otherwise: a line now and then instead of redraws.

@@ -1,5 +1,6 @@
 """The progress line: drawn only on a terminal, rate and time left for this run only."""
 
+import contextlib
 import io
 
 from rig.progress import Progress
@@ -131,3 +132,18 @@ def test_advance_counts_one_by_default_and_the_first_second_has_a_rate():
         p.advance()
     assert p.done == 5
     assert p.line() == "replay: 5/20 (10.0/s, 0:02 left)"
+
+
+def test_the_default_stream_is_stderr_when_made_not_when_imported():
+    # A default bound at import wrote to whatever stderr was then: after a redirect closed it,
+    # every later Progress (train's loading counter) failed with "I/O operation on closed file".
+    first = io.StringIO()
+    with contextlib.redirect_stderr(first):
+        assert Progress("eval").stream is first
+    first.close()
+    second = io.StringIO()
+    with contextlib.redirect_stderr(second):
+        p = Progress("eval", total=2, enabled=False)
+        p.close("2 logs")
+    assert p.stream is second and second.getvalue() == "eval: 2 logs\n"
+
