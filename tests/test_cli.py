@@ -788,3 +788,110 @@ def test_gnss_on_sentences_that_all_fail_their_checksum_says_so(tmp_path, capsys
     assert capsys.readouterr().err.strip() == (
         f"sunrig: error: gnss: every sentence from {capture} failed its checksum (2); "
         "check the wiring and the --baud rate, or the capture's integrity")
+
+
+# --- every input and output of every command, against the same bad files -------------------------
+# Each bad-input fix above was found by probing one command. These tables put every path a
+# command reads or writes through the same bad files, so that a new command or option that forgets
+# a case fails here rather than on a vehicle. In-process (main()), so the table costs seconds.
+
+_BAD_FILES = {
+    "empty": b"",
+    "random": np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes(),
+    "latin1": "caf\xe9 = 1\n".encode("latin-1"),
+    "text": b"hello world\n",
+}
+_DEMO = "replay/data/demo.mcap"  # rewritten to the bundled log's path in the test
+
+
+def _in(cmd, *rest):
+    return lambda x: [a.replace("{}", x) for a in (*cmd.split(), *rest)]
+
+
+_INPUT_SLOTS = {
+    "replay LOG": _in("replay {}", "--jsonl", "{out}"),
+    "replay --model": _in("replay --model {}", "--jsonl", "{out}"),
+    "eval LOG": _in("eval {} --quiet --json", "{out}"),
+    "eval --model": _in("eval", _DEMO, "--model", "{}", "--quiet", "--json", "{out}"),
+    "run --camera file:": _in("run --heading log --camera", "file:{}", "--jsonl", "{out}"),
+    "run --model": _in("run --heading log --camera", f"file:{_DEMO}", "--model", "{}", "--jsonl", "{out}"),
+    "run --config": _in("run --heading log --camera", f"file:{_DEMO}", "--config", "{}", "--jsonl", "{out}"),
+    "run --calibration": _in("run --heading none --camera opencv:99 --calibration", "{}", "--jsonl", "{out}"),
+    "record --config": _in("record --config", "{}", "--out", "{out}.mcap"),
+    "demo --model": _in("demo --fast --model", "{}"),
+    "demo --config": _in("demo --fast --config", "{}"),
+    "config --config": _in("config --print --config", "{}"),
+    "sun --csv": _in("sun --csv", "{}"),
+    "gnss SOURCE": _in("gnss", "{}", "--jsonl", "{out}"),
+    "train LOG": _in("train", "{}", "--out", "{out}", "--steps", "1"),
+    "train --init": _in("train", _DEMO, "--init", "{}", "--out", "{out}", "--steps", "1"),
+}
+_TORCH_SLOTS = {"train LOG", "train --init"}
+
+
+def _main_in_process(argv, capsys):
+    from rig.cli import main
+
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse
+        rc = exc.code
+    return rc, capsys.readouterr()
+
+
+def _assert_one_line_error(rc, captured, *, names):
+    assert rc == 2, captured.err
+    assert "Traceback" not in captured.err and "internal error" not in captured.err, captured.err
+    last = captured.err.strip().splitlines()[-1]
+    assert last.startswith("sunrig: error: ") and names in last, captured.err
+
+
+@pytest.mark.parametrize(("slot", "kind"), [
+    pytest.param(slot, kind, marks=[pytest.mark.torch] if slot in _TORCH_SLOTS else [])
+    for slot in _INPUT_SLOTS for kind in (*_BAD_FILES, "folder", "missing")
+    if not (kind == "empty" and slot.endswith("--config"))  # an empty TOML file is the defaults: valid
+])
+def test_every_input_of_every_command_refuses_a_bad_file_in_one_line(tmp_path, capsys, slot, kind):
+    repo = Path(__file__).resolve().parents[1]
+    bad = tmp_path / f"bad-{kind}"
+    if kind == "folder":
+        bad.mkdir()
+    elif kind in _BAD_FILES:
+        bad.write_bytes(_BAD_FILES[kind])
+    (tmp_path / "out").mkdir()
+    out = str(tmp_path / "out" / "result")
+    argv = [a.replace("{out}", out).replace(_DEMO, str(repo / _DEMO)) for a in _INPUT_SLOTS[slot](str(bad))]
+    rc, captured = _main_in_process(argv, capsys)
+    _assert_one_line_error(rc, captured, names=bad.name)
+    if slot != "gnss SOURCE":  # a stream: its output opens before a port's first sentence can come
+        assert not os.listdir(tmp_path / "out"), "an output was left by a command that failed"
+
+
+_OUTPUT_SLOTS = {
+    "replay --jsonl": "replay --jsonl {}",
+    "run --jsonl": f"run --heading log --camera file:{_DEMO} --fast --jsonl {{}}",
+    "run --record": f"run --heading log --camera file:{_DEMO} --fast --record {{}}.mcap",
+    "record --out": f"record --heading log --camera file:{_DEMO} --out {{}}.mcap",
+    "eval --json": f"eval {_DEMO} --aggregators mean --quiet --json {{}}",
+    "eval --plot": f"eval {_DEMO} --aggregators mean --quiet --plot {{}}.png",
+    "gnss --jsonl": "gnss {nmea} --jsonl {}",
+    "synth OUT": "synth {} --drives 1 --frames 2",
+    "train --out": f"train {_DEMO} --steps 1 --out {{}}",
+}
+
+
+@pytest.mark.parametrize("slot", [pytest.param(s, marks=[pytest.mark.torch] if s.startswith("train") else [])
+                                  for s in _OUTPUT_SLOTS])
+def test_every_output_of_every_command_under_a_file_is_refused_in_one_line(tmp_path, capsys, slot):
+    repo = Path(__file__).resolve().parents[1]
+    nmea = repo.parent / "shared" / "fixtures" / "nmea" / "nmea-rtk.log"
+    if "{nmea}" in _OUTPUT_SLOTS[slot] and not nmea.exists():
+        nmea = tmp_path / "capture.nmea"
+        nmea.write_bytes(b"$GPHDT,123.4,T*3B\r\n" * 3)
+    (tmp_path / "a-file").write_text("not a folder\n")
+    target = str(tmp_path / "a-file" / "result")
+    argv = [a.replace("{}", target).replace("{nmea}", str(nmea)).replace(_DEMO, str(repo / _DEMO))
+            for a in _OUTPUT_SLOTS[slot].split()]
+    rc, captured = _main_in_process(argv, capsys)
+    _assert_one_line_error(rc, captured, names="a-file")
+    assert (tmp_path / "a-file").read_text() == "not a folder\n"
