@@ -144,13 +144,13 @@ def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration
 # OpenCV's parse error names its own source file and function before the reason, e.g.
 # "OpenCV(5.1.0) /io/.../persistence_yml.cpp:871: error: (-212:Parsing error) parse in function
 # '/x.yaml(1): Only collections ...'". The user needs the file's line and the reason only.
-_CV_PARSE_REASON = re.compile(r"in function '.*?\((\d+)\): (.*)'?$")
+_CV_PARSE_REASON = re.compile(r"in function '.*?\((\d+)\): (.*?)'?$")
 
 
 def _parse_reason(message: str) -> str:
-    last = message.strip().splitlines()[-1] if message.strip() else message
+    last = (message.strip().splitlines() or [""])[-1]
     m = _CV_PARSE_REASON.search(last)
-    return f"line {m.group(1)}: {m.group(2).rstrip(chr(39))}" if m else last
+    return f"line {m.group(1)}: {m.group(2)}" if m else last
 
 
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
@@ -171,7 +171,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
                           f"{reason}; {remedy}") from None
     try:
         if not fs.isOpened():
-            raise CameraError(f"calibration file {p} cannot be read by cv2.FileStorage; expected YAML, JSON or XML")
+            raise CameraError(f"calibration file {p} cannot be read by cv2.FileStorage (YAML, JSON or XML); {remedy}")
         values: dict[str, Any] = {}
         for key in (*_K_KEYS, *_D_KEYS, *_W_KEYS, *_H_KEYS, "image_size"):
             node = fs.getNode(key)
