@@ -132,10 +132,10 @@ def check_option(section: str, key: str, value: Any) -> Any:
     if expected is float and value is None:
         value = float("nan")
     if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-        raise ConfigError(f"[{section}] {key}: expected {expected.__name__}, got {value!r}")
+        raise ConfigError(f"[{section}] {key}: expected {expected.__name__}, got {shown_value(value)}")
     choices = CHOICES.get((section, key))
     if choices and value not in choices:
-        raise ConfigError(f"[{section}] {key}: expected one of {', '.join(choices)}, got {value!r}")
+        raise ConfigError(f"[{section}] {key}: expected one of {', '.join(choices)}, got {shown_value(value)}")
     bounds = RANGES.get((section, key))
     unset = expected is float and math.isnan(default) and math.isnan(value)
     if bounds is not None and not unset and not in_range(value, *bounds):

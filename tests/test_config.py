@@ -76,6 +76,11 @@ def test_file_then_flags(tmp_path):
         # math.isfinite() overflowed on it: an internal error, not this line.
         (f"[rig]\nqueue_size = {'9' * 400}\n",
          "[rig] queue_size: expected an integer in (0, 2147483647], got 99999999999999999999... (400 characters)"),
+        # A long value of the wrong type or choice is cut too: the error stays one short line.
+        (f"[rig]\nqueue_size = '{'x' * 5000}'\n",
+         "[rig] queue_size: expected int, got 'xxxxxxxxxxxxxxxxxxx... (5002 characters)"),
+        (f"[output]\nformat = '{'x' * 5000}'\n",
+         "[output] format: expected one of nmea, binary, got 'xxxxxxxxxxxxxxxxxxx... (5002 characters)"),
         ("[source]\nmax_gap_s = nan\n", "[source] max_gap_s: expected a finite number > 0, got nan"),
         ("[source]\nhfov_deg = -1.0\n", "[source] hfov_deg: expected a finite number in [0, 179]"),
         ("[source]\ndeclination_deg = inf\n", "[source] declination_deg: expected a finite number in [-180, 180]"),
