@@ -627,6 +627,7 @@ def test_config_print_merges_file_and_flags(tmp_path):
 
 
 @pytest.mark.torch
+@pytest.mark.slow
 def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
     from estimator.models import DEFAULT_MODEL_DIR
     from replay.sources import DEMO_LOG
@@ -668,6 +669,7 @@ def test_train_init_shipped_beside_a_folder_of_that_name_is_refused_not_guessed(
     assert not (tmp_path / "m").exists()
 
 
+@pytest.mark.slow
 def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(tmp_path):
     from estimator.runtime import OnnxModel
     from replay.sources import DEMO_LOG
@@ -686,6 +688,7 @@ def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(
     assert "Traceback" not in res.stderr and not (tmp_path / "other").exists()
 
 
+@pytest.mark.slow
 def test_train_says_when_it_resumes_a_run_and_when_there_is_nothing_left_to_train(tmp_path):
     from replay.sources import DEMO_LOG
 
@@ -699,6 +702,7 @@ def test_train_says_when_it_resumes_a_run_and_when_there_is_nothing_left_to_trai
     assert "already reached its end; nothing to train (pass a larger --steps" in res.stderr
 
 
+@pytest.mark.slow
 def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
     from estimator.runtime import OnnxModel
     from replay.sources import DEMO_LOG
@@ -728,6 +732,7 @@ def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
     assert shlex.split(named["export_command"])[-2:] == [note, "--quiet"]
 
 
+@pytest.mark.slow
 def test_export_only_sets_whether_the_model_runs_mirrored_and_a_fine_tune_keeps_it(tmp_path):
     from estimator.runtime import OnnxModel
     from replay.sources import DEMO_LOG

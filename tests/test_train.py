@@ -95,6 +95,7 @@ def test_sampler_windows_are_consistent():
     assert (subset.mask.sum(1) >= 1).all() and (subset.mask.sum(1) < 32).any()
 
 
+@pytest.mark.slow
 def test_train_checkpoint_resume_export(logs, tmp_path):
     from estimator.runtime import OnnxModel
 
@@ -131,6 +132,7 @@ def test_train_checkpoint_resume_export(logs, tmp_path):
     np.testing.assert_allclose(again.embed(crops), OnnxModel.load(out).embed(crops), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_an_older_checkpoint_takes_its_sun_elevations_from_its_own_logs(logs, tmp_path):
     from estimator.runtime import OnnxModel
     from estimator.train import export_checkpoint
@@ -149,6 +151,7 @@ def test_an_older_checkpoint_takes_its_sun_elevations_from_its_own_logs(logs, tm
     assert again.contract.trained_sun_elevation_deg == (53.1, 53.1)
 
 
+@pytest.mark.slow
 def test_a_run_started_without_a_data_note_gets_one_at_export_checked_against_its_logs(logs, tmp_path):
     from estimator.runtime import OnnxModel
     from estimator.train import export_checkpoint
@@ -320,6 +323,7 @@ def test_mirror_share_mirrors_its_share_and_draws_nothing_when_off():
     assert 0.4 < mirrored[:, 0].mean() < 0.6
 
 
+@pytest.mark.slow
 def test_resume_with_another_mirror_share_is_refused_also_from_a_checkpoint_before_it(logs, tmp_path):
     out = tmp_path / "model"
     train(logs, out, TrainConfig(preset="tiny", max_steps=1, batch_windows=1, mirror_share=0.0))
@@ -477,6 +481,7 @@ def test_bad_precision_and_hard_share_are_refused(logs, tmp_path):
         train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, hard_share=1.5))
 
 
+@pytest.mark.slow
 def test_init_starts_a_new_run_from_a_model_folders_weights(logs, tmp_path):
     from estimator import nets
     from rig.errors import ValidationError
@@ -552,6 +557,7 @@ def test_an_init_whose_weights_are_no_archive_is_refused_without_numpys_pickle_a
 
 
 @pytest.mark.parametrize("extra_load, warned", [(3.0, True), (0.0, False)])
+@pytest.mark.slow
 def test_a_minutes_budget_on_a_shared_cpu_is_warned_about(logs, tmp_path, monkeypatch, caplog, extra_load, warned):
     import os
 
@@ -574,6 +580,7 @@ def test_a_short_run_warms_up_in_a_tenth_of_it():
         [1e-4 * 20 / 300, 1e-4 * 21 / 300])
 
 
+@pytest.mark.slow
 def test_more_steps_for_a_finished_run_decay_from_where_it_stopped(logs, tmp_path):
     out = tmp_path / "m"
     cfg = TrainConfig(preset="tiny", max_steps=20, batch_windows=1, lr=1e-3, warmup_steps=2)
@@ -586,6 +593,7 @@ def test_more_steps_for_a_finished_run_decay_from_where_it_stopped(logs, tmp_pat
     assert state["schedule"]["start_step"] == 20 and state["schedule"]["start_lr"] == pytest.approx(lr_end)
 
 
+@pytest.mark.slow
 def test_a_fine_tune_keeps_the_suns_and_the_crop_count_of_the_model_it_started_from(logs, tmp_path):
     from estimator.runtime import OnnxModel
     from estimator.train import export_checkpoint
@@ -615,6 +623,7 @@ def test_a_fine_tune_keeps_the_suns_and_the_crop_count_of_the_model_it_started_f
     assert OnnxModel.load(again).contract.trained_sun_elevation_deg == (16.3, 53.1)
 
 
+@pytest.mark.slow
 def test_the_crop_angle_is_the_paper_s_or_the_given_one_and_a_fine_tune_keeps_its_start_s(logs, tmp_path):
     from estimator.runtime import OnnxModel
 
@@ -676,6 +685,7 @@ def test_a_crop_angle_outside_a_half_turn_is_refused(logs, tmp_path, deg):
     assert not (tmp_path / "m").exists()
 
 
+@pytest.mark.slow
 def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
     cfg = TrainConfig(preset="tiny", max_steps=1, batch_windows=1, lr=3e-4)
     a_file = tmp_path / "clip.mp4"
@@ -700,6 +710,7 @@ def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
         train(logs[:2], out_on_data, replace(cfg, max_steps=2, data={"fingerprint": data_fingerprint(logs[:2])}))
 
 
+@pytest.mark.slow
 def test_a_run_switched_from_steps_to_minutes_decays_from_where_it_stopped(logs, tmp_path):
     # The same --minutes as the steps run carried (as the CLI's default does): only --steps went.
     # 18 s, far more than 4 tiny steps take even on a loaded machine: a budget the steps run had
@@ -710,6 +721,7 @@ def test_a_run_switched_from_steps_to_minutes_decays_from_where_it_stopped(logs,
     assert torch.load(out / CHECKPOINT, weights_only=False)["schedule"]["start_step"] == 4  # not back to warmup
 
 
+@pytest.mark.slow
 def test_a_fine_tune_checkpointed_before_its_crop_count_was_recorded_keeps_its_starts(logs, tmp_path):
     from estimator.runtime import OnnxModel
     from estimator.train import export_checkpoint
@@ -741,6 +753,7 @@ def test_a_finished_run_is_not_exported_again(logs, tmp_path):
     assert (out / "backbone.onnx").read_bytes() == contract and (out / "backbone.onnx").stat().st_mtime_ns == stamp
 
 
+@pytest.mark.slow
 def test_the_tail_loss_enters_training_only_when_weighted(logs, tmp_path, monkeypatch):
     from estimator import nets
     from estimator.runtime import OnnxModel
@@ -775,6 +788,7 @@ def test_a_bad_tail_setting_is_refused_before_training(logs, tmp_path, weight, m
     assert not (tmp_path / "m").exists()
 
 
+@pytest.mark.slow
 def test_a_run_may_stack_more_transformer_layers_than_its_preset(logs, tmp_path):
     from estimator import nets
     from estimator.runtime import OnnxModel
@@ -803,6 +817,7 @@ def test_a_run_may_stack_more_transformer_layers_than_its_preset(logs, tmp_path)
                                                    batch_windows=1))
 
 
+@pytest.mark.slow
 def test_naming_the_presets_own_depth_is_the_same_run(logs, tmp_path):
     from estimator import nets
 
