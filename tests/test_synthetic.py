@@ -524,12 +524,16 @@ def test_a_resumed_set_keeps_its_drives_and_refuses_drives_of_another_length(tmp
     os.utime(first[0], ns=(1, 1))  # a time no rewrite would leave
     more = write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)
     assert more[0].stat().st_mtime_ns == 1 and [frame_count(p) for p in more] == [2, 2]
-    with pytest.raises(ValidationError, match="drive_9_0000.mcap is kept .* holds 2 frames, not 3"):
+    with pytest.raises(ValidationError, match="drive_9_0000.mcap is kept .* holds 2 frames, not the 3 asked for"):
         write_synthetic_logs(tmp_path, drives=2, frames=3, seed=9, intrinsics=SMALL, progress=False)
+    whole = more[1].read_bytes()
     (tmp_path / "drive_9_0001.mcap").write_bytes(first[0].read_bytes()[:-100])  # a summary cut off
     assert frame_count(tmp_path / "drive_9_0001.mcap") is None
-    with pytest.raises(ValidationError, match="drive_9_0001.mcap .* holds an unfinished log"):
+    with pytest.raises(ValidationError, match="drive_9_0001.mcap .* not a whole log .*: delete it, and"):
         write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    (tmp_path / "drive_9_0001.mcap").unlink()  # as the error says: the drive is made again
+    again = write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    assert again[1].read_bytes() == whole  # the same drive: a seed always makes the same bytes
 
 
 def test_an_output_that_is_a_file_is_refused_in_one_line(tmp_path):

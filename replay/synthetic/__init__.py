@@ -69,11 +69,13 @@ def _kept(paths: list[Path], frames: int) -> set[Path]:
     kept = {path for path in paths if path.exists()}
     for path in sorted(kept):
         found = frame_count(path)
+        if found is None:  # drives are written whole (_write_one): this one was damaged since
+            raise ValidationError(f"{path} is kept from an earlier run but is not a whole log (cut short or "
+                                  "damaged): delete it, and this command makes it again")
         if found != frames:
-            held = f"{found} frames" if found is not None else "an unfinished log"
             raise ValidationError(
-                f"{path} is kept from an earlier run but holds {held}, not {frames}: pass another "
-                "folder, or delete the folder's drives to make them again"
+                f"{path} is kept from an earlier run but holds {found} frames, not the {frames} asked for: "
+                "pass another folder, or delete the folder's drives to make them again"
             )
     return kept
 
