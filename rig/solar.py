@@ -655,10 +655,17 @@ def parse_utc_iso(text: str) -> np.datetime64:
     m = _ISO_RE.match(text.strip())
     if not m:
         raise ValidationError(f"time: expected ISO 8601 like 2003-10-17T19:30:30Z, got {text.strip()[:40]!r}")
+    base = m.group("base").replace(" ", "T")
+    # A leap second (23:59:60, as a GNSS receiver reports it) is the next minute's first second,
+    # as the NMEA decoder counts it: numpy's time scale, like POSIX, has no second 60.
+    leap = base[17:19] == "60"
     try:
-        t = np.datetime64(m.group("base").replace(" ", "T"))
+        t = np.datetime64(base[:17] + "59" + base[19:] if leap else base)
     except ValueError:
-        raise ValidationError(f"time: not a valid date/time: {text.strip()[:40]!r}") from None
+        raise ValidationError(f"time: not a valid date/time: {text.strip()[:40]!r}; check the month, day, hour, "
+                              "minute and second") from None
+    if leap:
+        t = t + np.timedelta64(1, "s")
     tz = m.group("tz")
     if tz and tz != "Z":
         sign = -1 if tz[0] == "-" else 1

@@ -266,9 +266,19 @@ def test_parse_utc_iso():
     assert parse_utc_iso("2003-10-17T19:30:30") == want  # no offset: UTC
     t = parse_utc_iso("2011-09-26T11:02:25.961661696Z")
     assert t.astype(np.int64) == 1_317_034_945_961_661_696 and np.datetime_data(t.dtype)[0] == "ns"
-    for bad in ("yesterday", "2003-13-01T00:00Z", "2003-10-17T19:30:30+25", ""):
+    for bad in ("yesterday", "2003-13-01T00:00Z", "2003-10-17T19:30:30+25", "", "2016-12-31T23:59:61Z"):
         with pytest.raises(ValidationError):
             parse_utc_iso(bad)
+
+
+def test_a_leap_second_is_the_next_minutes_first_second_as_gnss_reports_it():
+    # A receiver reports 23:59:60 during a leap second; the NMEA decoder counts it as 60 s past
+    # the minute, and numpy (like POSIX) has no second 60. `sun --time` takes it the same way.
+    assert parse_utc_iso("2016-12-31T23:59:60Z") == np.datetime64("2017-01-01T00:00:00")
+    assert parse_utc_iso("2016-12-31T23:59:60.25Z") == np.datetime64("2017-01-01T00:00:00.250")
+    assert parse_utc_iso("2017-01-01 00:59:60+01:00") == np.datetime64("2017-01-01T00:00:00")
+    with pytest.raises(ValidationError, match="not a valid date/time: '2016-02-30T00:00Z'; check the month"):
+        parse_utc_iso("2016-02-30T00:00Z")
 
 
 # --- `sunrig sun` --------------------------------------------------------------------------
