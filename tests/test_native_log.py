@@ -409,6 +409,23 @@ def test_a_log_of_estimates_only_says_how_it_was_made(tmp_path):
         list(read_frames(path))
 
 
+def test_a_log_closed_before_its_first_frame_says_so_and_a_foreign_empty_one_does_not(tmp_path):
+    # A recording stopped before the camera sent a frame: sunrig's own, whole, and empty. It was
+    # called "not a sunrig log ... pass a file written by sunrig record/synth".
+    path = tmp_path / "empty.mcap"
+    with LogWriter(path):
+        pass
+    with pytest.raises(LogError, match="empty.mcap is a sunrig log that holds no frames: its recording stopped"):
+        open_log(path)
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as f:
+        writer = McapWriter(f)
+        writer.start(profile="", library="another tool")
+        writer.finish()
+    with pytest.raises(LogError, match="foreign.mcap is an MCAP log but not a sunrig log"):
+        open_log(foreign)
+
+
 def test_cut_inside_the_first_chunk_is_a_clear_error(tmp_path):
     path = write_log(tmp_path / "full.mcap", make_frames(5))
     data = path.read_bytes()
