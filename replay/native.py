@@ -903,10 +903,10 @@ def _inspect(path: Path) -> _LogInfo:
                 f"{name} is an MCAP log cut off before its first complete chunk; it holds no frames: record "
                 "again or pass another log"
             )
-        if not seen and info.metadata:  # sunrig's own log, closed before its first frame came
-            raise LogError(f"{name} is a sunrig log that holds no frames: its recording stopped before the "
-                           "first frame came; record again or pass another log")
         if topics is None:  # no summary vouched for the channels: the data section must have
+            if not seen and info.metadata:  # sunrig's own log, closed before its first frame came
+                raise LogError(f"{name} is a sunrig log that holds no frames: its recording stopped before "
+                               "the first frame came; record again or pass another log")
             _check_image_channel(name, seen)
     return info  # a damaged first chunk: the summary named the channels, the later chunks replay
 

@@ -422,7 +422,7 @@ def test_a_log_closed_before_its_first_frame_says_so_and_a_foreign_empty_one_doe
         writer = McapWriter(f)
         writer.start(profile="", library="another tool")
         writer.finish()
-    with pytest.raises(LogError, match="foreign.mcap is an MCAP log but not a sunrig log"):
+    with pytest.raises(LogError, match=f"foreign.mcap is an MCAP log but not a sunrig log: it has no {TOPIC_IMAGE} "):
         open_log(foreign)
 
 
@@ -780,14 +780,6 @@ def test_newer_format_version_is_refused(tmp_path):
         w.add_metadata("sunrig", {"format_version": "2"})
         w.finish()
     with pytest.raises(LogError, match="format version 2"):
-        open_log(path)
-
-
-def test_log_with_no_frames_is_refused(tmp_path):
-    path = tmp_path / "nothing.mcap"
-    with LogWriter(path):
-        pass
-    with pytest.raises(LogError, match=f"no {TOPIC_IMAGE} channel"):
         open_log(path)
 
 
