@@ -593,6 +593,15 @@ def cmd_record(args: argparse.Namespace) -> int:
         assert disk_full.errno is not None  # one of _DISK_FULL
         raise SunrigError(f"record: {out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
                           f"chunks still replay (sunrig replay {out}); free space or pass another --out")
+    if n == 0 and out is not None:
+        # Made by this run and holds nothing: kept, it would only fail every later replay, eval
+        # or train of its folder. (With --overwrite the old file was already replaced at the open.)
+        out.unlink(missing_ok=True)
+        said = f"record: no frame came in {time.monotonic() - start:.1f} s, so {out} is not kept"
+        if interrupted or stop.requested:  # stopped as a service is: not a failure of the command
+            print(f"{said} (stopped by {stop.by or 'Ctrl-C'})", file=sys.stderr)
+            return 0
+        raise SunrigError(f"{said}; check the camera and its cable (docs/drivers.md)")
     if not quiet:
         if live_line:
             sys.stderr.write("\n")

@@ -900,3 +900,40 @@ def test_every_output_of_every_command_under_a_file_is_refused_in_one_line(tmp_p
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names="a-file")
     assert (tmp_path / "a-file").read_text() == "not a folder\n"
+
+
+class _SilentCamera:
+    """FAKE: a camera that sends no frame (a dead cable), since no real device can do that here."""
+
+    def __iter__(self):
+        return iter(())
+
+    def stop(self):
+        pass
+
+
+@pytest.mark.parametrize("stopped", [False, True])
+def test_a_recording_that_got_no_frame_is_not_kept(tmp_path, capsys, monkeypatch, stopped):
+    # It was kept as a whole, empty log, which then failed every replay, eval or train of its folder.
+    import rig.cli
+    from drivers.sources import LiveSource
+
+    def silent(spec, heading, options=None):
+        return LiveSource(spec, heading, _SilentCamera(), {"camera": _SilentCamera()})
+
+    monkeypatch.setattr(rig.cli, "_open_camera", silent)
+    if stopped:  # as a service manager's SIGTERM before the first frame would
+        import rig.stopping
+
+        monkeypatch.setattr(rig.stopping.StopSignals, "requested", property(lambda self: True))
+    out = tmp_path / "drive.mcap"
+    rc, captured = _main_in_process(["record", "--camera", "opencv:0", "--hfov-deg", "60", "--heading", "none",
+                                     "--out", str(out)], capsys)
+    assert not out.exists() and os.listdir(tmp_path) == []
+    last = captured.err.strip().splitlines()[-1]
+    assert "record: no frame came in " in last and f"so {out} is not kept" in last
+    if stopped:
+        assert rc == 0 and last.endswith(")")
+    else:
+        assert rc == 2 and last.startswith("sunrig: error: ") and last.endswith("check the camera and its cable "
+                                                                                "(docs/drivers.md)")
