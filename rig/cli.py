@@ -467,7 +467,12 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
         details = _source_summary(source_stats()) if callable(source_stats) else ""
         if details:
             print(f"sunrig: source: {details}", file=sys.stderr)
-        if recorder is not None and recorder.finished:
+    if recorder is not None and recorder.finished:
+        if recorder.stats()["written"] == 0 and recorder.path is not None:
+            # As `record`: an empty log would only fail every later replay, eval or train of its folder.
+            recorder.path.unlink(missing_ok=True)
+            print(f"sunrig: nothing was recorded, so {recorder.path} is not kept", file=sys.stderr)
+        elif not quiet:
             print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
     if recorder is not None and not recorder.finished:
         why = (f"a write to its disk did not return in {recorder.join_timeout_s:g} s: a disk that stopped answering?"

@@ -937,3 +937,16 @@ def test_a_recording_that_got_no_frame_is_not_kept(tmp_path, capsys, monkeypatch
     else:
         assert rc == 2 and last.startswith("sunrig: error: ") and last.endswith("check the camera and its cable "
                                                                                 "(docs/drivers.md)")
+
+
+def test_a_run_that_recorded_nothing_keeps_no_file(tmp_path, capsys, monkeypatch):
+    import rig.cli
+    from drivers.sources import LiveSource
+
+    monkeypatch.setattr(rig.cli, "_open_camera", lambda spec, heading, options=None: LiveSource(
+        spec, heading, _SilentCamera(), {"camera": _SilentCamera()}))
+    out = tmp_path / "run.mcap"
+    rc, captured = _main_in_process(["run", "--camera", "opencv:0", "--hfov-deg", "60", "--heading", "none",
+                                     "--record", str(out), "--record-frames", "--quiet"], capsys)
+    assert not out.exists() and os.listdir(tmp_path) == []
+    assert f"sunrig: nothing was recorded, so {out} is not kept" in captured.err.splitlines(), (rc, captured.err)
