@@ -950,3 +950,16 @@ def test_a_run_that_recorded_nothing_keeps_no_file(tmp_path, capsys, monkeypatch
                                      "--record", str(out), "--record-frames", "--quiet"], capsys)
     assert not out.exists() and os.listdir(tmp_path) == []
     assert f"sunrig: nothing was recorded, so {out} is not kept" in captured.err.splitlines(), (rc, captured.err)
+
+
+@pytest.mark.parametrize(("argv", "words"), [
+    (["train", "--out", "{out}"], "train: no logs given; pass native logs or folders of them"),
+    (["train", _DEMO, "--out", "{out}", "--mirror-windows"], "pass it with --export-only once the run is done"),
+])
+def test_train_asked_for_what_it_cannot_do_says_what_to_pass_and_writes_nothing(tmp_path, capsys, argv, words):
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "model"
+    argv = [a.replace("{out}", str(out)).replace(_DEMO, str(repo / _DEMO)) for a in argv]
+    rc, captured = _main_in_process(argv, capsys)
+    _assert_one_line_error(rc, captured, names=words)
+    assert len(captured.err.strip().splitlines()) == 1 and not out.exists()
