@@ -963,3 +963,27 @@ def test_train_asked_for_what_it_cannot_do_says_what_to_pass_and_writes_nothing(
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names=words)
     assert len(captured.err.strip().splitlines()) == 1 and not out.exists()
+
+
+@pytest.mark.parametrize(("n", "image", "why"), [
+    (12, "black", "(12 of the 12 frames too dark, bright or flat to use)"),
+    (5, "noise", "(5 frames, too few for a full window)"),
+])
+def test_eval_that_grades_nothing_says_which_frames_were_unusable(tmp_path, capsys, n, image, why):
+    from replay.native import LogWriter
+
+    log = tmp_path / "drive.mcap"
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(5)
+    with LogWriter(log) as w:  # heading and true sun on every frame
+        for i in range(n):
+            pixels = np.zeros((80, 128, 3), np.uint8) if image == "black" else rng.integers(0, 256, (80, 128, 3),
+                                                                                           np.uint8)
+            w.write_frame(Frame(t_mono_s=0.2 * i, seq=i, image_bgr=pixels, intrinsics=intr,
+                                attitude=Attitude(math.radians(10.0 * i), HeadingRef.TRUE),
+                                sun_enu_truth=[0.6, 0.0, 0.8]))
+    rc, captured = _main_in_process(["eval", str(log), "--aggregators", "mean", "--quiet",
+                                     "--json", str(tmp_path / "e.json")], capsys)
+    assert rc == 2 and captured.out == ""
+    assert captured.err.startswith(f"sunrig: error: eval graded nothing: no full window with ground truth in "
+                                   f"these logs {why}; "), captured.err
