@@ -987,3 +987,27 @@ def test_eval_that_grades_nothing_says_which_frames_were_unusable(tmp_path, caps
     assert rc == 2 and captured.out == ""
     assert captured.err.startswith(f"sunrig: error: eval graded nothing: no full window with ground truth in "
                                    f"these logs {why}; "), captured.err
+
+
+def test_replay_says_which_frames_it_skipped_and_why(tmp_path, capsys):
+    from replay.native import LogWriter
+
+    log = tmp_path / "drive.mcap"
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(9)
+    times = [0.2 * i for i in range(30)]  # 0 .. 5.8 s
+    times[16:16] = [times[15] - 0.1]  # one frame older than the one before it
+    times += [0.5, 0.7, 0.9]  # the clock jumps back past the 4 s window span: windows start again
+    with LogWriter(log) as w:
+        for i, t in enumerate(times):
+            black = i in (3, 4)
+            pixels = np.zeros((80, 128, 3), np.uint8) if black else rng.integers(0, 256, (80, 128, 3), np.uint8)
+            heading = None if i in (7, 8) else Attitude(math.radians(5.0 * i), HeadingRef.TRUE)
+            w.write_frame(Frame(t_mono_s=t, seq=i, image_bgr=pixels, intrinsics=intr, attitude=heading,
+                                sun_enu_truth=[0.6, 0.0, 0.8]))
+    rc, captured = _main_in_process(["replay", str(log), "--jsonl", str(tmp_path / "out.jsonl")], capsys)
+    assert rc == 0, captured.err
+    summary = captured.err.strip().splitlines()[-1]
+    for said in ("2 frames without heading skipped", "2 frames too dark, bright or flat to show the sun skipped",
+                 "1 frames older than the one before skipped", "1 clock jumps (windows started again)"):
+        assert said in summary, summary
