@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from replay.sources import DEMO_LOG
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
 
 PNG_BYTES = bytes.fromhex("89504e470d0a1a0a0000000d4948445200000001000000010806000000") + b"\x00" * 20
@@ -170,7 +171,7 @@ def test_replay_to_stdout(tmp_path, tiny_model_dir):
 
 
 def test_bundled_demo_log_is_a_drive_with_truth():
-    from replay.sources import DEMO_LOG, open_frames
+    from replay.sources import open_frames
 
     frames = list(open_frames(DEMO_LOG))
     assert len(frames) == 40
@@ -215,7 +216,6 @@ def test_demo_piped_into_head_ends_quietly(tiny_model_dir):
 @pytest.mark.torch
 def test_run_file_camera_to_loop_serial_jsonl_and_record(tmp_path, tiny_model_dir):
     from replay.native import read_estimates
-    from replay.sources import DEMO_LOG
 
     rec, out = tmp_path / "rec.mcap", tmp_path / "est.jsonl"
     res = run_cli("run", "--camera", f"file:{DEMO_LOG}", "--model", str(tiny_model_dir), "--serial", "loop://",
@@ -292,7 +292,6 @@ def test_a_rig_stopped_by_its_service_manager_finishes_its_outputs(tmp_path, sig
     import signal
 
     from replay.native import read_estimates
-    from replay.sources import DEMO_LOG
 
     rec, out = tmp_path / "rec.mcap", tmp_path / "est.jsonl"
     returncode, err = signalled_after_three_estimates(
@@ -379,8 +378,6 @@ def test_a_second_signal_lets_the_outputs_close_and_a_third_quits(monkeypatch, c
 @pytest.mark.skipif(not (os.path.exists("/dev/full") and os.access("/dev", os.W_OK)),
                     reason="needs /dev/full in a writable /dev (else --json is refused before the run)")
 def test_a_full_disk_found_after_a_whole_evaluation_is_one_line():
-    from replay.sources import DEMO_LOG
-
     res = run_cli("eval", str(DEMO_LOG), "--quiet", "--json", "/dev/full")
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert res.stderr.strip().splitlines() == [
@@ -420,7 +417,6 @@ def test_an_output_the_machine_refuses_is_a_user_error_not_a_bug(monkeypatch, ca
 def test_outputs_that_cannot_work_as_asked_are_refused_or_warned():
     # demo writes NMEA text on stdout when it has no port: binary there, or JSON lines mixed in,
     # would give a reader neither format. A rig with no output at all runs (bring-up), but says so.
-    from replay.sources import DEMO_LOG
 
     for args, said in ((["demo", "--fast", "--format", "binary"], "--format binary needs --serial PORT"),
                        (["demo", "--fast", "--jsonl", "-"], "--jsonl - would mix JSON lines")):
@@ -466,7 +462,6 @@ def test_gnss_stopped_while_its_output_opens_ends_with_the_summary(tmp_path, mon
 
 
 def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
-    from replay.sources import DEMO_LOG
     from tests.test_gnss_nmea import nmea
 
     log = tmp_path / "drive.mcap"
@@ -498,7 +493,7 @@ def test_an_output_never_overwrites_the_input_it_reads(tmp_path):
 def test_an_existing_recording_is_refused_in_the_words_of_the_command(tmp_path):
     # rig.recorder's own rules are tests/test_recorder.py; here: each command names its own way out.
     from replay.native import read_estimates
-    from replay.sources import DEMO_LOG, open_frames
+    from replay.sources import open_frames
 
     keep = tmp_path / "drive.mcap"
     keep.write_bytes(b"yesterday's drive")
@@ -534,8 +529,6 @@ def test_an_existing_recording_is_refused_in_the_words_of_the_command(tmp_path):
 
 
 def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
-    from replay.sources import DEMO_LOG
-
     keep = tmp_path / "keep.mcap"
     keep.write_bytes(b"a recording worth keeping")
     bad_rig = tmp_path / "rig.toml"
@@ -599,8 +592,6 @@ def test_debug_is_taken_after_the_subcommand_too(tmp_path):
 
 @pytest.mark.torch
 def test_an_output_that_writes_nothing_fails_the_run_and_says_so(tiny_model_dir):
-    from replay.sources import DEMO_LOG
-
     res = run_cli("run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--model", str(tiny_model_dir),
                   "--jsonl", "/dev/full", "--serial", "loop://", "--fast")
     assert res.returncode == 2, res.stderr
@@ -630,7 +621,6 @@ def test_config_print_merges_file_and_flags(tmp_path):
 @pytest.mark.slow
 def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
     from estimator.models import DEFAULT_MODEL_DIR
-    from replay.sources import DEMO_LOG
 
     a_file = tmp_path / "notes.txt"
     a_file.write_text("not a model")
@@ -658,8 +648,6 @@ def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
 
 @pytest.mark.torch
 def test_train_init_shipped_beside_a_folder_of_that_name_is_refused_not_guessed(tmp_path):
-    from replay.sources import DEMO_LOG
-
     (tmp_path / "shipped").mkdir()
     res = subprocess.run([sys.executable, "-m", "rig.cli", "train", str(DEMO_LOG), "--out", "m", "--init", "shipped",
                           "--steps", "1", "--quiet"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
@@ -672,7 +660,6 @@ def test_train_init_shipped_beside_a_folder_of_that_name_is_refused_not_guessed(
 @pytest.mark.slow
 def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(tmp_path):
     from estimator.runtime import OnnxModel
-    from replay.sources import DEMO_LOG
 
     args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--batch", "1", "--quiet"]
     res = run_cli(*args, "--steps", "1", "--crops", "6")
@@ -690,8 +677,6 @@ def test_train_crops_per_frame_goes_into_the_contract_and_a_resume_must_keep_it(
 
 @pytest.mark.slow
 def test_train_says_when_it_resumes_a_run_and_when_there_is_nothing_left_to_train(tmp_path):
-    from replay.sources import DEMO_LOG
-
     args = ["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--preset", "tiny", "--batch", "1"]
     res = run_cli(*args, "--steps", "1")
     assert res.returncode == 0 and "resuming" not in res.stderr, res.stderr
@@ -705,7 +690,6 @@ def test_train_says_when_it_resumes_a_run_and_when_there_is_nothing_left_to_trai
 @pytest.mark.slow
 def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
     from estimator.runtime import OnnxModel
-    from replay.sources import DEMO_LOG
 
     out = tmp_path / "m"
     res = run_cli("train", str(DEMO_LOG), "--out", str(out), "--preset", "tiny", "--batch", "1", "--steps", "1",
@@ -735,7 +719,6 @@ def test_export_only_sets_the_run_time_crops_and_keeps_the_recipe(tmp_path):
 @pytest.mark.slow
 def test_export_only_sets_whether_the_model_runs_mirrored_and_a_fine_tune_keeps_it(tmp_path):
     from estimator.runtime import OnnxModel
-    from replay.sources import DEMO_LOG
 
     out = tmp_path / "m"
     args = ["train", str(DEMO_LOG), "--preset", "tiny", "--batch", "1", "--steps", "1", "--quiet"]
@@ -806,7 +789,7 @@ _BAD_FILES = {
     "latin1": "caf\xe9 = 1\n".encode("latin-1"),
     "text": b"hello world\n",
 }
-_DEMO = "replay/data/demo.mcap"  # rewritten to the bundled log's path in the test
+_DEMO = str(DEMO_LOG)
 
 
 def _in(cmd, *rest):
@@ -857,7 +840,6 @@ def _assert_one_line_error(rc, captured, *, names):
     if not (kind == "empty" and slot.endswith("--config"))  # an empty TOML file is the defaults: valid
 ])
 def test_every_input_of_every_command_refuses_a_bad_file_in_one_line(tmp_path, capsys, slot, kind):
-    repo = Path(__file__).resolve().parents[1]
     bad = tmp_path / f"bad-{kind}"
     if kind == "folder":
         bad.mkdir()
@@ -865,7 +847,7 @@ def test_every_input_of_every_command_refuses_a_bad_file_in_one_line(tmp_path, c
         bad.write_bytes(_BAD_FILES[kind])
     (tmp_path / "out").mkdir()
     out = str(tmp_path / "out" / "result")
-    argv = [a.replace("{out}", out).replace(_DEMO, str(repo / _DEMO)) for a in _INPUT_SLOTS[slot](str(bad))]
+    argv = [a.replace("{out}", out) for a in _INPUT_SLOTS[slot](str(bad))]
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names=bad.name)
     if slot != "gnss SOURCE":  # a stream: its output opens before a port's first sentence can come
@@ -895,8 +877,7 @@ def test_every_output_of_every_command_under_a_file_is_refused_in_one_line(tmp_p
         nmea.write_bytes(b"$GPHDT,123.4,T*3B\r\n" * 3)
     (tmp_path / "a-file").write_text("not a folder\n")
     target = str(tmp_path / "a-file" / "result")
-    argv = [a.replace("{}", target).replace("{nmea}", str(nmea)).replace(_DEMO, str(repo / _DEMO))
-            for a in _OUTPUT_SLOTS[slot].split()]
+    argv = [a.replace("{}", target).replace("{nmea}", str(nmea)) for a in _OUTPUT_SLOTS[slot].split()]
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names="a-file")
     assert (tmp_path / "a-file").read_text() == "not a folder\n"
@@ -957,9 +938,8 @@ def test_a_run_that_recorded_nothing_keeps_no_file(tmp_path, capsys, monkeypatch
     (["train", _DEMO, "--out", "{out}", "--mirror-windows"], "pass it with --export-only once the run is done"),
 ])
 def test_train_asked_for_what_it_cannot_do_says_what_to_pass_and_writes_nothing(tmp_path, capsys, argv, words):
-    repo = Path(__file__).resolve().parents[1]
     out = tmp_path / "model"
-    argv = [a.replace("{out}", str(out)).replace(_DEMO, str(repo / _DEMO)) for a in argv]
+    argv = [a.replace("{out}", str(out)) for a in argv]
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names=words)
     assert len(captured.err.strip().splitlines()) == 1 and not out.exists()
