@@ -1,7 +1,9 @@
 """`sunrig replay` as a user runs it: a subprocess, its exit code, its stdout and stderr."""
 
+import functools
 import json
 import math
+import operator
 import os
 import re
 import shlex
@@ -789,32 +791,38 @@ _BAD_FILES = {
     "latin1": "caf\xe9 = 1\n".encode("latin-1"),
     "text": b"hello world\n",
 }
-_DEMO = str(DEMO_LOG)
-
-
-def _in(cmd, *rest):
-    return lambda x: [a.replace("{}", x) for a in (*cmd.split(), *rest)]
-
-
+# Each slot is a command line, split on spaces before its placeholders are filled in (so a path
+# with a space stays one argument): {bad} the bad file, {out} an output, {demo} the bundled log.
 _INPUT_SLOTS = {
-    "replay LOG": _in("replay {}", "--jsonl", "{out}"),
-    "replay --model": _in("replay --model {}", "--jsonl", "{out}"),
-    "eval LOG": _in("eval {} --quiet --json", "{out}"),
-    "eval --model": _in("eval", _DEMO, "--model", "{}", "--quiet", "--json", "{out}"),
-    "run --camera file:": _in("run --heading log --camera", "file:{}", "--jsonl", "{out}"),
-    "run --model": _in("run --heading log --camera", f"file:{_DEMO}", "--model", "{}", "--jsonl", "{out}"),
-    "run --config": _in("run --heading log --camera", f"file:{_DEMO}", "--config", "{}", "--jsonl", "{out}"),
-    "run --calibration": _in("run --heading none --camera opencv:99 --calibration", "{}", "--jsonl", "{out}"),
-    "record --config": _in("record --config", "{}", "--out", "{out}.mcap"),
-    "demo --model": _in("demo --fast --model", "{}"),
-    "demo --config": _in("demo --fast --config", "{}"),
-    "config --config": _in("config --print --config", "{}"),
-    "sun --csv": _in("sun --csv", "{}"),
-    "gnss SOURCE": _in("gnss", "{}", "--jsonl", "{out}"),
-    "train LOG": _in("train", "{}", "--out", "{out}", "--steps", "1"),
-    "train --init": _in("train", _DEMO, "--init", "{}", "--out", "{out}", "--steps", "1"),
+    "replay LOG": "replay {bad} --jsonl {out}",
+    "replay --model": "replay --model {bad} --jsonl {out}",
+    "eval LOG": "eval {bad} --quiet --json {out}",
+    "eval --model": "eval {demo} --model {bad} --quiet --json {out}",
+    "run --camera file:": "run --heading log --camera file:{bad} --jsonl {out}",
+    "run --model": "run --heading log --camera file:{demo} --model {bad} --jsonl {out}",
+    "run --config": "run --heading log --camera file:{demo} --config {bad} --jsonl {out}",
+    "run --calibration": "run --heading none --camera opencv:99 --calibration {bad} --jsonl {out}",
+    "record --config": "record --config {bad} --out {out}.mcap",
+    "demo --model": "demo --fast --model {bad}",
+    "demo --config": "demo --fast --config {bad}",
+    "config --config": "config --print --config {bad}",
+    "sun --csv": "sun --csv {bad}",
+    "gnss SOURCE": "gnss {bad} --jsonl {out}",
+    "train LOG": "train {bad} --out {out} --steps 1",
+    "train --init": "train {demo} --init {bad} --out {out} --steps 1",
 }
 _TORCH_SLOTS = {"train LOG", "train --init"}
+
+
+def _command(line, **values):
+    """``line`` split on spaces, then each ``{name}`` in it filled in from ``values`` ({demo}: the bundled log)."""
+    values = {"{" + k + "}": str(v) for k, v in {"demo": DEMO_LOG, **values}.items()}
+    args = []
+    for arg in line.split():
+        for key, value in values.items():
+            arg = arg.replace(key, value)
+        args.append(arg)
+    return args
 
 
 def _main_in_process(argv, capsys):
@@ -847,7 +855,7 @@ def test_every_input_of_every_command_refuses_a_bad_file_in_one_line(tmp_path, c
         bad.write_bytes(_BAD_FILES[kind])
     (tmp_path / "out").mkdir()
     out = str(tmp_path / "out" / "result")
-    argv = [a.replace("{out}", out) for a in _INPUT_SLOTS[slot](str(bad))]
+    argv = _command(_INPUT_SLOTS[slot], bad=bad, out=out)
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names=bad.name)
     if slot != "gnss SOURCE":  # a stream: its output opens before a port's first sentence can come
@@ -855,29 +863,27 @@ def test_every_input_of_every_command_refuses_a_bad_file_in_one_line(tmp_path, c
 
 
 _OUTPUT_SLOTS = {
-    "replay --jsonl": "replay --jsonl {}",
-    "run --jsonl": f"run --heading log --camera file:{_DEMO} --fast --jsonl {{}}",
-    "run --record": f"run --heading log --camera file:{_DEMO} --fast --record {{}}.mcap",
-    "record --out": f"record --heading log --camera file:{_DEMO} --out {{}}.mcap",
-    "eval --json": f"eval {_DEMO} --aggregators mean --quiet --json {{}}",
-    "eval --plot": f"eval {_DEMO} --aggregators mean --quiet --plot {{}}.png",
-    "gnss --jsonl": "gnss {nmea} --jsonl {}",
-    "synth OUT": "synth {} --drives 1 --frames 2",
-    "train --out": f"train {_DEMO} --steps 1 --out {{}}",
+    "replay --jsonl": "replay --jsonl {target}",
+    "run --jsonl": "run --heading log --camera file:{demo} --fast --jsonl {target}",
+    "run --record": "run --heading log --camera file:{demo} --fast --record {target}.mcap",
+    "record --out": "record --heading log --camera file:{demo} --out {target}.mcap",
+    "eval --json": "eval {demo} --aggregators mean --quiet --json {target}",
+    "eval --plot": "eval {demo} --aggregators mean --quiet --plot {target}.png",
+    "gnss --jsonl": "gnss {nmea} --jsonl {target}",
+    "synth OUT": "synth {target} --drives 1 --frames 2",
+    "train --out": "train {demo} --steps 1 --out {target}",
 }
 
 
 @pytest.mark.parametrize("slot", [pytest.param(s, marks=[pytest.mark.torch] if s.startswith("train") else [])
                                   for s in _OUTPUT_SLOTS])
 def test_every_output_of_every_command_under_a_file_is_refused_in_one_line(tmp_path, capsys, slot):
-    repo = Path(__file__).resolve().parents[1]
-    nmea = repo.parent / "shared" / "fixtures" / "nmea" / "nmea-rtk.log"
-    if "{nmea}" in _OUTPUT_SLOTS[slot] and not nmea.exists():
-        nmea = tmp_path / "capture.nmea"
-        nmea.write_bytes(b"$GPHDT,123.4,T*3B\r\n" * 3)
+    nmea = tmp_path / "capture.nmea"  # a GNSS heading, as gnss reads it
+    body = b"GPHDT,123.4,T"
+    nmea.write_bytes(b"$%s*%02X\r\n" % (body, functools.reduce(operator.xor, body)) * 3)
     (tmp_path / "a-file").write_text("not a folder\n")
     target = str(tmp_path / "a-file" / "result")
-    argv = [a.replace("{}", target).replace("{nmea}", str(nmea)) for a in _OUTPUT_SLOTS[slot].split()]
+    argv = _command(_OUTPUT_SLOTS[slot], target=target, nmea=nmea)
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names="a-file")
     assert (tmp_path / "a-file").read_text() == "not a folder\n"
@@ -934,13 +940,12 @@ def test_a_run_that_recorded_nothing_keeps_no_file(tmp_path, capsys, monkeypatch
 
 
 @pytest.mark.parametrize(("argv", "words"), [
-    (["train", "--out", "{out}"], "train: no logs given; pass native logs or folders of them"),
-    (["train", _DEMO, "--out", "{out}", "--mirror-windows"], "pass it with --export-only once the run is done"),
+    ("train --out {out}", "train: no logs given; pass native logs or folders of them"),
+    ("train {demo} --out {out} --mirror-windows", "pass it with --export-only once the run is done"),
 ])
 def test_train_asked_for_what_it_cannot_do_says_what_to_pass_and_writes_nothing(tmp_path, capsys, argv, words):
     out = tmp_path / "model"
-    argv = [a.replace("{out}", str(out)) for a in argv]
-    rc, captured = _main_in_process(argv, capsys)
+    rc, captured = _main_in_process(_command(argv, out=out), capsys)
     _assert_one_line_error(rc, captured, names=words)
     assert len(captured.err.strip().splitlines()) == 1 and not out.exists()
 
