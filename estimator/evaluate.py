@@ -78,6 +78,7 @@ class EvalResult:
     elevation_deg: dict[str, list[float]] = field(default_factory=dict)
     truth_elevation_deg: list[float] = field(default_factory=list)
     samples: list[dict[str, SunEstimate]] = field(default_factory=list)  # a few windows, for plots
+    sample_logs: list[str] = field(default_factory=list)  # the log of each sample, for its title
     logs: list[str] = field(default_factory=list)
     # Each window's newest frame (its seq in the log), then its log, in the order of every errors_deg list.
     window_seqs: list[int] = field(default_factory=list)
@@ -214,6 +215,7 @@ def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estima
         # own sun, so the figure shows different skies.
         if len(result.samples) < n_samples and not sampled:
             result.samples.append(estimates)
+            result.sample_logs.append(name)
             sampled = True
         if progress:
             progress(len(result.window_logs), logs_done)
@@ -258,8 +260,8 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
         fig, axes = plt.subplots(len(shown), cols, figsize=(2.6 * cols, 2.8 * len(shown)), dpi=110,
                                  subplot_kw={"projection": "polar"}, squeeze=False)
         for r, agg in enumerate(shown):
-            for c, sample in enumerate(result.samples):
-                _polar_window(axes[r][c], sample[agg])
+            for c, (sample, log) in enumerate(zip(result.samples, result.sample_logs, strict=True)):
+                _polar_window(axes[r][c], sample[agg], Path(log).stem)
                 if c == 0:
                     axes[r][c].set_ylabel(agg, labelpad=24)
         fig.suptitle("per-token (dots), aggregate (x), truth (*)\nazimuth clockwise from N; radius: zenith angle",
@@ -272,7 +274,7 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
     return written
 
 
-def _polar_window(ax, est: SunEstimate) -> None:
+def _polar_window(ax, est: SunEstimate, log: str) -> None:
     from rig.geometry import az_el_from_enu
 
     ax.set_theta_zero_location("N")
@@ -289,4 +291,4 @@ def _polar_window(ax, est: SunEstimate) -> None:
     ax.set_yticklabels([])
     ax.set_xticklabels([])
     err = "" if est.error_rad is None else f"{math.degrees(est.error_rad):.1f} deg"
-    ax.set_title(f"seq {est.seq} {err}", fontsize=8)
+    ax.set_title(f"{log} seq {est.seq}\n{err}", fontsize=8)  # where to find the window again
