@@ -996,3 +996,29 @@ def test_replay_says_which_frames_it_skipped_and_why(tmp_path, capsys):
     for said in ("2 frames without heading skipped", "2 frames too dark, bright or flat to show the sun skipped",
                  "1 frames older than the one before skipped", "1 clock jumps (windows started again)"):
         assert said in summary, summary
+
+
+# Every device a command opens, absent. No real device is here, so these are real failures to open.
+_MISSING_DEVICES = {
+    "run --camera opencv:N": ("run --camera opencv:99 --hfov-deg 60 --heading none --jsonl {out}", "index 99"),
+    "run --camera opencv:URL": ("run --camera opencv:rtsp://127.0.0.1:1/x --hfov-deg 60 --heading none "
+                                "--jsonl {out}", "rtsp://127.0.0.1:1/x"),
+    "run --camera oak": ("run --camera oak --heading oak-imu --jsonl {out}", "no OAK device found"),
+    "run --heading nmea:PORT": ("run --camera opencv:99 --hfov-deg 60 --heading nmea:{tmp}/ttyNOPE --jsonl {out}",
+                                "ttyNOPE"),
+    "run --serial": ("run --camera file:{demo} --heading log --serial {tmp}/ttyNOPE", "ttyNOPE"),
+    "replay --serial": ("replay --serial {tmp}/ttyNOPE", "ttyNOPE"),
+    "demo --serial": ("demo --serial {tmp}/ttyNOPE", "ttyNOPE"),
+    "record --camera opencv:N": ("record --camera opencv:99 --hfov-deg 60 --heading none --out {out}.mcap",
+                                 "index 99"),
+    "gnss PORT": ("gnss {tmp}/ttyNOPE", "ttyNOPE"),
+}
+
+
+@pytest.mark.parametrize("slot", list(_MISSING_DEVICES))
+def test_every_device_a_command_opens_when_absent_is_one_line_and_leaves_no_output(tmp_path, capsys, slot):
+    line, names = _MISSING_DEVICES[slot]
+    (tmp_path / "out").mkdir()
+    rc, captured = _main_in_process(_command(line, tmp=tmp_path, out=tmp_path / "out" / "result"), capsys)
+    _assert_one_line_error(rc, captured, names=names)
+    assert not os.listdir(tmp_path / "out")
