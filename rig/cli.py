@@ -468,9 +468,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
         if details:
             print(f"sunrig: source: {details}", file=sys.stderr)
     if recorder is not None and recorder.finished:
-        if recorder.stats()["written"] == 0 and recorder.path is not None:
-            # As `record`: an empty log would only fail every later replay, eval or train of its folder.
-            recorder.path.unlink(missing_ok=True)
+        if recorder.discard_if_empty():
             print(f"sunrig: nothing was recorded, so {recorder.path} is not kept", file=sys.stderr)
         elif not quiet:
             print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
@@ -530,7 +528,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     Ctrl-C (or SIGTERM, SIGHUP) ends the recording, and the log is finished (summary and index);
     one while a frame (or the summary) is being written lets that write finish first (rig.stopping).
     """
-    from rig.recorder import check_recording_path, open_recording
+    from rig.recorder import check_recording_path, discard_if_empty, open_recording
 
     cfg = _effective_config(args)
     _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=args.out)
@@ -598,10 +596,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         assert disk_full.errno is not None  # one of _DISK_FULL
         raise SunrigError(f"record: {out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
                           f"chunks still replay (sunrig replay {out}); free space or pass another --out")
-    if n == 0 and out is not None:
-        # Made by this run and holds nothing: kept, it would only fail every later replay, eval
-        # or train of its folder. (With --overwrite the old file was already replaced at the open.)
-        out.unlink(missing_ok=True)
+    if discard_if_empty(writer):
         said = f"record: no frame came in {time.monotonic() - start:.1f} s, so {out} is not kept"
         if interrupted or stop.requested:  # stopped as a service is: not a failure of the command
             print(f"{said} (stopped by {stop.by or 'Ctrl-C'})", file=sys.stderr)

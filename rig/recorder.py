@@ -89,6 +89,18 @@ def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool
     raise RecordingRefused(path, "taken" if START_FIELD in name else "exists")
 
 
+def discard_if_empty(writer: LogWriter) -> bool:
+    """Remove a closed recording that holds no frame and no estimate; True when it was removed.
+
+    Made by this run and holding nothing, it would only fail every later replay, eval or train of
+    its folder. (With ``overwrite``, the file it replaced was already gone when it opened.)
+    """
+    if not writer.closed or writer.frames_written or writer.estimates_written or writer.path is None:
+        return False
+    writer.path.unlink(missing_ok=True)
+    return True
+
+
 class RecorderPublisher:
     """Writes what it is given to a native log on a writer thread; ``close`` finishes the file.
 
@@ -134,6 +146,10 @@ class RecorderPublisher:
     def stuck(self) -> bool:
         """close() gave up on a write that has not returned (the log is finished if it ever does)."""
         return self._worker.left_behind
+
+    def discard_if_empty(self) -> bool:
+        """Once finished: remove the log if nothing was written to it (:func:`discard_if_empty`)."""
+        return self.finished and discard_if_empty(self._writer)
 
     def close(self) -> None:
         self._worker.close(self.join_timeout_s)

@@ -9,7 +9,7 @@ from datetime import UTC, datetime
 import pytest
 
 from replay.native import LogWriter, read_estimates, read_frames
-from rig.recorder import RecorderPublisher, RecordingRefused, check_recording_path, open_recording
+from rig.recorder import RecorderPublisher, RecordingRefused, check_recording_path, discard_if_empty, open_recording
 from tests.test_native_log import make_frames
 from tests.test_protocol import make_estimate
 from tests.test_publishers import wait_until
@@ -266,3 +266,16 @@ def test_a_stop_signal_while_the_rig_closes_its_recording_lets_it_finish(tmp_pat
     assert main(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--record", str(out), "--fast",
                  "--quiet"]) == 0
     assert out.read_bytes().endswith(MCAP_MAGIC) and len(list(read_estimates(out))) >= 1
+
+
+def test_only_a_closed_recording_that_holds_nothing_is_discarded(tmp_path):
+    empty = LogWriter(tmp_path / "empty.mcap")
+    assert not discard_if_empty(empty) and empty.path.exists()  # still open: it may yet get frames
+    empty.close()
+    assert discard_if_empty(empty) and not empty.path.exists()
+    with LogWriter(tmp_path / "estimates.mcap") as w:  # `run --record` without --record-frames
+        w.write_estimate(make_estimate(10.0, 20.0, seq=1))
+    assert not discard_if_empty(w) and w.path.exists()
+    with LogWriter(tmp_path / "frames.mcap") as w:
+        w.write_frame(make_frames(1)[0])
+    assert not discard_if_empty(w) and w.path.exists()
