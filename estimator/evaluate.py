@@ -77,8 +77,8 @@ class EvalResult:
     flags: dict[str, list[int]] = field(default_factory=dict)
     elevation_deg: dict[str, list[float]] = field(default_factory=dict)
     truth_elevation_deg: list[float] = field(default_factory=list)
-    samples: list[dict[str, SunEstimate]] = field(default_factory=list)  # a few windows, for plots
-    sample_logs: list[str] = field(default_factory=list)  # the log of each sample, for its title
+    # A few windows for the plots, each with its log (named in its title).
+    samples: list[tuple[str, dict[str, SunEstimate]]] = field(default_factory=list)
     logs: list[str] = field(default_factory=list)
     # Each window's newest frame (its seq in the log), then its log, in the order of every errors_deg list.
     window_seqs: list[int] = field(default_factory=list)
@@ -214,8 +214,7 @@ def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estima
         # The first full window of each of the first logs, for the scatter figure: each log has its
         # own sun, so the figure shows different skies.
         if len(result.samples) < n_samples and not sampled:
-            result.samples.append(estimates)
-            result.sample_logs.append(name)
+            result.samples.append((name, estimates))
             sampled = True
         if progress:
             progress(len(result.window_logs), logs_done)
@@ -254,13 +253,14 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
 
     if result.samples:
         tokens_png = out_png.with_name(out_png.stem + "-tokens" + out_png.suffix)
-        preferred: list[str] = [a for a in ("transformer", "meanshift") if a in result.samples[0]]
-        shown = preferred or list(result.samples[0])
+        first = result.samples[0][1]
+        preferred: list[str] = [a for a in ("transformer", "meanshift") if a in first]
+        shown = preferred or list(first)
         cols = len(result.samples)
         fig, axes = plt.subplots(len(shown), cols, figsize=(2.6 * cols, 2.8 * len(shown)), dpi=110,
                                  subplot_kw={"projection": "polar"}, squeeze=False)
         for r, agg in enumerate(shown):
-            for c, (sample, log) in enumerate(zip(result.samples, result.sample_logs, strict=True)):
+            for c, (log, sample) in enumerate(result.samples):
                 _polar_window(axes[r][c], sample[agg], Path(log).stem)
                 if c == 0:
                     axes[r][c].set_ylabel(agg, labelpad=24)
