@@ -30,9 +30,8 @@ class Progress:
         self.label, self.total, self.unit = label, total, unit
         # sys.stderr as it is now, not as it was at import: a caller that redirects it (pytest's
         # capture, contextlib.redirect_stderr) must not get a counter writing to a closed stream.
-        stream = sys.stderr if stream is None else stream
-        self.stream = stream
-        self.enabled = stream.isatty() if enabled is None else enabled
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = self.stream.isatty() if enabled is None else enabled
         # Not a terminal and not told otherwise: a line now and then instead of redraws.
         self.log_every_s = log_every_s if enabled is None and not self.enabled else None
         self.min_interval_s = min_interval_s
