@@ -418,10 +418,7 @@ def test_a_log_closed_before_its_first_frame_says_so_and_a_foreign_empty_one_doe
     with pytest.raises(LogError, match="empty.mcap is a sunrig log that holds no frames: its recording stopped"):
         open_log(path)
     foreign = tmp_path / "foreign.mcap"
-    with open(foreign, "wb") as f:
-        writer = McapWriter(f)
-        writer.start(profile="", library="another tool")
-        writer.finish()
+    _foreign_mcap(foreign, finish=True, topic=None)
     with pytest.raises(LogError, match=f"foreign.mcap is an MCAP log but not a sunrig log: it has no {TOPIC_IMAGE} "):
         open_log(foreign)
 
@@ -740,15 +737,17 @@ def test_not_a_log_raises_one_line_log_error(tmp_path, name, content, needle):
 
 
 def _foreign_mcap(
-    path: Path, *, finish: bool, topic: str = "/foo", schema_name: str = "foo.Bar"
+    path: Path, *, finish: bool, topic: str | None = "/foo", schema_name: str = "foo.Bar"
 ) -> None:
+    """Another tool's MCAP: five messages on ``topic``, or no channel at all when it is None."""
     with open(path, "wb") as f:
         w = McapWriter(f)
         w.start(profile="", library="someone-else")
-        sid = w.register_schema(schema_name, "jsonschema", b"{}")
-        cid = w.register_channel(topic, "json", sid)
-        for i in range(5):
-            w.add_message(cid, log_time=i, publish_time=i, data=b"{}", sequence=i)
+        if topic is not None:
+            sid = w.register_schema(schema_name, "jsonschema", b"{}")
+            cid = w.register_channel(topic, "json", sid)
+            for i in range(5):
+                w.add_message(cid, log_time=i, publish_time=i, data=b"{}", sequence=i)
         if finish:
             w.finish()
         else:
