@@ -899,16 +899,19 @@ class _SilentCamera:
         pass
 
 
-@pytest.mark.parametrize("stopped", [False, True])
-def test_a_recording_that_got_no_frame_is_not_kept(tmp_path, capsys, monkeypatch, stopped):
-    # It was kept as a whole, empty log, which then failed every replay, eval or train of its folder.
+@pytest.fixture
+def silent_camera(monkeypatch):
+    """Every --camera opens as a _SilentCamera (with the heading asked for)."""
     import rig.cli
     from drivers.sources import LiveSource
 
-    def silent(spec, heading, options=None):
-        return LiveSource(spec, heading, _SilentCamera(), {"camera": _SilentCamera()})
+    monkeypatch.setattr(rig.cli, "_open_camera", lambda spec, heading, options=None: LiveSource(
+        spec, heading, _SilentCamera(), {"camera": _SilentCamera()}))
 
-    monkeypatch.setattr(rig.cli, "_open_camera", silent)
+
+@pytest.mark.parametrize("stopped", [False, True])
+def test_a_recording_that_got_no_frame_is_not_kept(tmp_path, capsys, monkeypatch, silent_camera, stopped):
+    # It was kept as a whole, empty log, which then failed every replay, eval or train of its folder.
     if stopped:  # as a service manager's SIGTERM before the first frame would
         import rig.stopping
 
@@ -926,12 +929,7 @@ def test_a_recording_that_got_no_frame_is_not_kept(tmp_path, capsys, monkeypatch
                                                                                 "(docs/drivers.md)")
 
 
-def test_a_run_that_recorded_nothing_keeps_no_file(tmp_path, capsys, monkeypatch):
-    import rig.cli
-    from drivers.sources import LiveSource
-
-    monkeypatch.setattr(rig.cli, "_open_camera", lambda spec, heading, options=None: LiveSource(
-        spec, heading, _SilentCamera(), {"camera": _SilentCamera()}))
+def test_a_run_that_recorded_nothing_keeps_no_file(tmp_path, capsys, silent_camera):
     out = tmp_path / "run.mcap"
     rc, captured = _main_in_process(["run", "--camera", "opencv:0", "--hfov-deg", "60", "--heading", "none",
                                      "--record", str(out), "--record-frames", "--quiet"], capsys)
