@@ -51,7 +51,7 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from rig.errors import LogError, ValidationError
+from rig.errors import EmptyLogError, LogError, ValidationError
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
 
 try:  # mcap depends on zstandard; kept optional here only so the error tuple can name it
@@ -782,15 +782,9 @@ def _open_log_file(path: Path) -> tuple[IO[bytes], int]:
     if head[:8] != MCAP_MAGIC:
         f.close()
         if size == 0:
-            raise LogError(
-                f"{name} is empty (0 bytes), not an MCAP log; the recording never started: record again or "
-                "pass another log"
-            )
+            raise EmptyLogError(name, "it is empty, 0 bytes: the recording never started")
         if MCAP_MAGIC.startswith(head):
-            raise LogError(
-                f"{name} is cut off inside the MCAP magic ({size} bytes); it holds no frames: record again "
-                "or pass another log"
-            )
+            raise EmptyLogError(name, f"it is cut off inside the MCAP magic, {size} bytes")
         what = next((desc for sig, desc in _SIGNATURES if head.startswith(sig)), None)
         if what is None:
             what = f"bytes {head[:8].hex(' ')} where the MCAP magic {MCAP_MAGIC.hex(' ')} belongs"
@@ -899,14 +893,10 @@ def _inspect(path: Path) -> _LogInfo:
                     _check_image_channel(name, seen)
                     return info  # the first chunk of a sunrig log: no need to read further
         if stats.truncated and not seen:
-            raise LogError(
-                f"{name} is an MCAP log cut off before its first complete chunk; it holds no frames: record "
-                "again or pass another log"
-            )
+            raise EmptyLogError(name, "an MCAP log cut off before its first complete chunk")
         if topics is None:  # no summary vouched for the channels: the data section must have
             if not seen and info.metadata:  # sunrig's own log, closed before its first frame came
-                raise LogError(f"{name} is a sunrig log that holds no frames: its recording stopped before "
-                               "the first frame came; record again or pass another log")
+                raise EmptyLogError(name, "a sunrig log whose recording stopped before the first frame came")
             _check_image_channel(name, seen)
     return info  # a damaged first chunk: the summary named the channels, the later chunks replay
 

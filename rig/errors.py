@@ -19,6 +19,20 @@ class LogError(SunrigError):
     """A log file cannot be read: not a log, corrupt, or missing the channels a replay needs."""
 
 
+class EmptyLogError(LogError):
+    """A log that holds no frames: its recording stopped, or was cut off, before the first frame
+    was written (a power cut at start-up). ``eval`` and ``train`` over many logs skip such a log
+    with a warning, as there is nothing in it to lose; a log given alone is an error.
+
+    ``name`` is the log as given and ``reason`` what it is, e.g. "an MCAP log cut off before its
+    first complete chunk", for a warning that words the remedy its own way.
+    """
+
+    def __init__(self, name: str, reason: str) -> None:
+        super().__init__(f"{name} holds no frames ({reason}); record again or pass another log")
+        self.name, self.reason = name, reason
+
+
 class ModelError(SunrigError):
     """A model folder cannot be used: missing graph, unreadable file, or no contract."""
 

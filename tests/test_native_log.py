@@ -47,7 +47,7 @@ from replay.native import (
     read_estimates,
     read_frames,
 )
-from rig.errors import LogError, ValidationError
+from rig.errors import EmptyLogError, LogError, ValidationError
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate
 from tests.tolerances import EXACT_F64, JPEG_MEAN_ABS
 
@@ -415,7 +415,7 @@ def test_a_log_closed_before_its_first_frame_says_so_and_a_foreign_empty_one_doe
     path = tmp_path / "empty.mcap"
     with LogWriter(path):
         pass
-    with pytest.raises(LogError, match="empty.mcap is a sunrig log that holds no frames: its recording stopped"):
+    with pytest.raises(EmptyLogError, match=r"empty.mcap holds no frames \(a sunrig log whose recording stopped"):
         open_log(path)
     foreign = tmp_path / "foreign.mcap"
     _foreign_mcap(foreign, finish=True, topic=None)
@@ -428,7 +428,7 @@ def test_cut_inside_the_first_chunk_is_a_clear_error(tmp_path):
     data = path.read_bytes()
     cut = tmp_path / "early.mcap"
     cut.write_bytes(data[:200])  # header and metadata only
-    with pytest.raises(LogError, match="cut off before its first complete chunk") as info:
+    with pytest.raises(EmptyLogError, match="cut off before its first complete chunk") as info:
         open_log(cut)
     assert "\n" not in str(info.value)
 
@@ -734,6 +734,8 @@ def test_not_a_log_raises_one_line_log_error(tmp_path, name, content, needle):
         assert needle in msg
         assert name in msg
         assert "\n" not in msg and "\r" not in msg
+        # Only a log that holds no frames may be skipped by eval and train over many logs.
+        assert isinstance(info.value, EmptyLogError) == (name in ("empty.mcap", "stub.mcap"))
 
 
 def _foreign_mcap(
