@@ -16,13 +16,17 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Iterable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from rig.errors import SunrigError
 from rig.progress import Progress
 from rig.stopping import StopSignals
+
+if TYPE_CHECKING:
+    from rig.types import Frame
 
 EXIT_USER_ERROR = 2
 EXIT_BUG = 1
@@ -675,17 +679,47 @@ def _expand_logs(items: list[str]) -> list[Path]:
     return paths
 
 
+def _open_logs(command: str, items: list[str],
+               utc_offset_h: float | None) -> tuple[list[tuple[Path, Iterable[Frame]]], list[str]]:
+    """The logs of ``items`` (files, or folders of *.mcap files), each opened now so that a bad
+    one fails before any work is done.
+
+    A log that holds no frames (a recording cut off before its first frame, as a power cut at
+    start-up leaves one) is left out with a warning: there is nothing in it to lose, and one such
+    file must not stop the evaluation or training of a fleet's folder. Every other bad log is an
+    error, and so are logs none of which holds frames. Returns the opened logs and the names of
+    those left out."""
+    from replay.sources import open_frames
+    from rig.errors import EmptyLogError, LogError
+
+    opened: list[tuple[Path, Iterable[Frame]]] = []
+    empty: list[EmptyLogError] = []
+    for path in _expand_logs(items):
+        try:
+            opened.append((path, open_frames(path, utc_offset_h=utc_offset_h)))
+        except EmptyLogError as exc:
+            empty.append(exc)
+    if empty and not opened:
+        if len(empty) == 1:
+            raise empty[0]
+        raise LogError(f"none of the {len(empty)} logs holds frames ({empty[0].name}: {empty[0].reason}, ...); "
+                       "record again or pass other logs")
+    for skipped in empty:
+        logging.getLogger(__name__).warning("%s: left out %s: it holds no frames (%s)", command, skipped.name,
+                                            skipped.reason)
+    return opened, [skipped.name for skipped in empty]
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from estimator.estimator import AGGREGATORS, SunEstimator
     from estimator.evaluate import TAIL_DEG, TAIL_KEY, evaluate, plot_eval
-    from replay.sources import open_frames
     from rig.window import SpreadWindowPolicy
 
     _check_writable("--json", args.json)
     _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
-    paths = _expand_logs(args.logs)
-    _refuse_overwriting(paths, json=args.json, plot=args.plot)
-    sources = [(str(p), open_frames(p, utc_offset_h=args.utc_offset)) for p in paths]  # all checked before any work
+    _refuse_overwriting(_expand_logs(args.logs), json=args.json, plot=args.plot)
+    opened, left_out = _open_logs("eval", args.logs, args.utc_offset)
+    sources = [(str(p), frames) for p, frames in opened]
     model = _load_model(args.model)
     estimator = SunEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
@@ -696,6 +730,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                       progress=lambda windows, logs: progress.update(logs, f"{windows} windows"))
     summary = result.summary()
     summary["model"] = {"dir": str(model.model_dir), "id": model.model_id}
+    summary["logs_left_out"] = left_out  # they hold no frames (warned about above)
     text = json.dumps(summary, indent=2)
     with args.stop.finishing():  # the work is done: a stop signal now must not lose its record
         if args.json and args.json != "-":
@@ -742,7 +777,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         # Logs beside --export-only: a checkpoint from before training recorded its data's sun
         # elevations takes them from its logs (checked to be the run's by their fingerprint).
-        logs = _expand_logs(args.logs) if args.logs else []
+        logs = [p for p, _ in _open_logs("train", args.logs, args.utc_offset)[0]] if args.logs else []
         mirror = args.mirror_windows
         out = export_checkpoint(Path(args.out), Path(args.export_only), run_crops_per_frame=args.crops or 0,
                                 export_command=command_line() if args.crops or logs or args.data_note
@@ -756,11 +791,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.mirror_windows is not None:
         raise SunrigError("train: --mirror-windows sets how an exported model runs; pass it with --export-only "
                           "once the run is done (a fine-tune keeps its --init model's)")
-    paths = _expand_logs(args.logs)
-    from replay.sources import open_frames
-
-    for p in paths:  # fail on a bad log now, not after loading the others
-        open_frames(p, utc_offset_h=args.utc_offset)
+    # Opened now, so that a bad log fails before minutes of loading the others.
+    paths = [p for p, _ in _open_logs("train", args.logs, args.utc_offset)[0]]
     cfg = TrainConfig(preset=args.preset, layers=args.layers, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
                       crop_fov_deg=args.crop_fov,

@@ -123,6 +123,55 @@ def test_eval_of_logs_without_the_true_sun_says_so(tmp_path):
     assert "no full window with ground truth in these logs (5 windows had no true sun)" in res.stderr
 
 
+def _fleet_with_a_cut_recording(tmp_path):
+    """A folder of one good log and one that a power cut ended before its first chunk."""
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    good = _write_log(fleet / "a.mcap")
+    cut = fleet / "b.mcap"
+    cut.write_bytes(good.read_bytes()[:200])  # header and metadata: no complete chunk, no frame
+    return fleet, good, cut
+
+
+_CUT_LEFT_OUT = "left out {}: it holds no frames (an MCAP log cut off before its first complete chunk)"
+
+
+def test_eval_of_a_folder_leaves_out_a_log_with_no_frames_and_says_so(tmp_path):
+    # One such file in a fleet's folder made the evaluation of the whole folder fail.
+    fleet, good, cut = _fleet_with_a_cut_recording(tmp_path)
+    res = run_cli("eval", str(fleet), "--json", str(tmp_path / "e.json"), "--aggregators", "mean", "--quiet")
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == f"sunrig: WARNING: eval: {_CUT_LEFT_OUT.format(cut)}\n"
+    summary = json.loads((tmp_path / "e.json").read_text())
+    assert summary["logs"] == [str(good)] and summary["logs_left_out"] == [str(cut)]
+    assert summary["aggregators"]["mean"]["n_windows"] > 0
+    # Named alone, or with only others like it, it is still an error: there is nothing to evaluate.
+    res = run_cli("eval", str(cut), "--json", str(tmp_path / "e2.json"))
+    assert res.returncode == 2 and res.stderr == (
+        f"sunrig: error: {cut} holds no frames (an MCAP log cut off before its first complete chunk); record "
+        "again or pass another log\n")
+    shutil.copy(cut, tmp_path / "c.mcap")
+    res = run_cli("eval", str(cut), str(tmp_path / "c.mcap"), "--json", str(tmp_path / "e2.json"))
+    assert res.returncode == 2 and res.stderr.startswith("sunrig: error: none of the 2 logs holds frames ("), res.stderr
+    assert len(res.stderr.splitlines()) == 1 and not (tmp_path / "e2.json").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.torch
+def test_train_of_a_folder_leaves_out_a_log_with_no_frames_and_its_fingerprint_too(tmp_path):
+    from estimator.runtime import OnnxModel
+    from estimator.train import data_fingerprint
+
+    fleet, good, cut = _fleet_with_a_cut_recording(tmp_path)
+    res = run_cli("train", str(fleet), "--out", str(tmp_path / "m"), "--preset", "tiny", "--batch", "1",
+                  "--steps", "1", "--quiet")
+    assert res.returncode == 0, res.stderr
+    assert f"sunrig: WARNING: train: {_CUT_LEFT_OUT.format(cut)}\n" in res.stderr
+    data = OnnxModel.load(tmp_path / "m").contract.training["data"]
+    # The run's data are the logs it read: deleting the cut one later must not stop a resume.
+    assert data["logs"] == 1 and data["fingerprint"] == data_fingerprint([good])
+
+
 def test_replay_without_model_says_pass_model(tmp_path, monkeypatch):
     log = _write_log(tmp_path / "a.mcap")
     res = run_cli("replay", str(log), "--model", str(tmp_path / "no-such-model"))
