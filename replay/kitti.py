@@ -220,6 +220,10 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
         date_dir, drive_dir = p.resolve().parent, p
     else:
         drives = drive_folders(p)
+        logs = sorted(p.glob("*.mcap"))
+        if not drives and logs:  # a folder of recordings, given where one log is read
+            raise LogError(f"{p}: a folder of {len(logs)} native logs, where one log is read; pass one of them "
+                           f"(e.g. {logs[0]}), or the folder to sunrig eval / train")
         if not drives:
             raise LogError(
                 f"{p}: not a KITTI raw drive (no *_drive_NNNN_sync/ folder in it, and it is not one) and not a "

@@ -245,6 +245,14 @@ def test_not_a_kitti_folder(tmp_path):
     _one_line_log_error(tmp_path, "not a KITTI raw drive")
 
 
+def test_a_folder_of_recordings_given_for_one_log_says_to_pass_one_of_them(tmp_path):
+    # replay and run --camera file: read one log; a folder of them was "not a KITTI raw drive".
+    for name in ("b.mcap", "a.mcap"):
+        (tmp_path / name).write_bytes(b"")
+    text = _one_line_log_error(tmp_path, "a folder of 2 native logs, where one log is read")
+    assert f"(e.g. {tmp_path / 'a.mcap'})" in text and "sunrig eval / train" in text
+
+
 def test_missing_calibration(kitti_date):
     (kitti_date / "calib_cam_to_cam.txt").unlink()
     text = _one_line_log_error(kitti_date, "calib_cam_to_cam.txt")
