@@ -205,6 +205,21 @@ class SunEstimator:
                                 for fov, n in self.crops_per_fov])
         return boxes, crop_angles_rad(boxes, frame.intrinsics), cut_crops(frame.image_bgr, boxes, self.crop_size_px)
 
+    @property
+    def backbone_crops_per_frame(self) -> int:
+        """How many crops of each frame the backbone runs on: the frame's, and as many flipped
+        when the model runs mirrored."""
+        return self.crops_per_frame * (2 if self.mirror_windows else 1)
+
+    def backbone_crops(self, frame: Frame) -> np.ndarray:
+        """The uint8 BGR crops [n, S, S, 3] the backbone runs on for ``frame``, as :meth:`encode`
+        cuts them (what an int8 backbone is calibrated on, ``estimator.quantize``)."""
+        return self._with_mirrored(self._crops(frame)[2])
+
+    def _with_mirrored(self, crops: np.ndarray) -> np.ndarray:
+        # One backbone run: the crops, then the same crops flipped left to right.
+        return np.concatenate([crops, crops[:, :, ::-1]]) if self.mirror_windows else crops
+
     def encode(self, frame: Frame) -> FrameFeatures:
         """Crops and backbone embeddings of one frame: done once, cached with the frame."""
         return self.encode_batch([frame])[0]
@@ -216,9 +231,7 @@ class SunEstimator:
         parts = [self._crops(f) for f in frames]
         crops = np.concatenate([p[2] for p in parts])
         n_all = len(crops)
-        if self.mirror_windows:  # one backbone run: the crops, then the same crops flipped left to right
-            crops = np.concatenate([crops, crops[:, :, ::-1]])
-        emb = self.model.embed(crops)
+        emb = self.model.embed(self._with_mirrored(crops))
         out, start = [], 0
         for frame, (boxes, angles, _) in zip(frames, parts, strict=True):
             n = len(boxes)
