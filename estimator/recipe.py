@@ -3,7 +3,12 @@ defaults from here without importing torch, so the CLI and the library cannot dr
 
 from __future__ import annotations
 
+import hashlib
+import shlex
+import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 
@@ -37,3 +42,19 @@ class TrainConfig:
     # Recorded in the contract; filled by the CLI.
     command: str = ""
     data: dict[str, Any] = field(default_factory=dict)
+
+
+def data_fingerprint(paths: Sequence[Path]) -> str:
+    """Short hash of the logs' names and sizes, recorded in the contract: of a run's training
+    logs, and of an int8 model's calibration logs."""
+    h = hashlib.sha256()
+    for p in sorted(Path(x) for x in paths):
+        h.update(p.name.encode())
+        h.update(str(p.stat().st_size).encode())
+    return h.hexdigest()[:12]
+
+
+def command_line() -> str:
+    """This process's command as a shell would take it again: an argument with spaces (a
+    ``--data-note``) stays one argument, so a recorded command can be copied and run."""
+    return "sunrig " + shlex.join(sys.argv[1:])

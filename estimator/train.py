@@ -35,13 +35,10 @@ graphs with the contract, including the command and data that produced it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
 import os
-import shlex
-import sys
 import time
 import zipfile
 import zlib
@@ -66,7 +63,7 @@ from estimator.contract import (
     is_crop_fov_deg,
 )
 from estimator.crops import crop_side_px, crops_per_scale
-from estimator.recipe import TrainConfig
+from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.types import Frame, HeadingRef
@@ -976,16 +973,3 @@ def _truth_enu(path: Path) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
 
 
-def data_fingerprint(paths: Sequence[Path]) -> str:
-    """Short hash of the training logs' names and sizes, recorded in the contract."""
-    h = hashlib.sha256()
-    for p in sorted(Path(x) for x in paths):
-        h.update(p.name.encode())
-        h.update(str(p.stat().st_size).encode())
-    return h.hexdigest()[:12]
-
-
-def command_line() -> str:
-    """This process's command as a shell would take it again: an argument with spaces (a
-    ``--data-note``) stays one argument, so a recorded command can be copied and run."""
-    return "sunrig " + shlex.join(sys.argv[1:])
