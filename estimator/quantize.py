@@ -1,0 +1,199 @@
+"""An int8 backbone: static quantization of a model folder's backbone graph with ONNX Runtime.
+
+The backbone is where a frame's time goes; int8 weights and activations run its convolutions on
+the CPU's integer dot-product instructions (AVX-512 VNNI on this machine). What that buys grows
+with the network's width: measured by ``python3 benchmarks/bench_estimator.py --int8`` and written
+down in docs/model.md ("int8"). Whether it holds accuracy is each model's own question: the result
+is a model folder like any other, so ``sunrig eval --model`` answers it.
+
+Activations are calibrated on crops the runtime itself cuts from the given logs (the model's crop
+layout and angles, its input normalisation, and the flipped crops too when it runs mirrored), so
+their ranges are those the rig will feed. Weights are quantized per output channel, activations
+to uint8 (the fast path of ONNX Runtime's integer kernels on x86), in QDQ form, which ONNX
+Runtime fuses into integer kernels when it loads the graph. The aggregator stays float32: it is a
+small part of a frame's work, and it holds the attention softmax, where int8 loses most.
+
+Needs the ``onnx`` package of the train extra; the runtime needs only onnxruntime, as for any
+model.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator.contract import (
+    AGGREGATOR_FILE,
+    BACKBONE_FILE,
+    BACKBONE_INPUT,
+    CHECKPOINT,
+    CHECKSUMS_FILE,
+    METADATA_CONTRACT_KEY,
+    format_checksums,
+)
+from rig.errors import MissingExtraError, ValidationError
+from rig.files import make_output_folder
+from rig.types import Frame
+
+QUANTIZATION_KEY = "quantization"  # where the contract's training record says how a model was quantized
+DEFAULT_CALIBRATION_CROPS = 1024
+_CALIBRATION_BATCH = 32
+WEIGHTS_FILE = "weights.npz"  # the float weights a fine-tune starts from: copied, as they are unchanged
+
+
+def _require_onnx() -> Any:
+    try:
+        import onnx
+        from onnxruntime import quantization  # imports onnx itself
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise MissingExtraError(
+            "quantizing a model needs the onnx package: install the train extra with `pip install 'sunrig[train]'`"
+        ) from exc
+    return onnx, quantization
+
+
+def calibration_crops(estimator: Any, sources: Iterable[Iterable[Frame]], n_crops: int, seed: int = 0,
+                      progress: Callable[[int], None] | None = None) -> np.ndarray:
+    """Up to ``n_crops`` backbone inputs [N, 3, S, S] float32, as ``estimator`` (a
+    :class:`estimator.estimator.SunEstimator`) would feed its model from these frames.
+
+    Frames are drawn evenly from every source by reservoir sampling, so a long log does not crowd
+    out the others and nothing is held but the frames kept. ``progress(frames_read)`` is called
+    after each frame."""
+    if not isinstance(n_crops, int) or n_crops < 1:
+        raise ValidationError(f"calibration crops: expected a positive integer, got {n_crops!r}")
+    per_frame = estimator.backbone_crops_per_frame
+    n_frames = max(1, math.ceil(n_crops / per_frame))
+    rng = np.random.default_rng(seed)
+    kept: list[np.ndarray] = []
+    seen = 0
+    for frames in sources:
+        for frame in frames:
+            seen += 1
+            slot = seen - 1 if len(kept) < n_frames else int(rng.integers(seen))
+            if slot < n_frames:
+                crops = estimator.backbone_crops(frame)
+                if slot == len(kept):
+                    kept.append(crops)
+                else:
+                    kept[slot] = crops
+            if progress is not None:
+                progress(seen)
+    if not kept:
+        return np.zeros((0, 3, estimator.model.contract.crop_size_px, estimator.model.contract.crop_size_px),
+                        np.float32)
+    return estimator.model.normalise(np.concatenate(kept)[:n_crops])
+
+
+class _CalibrationReader:
+    """onnxruntime's calibration data reader over a fixed array, a batch at a time."""
+
+    def __init__(self, inputs: np.ndarray) -> None:
+        self._inputs = inputs
+        self._at = 0
+
+    def get_next(self) -> dict[str, np.ndarray] | None:
+        if self._at >= len(self._inputs):
+            return None
+        batch = self._inputs[self._at : self._at + _CALIBRATION_BATCH]
+        self._at += _CALIBRATION_BATCH
+        return {BACKBONE_INPUT: batch}
+
+    def rewind(self) -> None:
+        self._at = 0
+
+
+def _check_output(model: Any, out_dir: str | os.PathLike) -> Path:
+    """``out_dir``, once it is known that quantizing ``model`` into it replaces nothing."""
+    if QUANTIZATION_KEY in model.contract.training:
+        raise ValidationError(f"{model.model_dir}: its backbone is int8 already; quantize the float model it was "
+                              "made from")
+    out = Path(out_dir)
+    if out.is_dir() and out.resolve() == Path(model.model_dir).resolve():
+        raise ValidationError(f"{out} is the model being quantized; pass a new folder as --out")
+    held = [name for name in (BACKBONE_FILE, AGGREGATOR_FILE, CHECKPOINT) if (out / name).exists()]
+    if held:  # a model, or a training run, that the int8 graphs would replace
+        raise ValidationError(f"{out} holds {held[0]} already; pass a new folder as --out, so that nothing is replaced")
+    if out.exists() and not out.is_dir():
+        raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path")
+    return out
+
+
+def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLike, *,
+                   record: dict[str, Any] | None = None) -> Path:
+    """Write ``model`` (an :class:`estimator.runtime.OnnxModel`) to ``out_dir`` with an int8
+    backbone calibrated on ``calibration`` (backbone inputs, as :func:`calibration_crops` gives).
+
+    The contract is the model's, with ``training.quantization`` saying what was done (plus
+    ``record``: the command, the calibration data); both graphs carry it, ``SHA256SUMS`` covers
+    them, and ``weights.npz`` (float, for fine-tuning) is copied. Files are staged and moved into
+    place only when complete, as an export does."""
+    onnx, quantization = _require_onnx()
+    out = _check_output(model, out_dir)
+    if len(calibration) == 0:
+        raise ValidationError("no frames to calibrate on: pass logs that hold frames")
+    out = make_output_folder(out, what="model folder", holds="a model is a folder")
+    contract = model.contract
+    quantized = replace(contract, training={**contract.training, QUANTIZATION_KEY: {
+        "backbone": "int8", "format": "QDQ", "activations": "uint8, calibrated (min-max)",
+        "weights": "int8, per output channel", "from_model": model.model_id,
+        "calibration_crops": len(calibration), **(record or {})}})
+    src = Path(model.model_dir)
+    with tempfile.TemporaryDirectory(dir=out, prefix=".quantize-") as tmp:
+        staged = {BACKBONE_FILE: Path(tmp) / BACKBONE_FILE, AGGREGATOR_FILE: Path(tmp) / AGGREGATOR_FILE}
+        # ONNX Runtime's own preparation (shape inference, graph optimisation), which it asks
+        # for before quantizing: without it some tensors go unquantized for want of a shape.
+        prepared = Path(tmp) / "prepared.onnx"
+        quantization.quant_pre_process(str(src / BACKBONE_FILE), str(prepared))
+        quantization.quantize_static(
+            str(prepared), str(staged[BACKBONE_FILE]), _CalibrationReader(calibration),
+            quant_format=quantization.QuantFormat.QDQ, per_channel=True,
+            activation_type=quantization.QuantType.QUInt8, weight_type=quantization.QuantType.QInt8,
+            calibrate_method=quantization.CalibrationMethod.MinMax)
+        for name, path in ((BACKBONE_FILE, staged[BACKBONE_FILE]), (AGGREGATOR_FILE, src / AGGREGATOR_FILE)):
+            graph = onnx.load(str(path))
+            # quantize_static keeps the graph's metadata (the graph's role among it); the contract
+            # is replaced in both, so that they agree.
+            entries = {p.key: p.value for p in graph.metadata_props}
+            entries[METADATA_CONTRACT_KEY] = quantized.to_json()
+            del graph.metadata_props[:]
+            for key, value in entries.items():
+                graph.metadata_props.add(key=key, value=value)
+            onnx.save(graph, str(staged[name]))
+        digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in staged.items()}
+        sums = Path(tmp) / CHECKSUMS_FILE
+        sums.write_text(format_checksums(digests), encoding="utf-8")
+        if (src / WEIGHTS_FILE).is_file():
+            shutil.copyfile(src / WEIGHTS_FILE, Path(tmp) / WEIGHTS_FILE)
+            os.replace(Path(tmp) / WEIGHTS_FILE, out / WEIGHTS_FILE)
+        os.replace(sums, out / CHECKSUMS_FILE)  # the sums first, as an export writes them
+        for name, path in staged.items():
+            os.replace(path, out / name)
+    return out
+
+
+def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[Frame]]], out_dir: str | os.PathLike,
+                        *, n_crops: int = DEFAULT_CALIBRATION_CROPS, seed: int = 0, command: str = "",
+                        progress: Callable[[int], None] | None = None) -> Path:
+    """:func:`quantize_model` calibrated on the frames of ``log_sources`` ((path, frames) pairs),
+    the crops cut as ``model`` runs (its crop layout, seed ``seed``)."""
+    from estimator.estimator import SunEstimator
+    from estimator.recipe import data_fingerprint
+
+    _check_output(model, out_dir)  # refused now, not after minutes of reading the logs
+    estimator = SunEstimator(model, seed=seed)
+    calibration = calibration_crops(estimator, (frames for _, frames in log_sources), n_crops, seed=seed,
+                                    progress=progress)
+    paths = [Path(p) for p, _ in log_sources]
+    record = {"calibration_logs": len(paths), "calibration_fingerprint": data_fingerprint(paths),
+              "calibration_seed": seed, **({"command": command} if command else {})}
+    return quantize_model(model, calibration, out_dir, record=record)

@@ -1,0 +1,146 @@
+"""An int8 backbone (estimator/quantize.py): a real ONNX Runtime quantization of a tiny model."""
+
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from estimator.estimator import SunEstimator
+from rig.errors import ValidationError
+from rig.types import Attitude, Frame, HeadingRef, Intrinsics
+
+pytestmark = pytest.mark.torch  # the onnx package of the train extra, and the tiny model's export
+onnx = pytest.importorskip("onnx", reason="quantizing needs the train extra")
+
+INTR = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+
+
+def _frames(n, seed=0):
+    """Smooth random scenes (noise blurred), so that crops differ as a street's do."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        img = cv2.GaussianBlur(rng.integers(0, 256, (80, 128, 3), dtype=np.uint8), (9, 9), 3)
+        out.append(Frame(t_mono_s=0.1 * i, seq=i, image_bgr=img, intrinsics=INTR,
+                         attitude=Attitude(math.radians(15.0 * i), HeadingRef.TRUE)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def model(tiny_model_dir):
+    from estimator.runtime import OnnxModel
+
+    return OnnxModel.load(tiny_model_dir)
+
+
+@pytest.fixture(scope="module")
+def int8_dir(model, tmp_path_factory):
+    from estimator.quantize import calibration_crops, quantize_model
+
+    calibration = calibration_crops(SunEstimator(model), [_frames(40, seed=1)], n_crops=128)
+    return quantize_model(model, calibration, tmp_path_factory.mktemp("q") / "int8", record={"note": "test"})
+
+
+def test_the_int8_model_is_a_model_folder_with_integer_convolutions_and_says_so(model, int8_dir):
+    from estimator.runtime import OnnxModel
+
+    q = OnnxModel.load(int8_dir)  # its SHA256SUMS and both contracts are checked on load
+    ops = {n.op_type for n in onnx.load(str(int8_dir / "backbone.onnx")).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear", "Conv"} <= ops
+    agg_ops = {n.op_type for n in onnx.load(str(int8_dir / "aggregator.onnx")).graph.node}
+    assert "QuantizeLinear" not in agg_ops  # the aggregator stays float
+    record = q.contract.training["quantization"]
+    assert record["backbone"] == "int8" and record["from_model"] == model.model_id
+    assert record["calibration_crops"] == 128 and record["note"] == "test"
+    # Everything else is the float model's contract: it is fed and read the same way.
+    assert {k: v for k, v in q.contract.training.items() if k != "quantization"} == model.contract.training
+    assert q.contract.differences(model.contract) == [f"training: {q.contract.training!r} != "
+                                                      f"{model.contract.training!r}"]
+    assert q.model_id != model.model_id
+
+
+def test_int8_embeddings_and_answers_stay_close_to_the_float_models(model, int8_dir):
+    from estimator.runtime import OnnxModel
+
+    q = OnnxModel.load(int8_dir)
+    frames = _frames(8, seed=7)  # not the calibration frames
+    crops = np.concatenate([SunEstimator(model).backbone_crops(f) for f in frames])
+    a, b = model.embed(crops), q.embed(crops)
+    cos = (a * b).sum(1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+    assert cos.min() > 0.98, cos.min()
+    assert not np.allclose(a, b, atol=1e-6)  # it is not the float graph under another name
+    est_f, est_q = SunEstimator(model, seed=2), SunEstimator(q, seed=2)
+    sun_f = est_f.estimate(est_f.encode_batch(frames)).sun_enu
+    sun_q = est_q.estimate(est_q.encode_batch(frames)).sun_enu
+    assert math.degrees(math.acos(min(1.0, float(np.dot(sun_f, sun_q))))) < 5.0
+
+
+def test_calibration_crops_are_the_runtimes_own_from_frames_drawn_across_the_sources(model):
+    from estimator.quantize import calibration_crops
+
+    est = SunEstimator(model, seed=4)
+    short, long = _frames(3, seed=2), _frames(60, seed=3)
+    x = calibration_crops(est, [short, long], n_crops=40, seed=0)
+    s = model.contract.crop_size_px
+    assert x.shape == (40, 3, s, s) and x.dtype == np.float32
+    # Each kept frame gives its crops as the runtime cuts and normalises them, whole.
+    per_frame = est.backbone_crops_per_frame
+    blocks = {model.normalise(est.backbone_crops(f)).tobytes(): f for f in (*short, *long)}
+    kept = [blocks.get(x[i:i + per_frame].tobytes()) for i in range(0, 40, per_frame)]
+    assert None not in kept and len({id(f) for f in kept}) == len(kept)
+    # Drawn across both sources, not the first frames read.
+    assert any(f in long and f.seq >= 30 for f in kept)
+    # Same seed, same draw; another seed, another.
+    np.testing.assert_array_equal(x, calibration_crops(est, [short, long], n_crops=40, seed=0))
+    assert not np.array_equal(x, calibration_crops(est, [short, long], n_crops=40, seed=1))
+    # Fewer frames than asked for: all of them, no more.
+    assert len(calibration_crops(est, [short], n_crops=1000)) == 3 * per_frame
+    assert len(calibration_crops(est, [[]], n_crops=10)) == 0
+    with pytest.raises(ValidationError, match="calibration crops: expected a positive integer"):
+        calibration_crops(est, [short], n_crops=0)
+
+
+def test_a_mirrored_model_is_calibrated_on_its_flipped_crops_too(model):
+    est = SunEstimator(model, seed=0, mirror_windows=True)
+    frame = _frames(1)[0]
+    crops = est.backbone_crops(frame)
+    n = est.crops_per_frame
+    assert est.backbone_crops_per_frame == 2 * n == len(crops)
+    np.testing.assert_array_equal(crops[n:], crops[:n, :, ::-1])
+
+
+def test_quantizing_refuses_to_replace_anything_or_to_quantize_twice(model, int8_dir, tmp_path):
+    from estimator.quantize import quantize_model
+    from estimator.runtime import OnnxModel
+
+    calibration = np.zeros((4, 3, model.contract.crop_size_px, model.contract.crop_size_px), np.float32)
+    with pytest.raises(ValidationError, match="is the model being quantized"):
+        quantize_model(model, calibration, model.model_dir)
+    with pytest.raises(ValidationError, match="holds backbone.onnx already; pass a new folder"):
+        quantize_model(model, calibration, int8_dir)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "checkpoint.pt").write_bytes(b"a training run")
+    with pytest.raises(ValidationError, match="holds checkpoint.pt already"):
+        quantize_model(model, calibration, run)
+    with pytest.raises(ValidationError, match="its backbone is int8 already; quantize the float model"):
+        quantize_model(OnnxModel.load(int8_dir), calibration, tmp_path / "twice")
+    with pytest.raises(ValidationError, match="no frames to calibrate on"):
+        quantize_model(model, calibration[:0], tmp_path / "empty")
+    assert not (tmp_path / "twice").exists() and not (tmp_path / "empty").exists()
+
+
+def test_the_weights_for_fine_tuning_come_along(model, tmp_path):
+    from estimator.quantize import calibration_crops, quantize_model
+
+    src = tmp_path / "float"
+    shutil.copytree(model.model_dir, src)
+    (src / "weights.npz").write_bytes(b"float weights")
+    from estimator.runtime import OnnxModel
+
+    out = quantize_model(OnnxModel.load(src), calibration_crops(SunEstimator(model), [_frames(4)], n_crops=16),
+                         tmp_path / "int8")
+    assert (out / "weights.npz").read_bytes() == b"float weights"
