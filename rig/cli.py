@@ -770,7 +770,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     require_torch()
     from estimator.models import resolve_init_dir
-    from estimator.train import TrainConfig, command_line, data_fingerprint, train
+    from estimator.recipe import command_line, data_fingerprint
+    from estimator.train import TrainConfig, train
 
     if args.export_only:
         from estimator.train import export_checkpoint
@@ -848,6 +849,24 @@ def cmd_train(args: argparse.Namespace) -> int:
                   "train it further)", file=sys.stderr)
         else:
             print(f"train: model written to {out}", file=sys.stderr)
+    return 0
+
+
+def cmd_quantize(args: argparse.Namespace) -> int:
+    from estimator.quantize import quantize_logs_model
+    from estimator.recipe import command_line
+
+    model = _load_model(args.model)
+    # Calibration reads images only: a KITTI drive's UTC offset (its true sun) does not matter here.
+    opened, _ = _open_logs("quantize", args.logs, 0.0)
+    # Frames are the unit: how many the logs hold is known only once read.
+    progress = Progress("quantize: calibrating", unit="frames", enabled=None if not args.quiet else False)
+    out = quantize_logs_model(model, opened, Path(args.out), n_crops=args.calibration_crops, seed=args.seed,
+                              command=command_line(), progress=progress.update)
+    progress.close()
+    if not args.quiet:
+        print(f"quantize: int8 model written to {out}; measure it with `sunrig eval LOG... --model {out}` before "
+              "using it (docs/model.md, int8)", file=sys.stderr)
     return 0
 
 
@@ -1132,6 +1151,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "native logs carry UTC and ignore it")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("quantize", parents=[debug],
+                       help="a model with an int8 backbone, calibrated on logs (needs sunrig[train])")
+    p.add_argument("logs", nargs="+", help="native logs (.mcap), folders of them, or KITTI raw drive folders, "
+                                           "like those the model will see; no ground truth needed")
+    p.add_argument("--out", required=True, metavar="MODEL_DIR", help="the int8 model's folder (a new one)")
+    p.add_argument("--model", metavar="DIR", help="the model to quantize (default: the shipped model)")
+    p.add_argument("--calibration-crops", type=_positive_int, default=1024, metavar="N",
+                   help="crops to calibrate the activations on, drawn evenly from the logs' frames (default 1024)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="crop and frame sampling seed (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=cmd_quantize)
 
     from estimator.contract import PAPER_CROP_FOV_DEG
     from estimator.recipe import TrainConfig  # no torch: the defaults below are the library's own

@@ -159,8 +159,8 @@ def test_eval_of_a_folder_leaves_out_a_log_with_no_frames_and_says_so(tmp_path):
 @pytest.mark.slow
 @pytest.mark.torch
 def test_train_of_a_folder_leaves_out_a_log_with_no_frames_and_its_fingerprint_too(tmp_path):
+    from estimator.recipe import data_fingerprint
     from estimator.runtime import OnnxModel
-    from estimator.train import data_fingerprint
 
     fleet, good, cut = _fleet_with_a_cut_recording(tmp_path)
     res = run_cli("train", str(fleet), "--out", str(tmp_path / "m"), "--preset", "tiny", "--batch", "1",
@@ -170,6 +170,29 @@ def test_train_of_a_folder_leaves_out_a_log_with_no_frames_and_its_fingerprint_t
     data = OnnxModel.load(tmp_path / "m").contract.training["data"]
     # The run's data are the logs it read: deleting the cut one later must not stop a resume.
     assert data["logs"] == 1 and data["fingerprint"] == data_fingerprint([good])
+
+
+@pytest.mark.torch
+def test_quantize_writes_an_int8_model_that_every_command_runs(tmp_path, tiny_model_dir, capsys):
+    from estimator.runtime import OnnxModel
+
+    log = _write_log(tmp_path / "drive.mcap")
+    out = tmp_path / "int8"
+    res = run_cli("quantize", str(log), "--model", str(tiny_model_dir), "--out", str(out), "--calibration-crops",
+                  "32")  # in its own process: the contract records the process's command line
+    assert res.returncode == 0, res.stderr
+    assert f"quantize: int8 model written to {out}; measure it with `sunrig eval LOG... --model {out}`" in res.stderr
+    record = OnnxModel.load(out).contract.training["quantization"]
+    assert record["calibration_crops"] == 32 and record["calibration_logs"] == 1
+    assert record["command"].startswith("sunrig ") and "--calibration-crops 32" in record["command"]
+    rc, captured = _main_in_process(["replay", str(log), "--model", str(out), "--jsonl", "-"], capsys)
+    assert rc == 0 and len(captured.out.splitlines()) == 11, captured.err  # frame 5 has no heading
+    # Again into the same folder: refused, nothing replaced.
+    before = (out / "backbone.onnx").read_bytes()
+    rc, captured = _main_in_process(["quantize", str(log), "--model", str(tiny_model_dir), "--out", str(out)],
+                                    capsys)
+    _assert_one_line_error(rc, captured, names=f"{out} holds backbone.onnx already; pass a new folder as --out")
+    assert (out / "backbone.onnx").read_bytes() == before
 
 
 def test_replay_without_model_says_pass_model(tmp_path, monkeypatch):
@@ -859,8 +882,10 @@ _INPUT_SLOTS = {
     "gnss SOURCE": "gnss {bad} --jsonl {out}",
     "train LOG": "train {bad} --out {out} --steps 1",
     "train --init": "train {demo} --init {bad} --out {out} --steps 1",
+    "quantize LOG": "quantize {bad} --out {out} --quiet",
+    "quantize --model": "quantize {demo} --model {bad} --out {out} --quiet",
 }
-_TORCH_SLOTS = {"train LOG", "train --init"}
+_TORCH_SLOTS = {"train LOG", "train --init", "quantize LOG", "quantize --model"}
 
 
 def _command(line, **values):
@@ -921,10 +946,12 @@ _OUTPUT_SLOTS = {
     "gnss --jsonl": "gnss {nmea} --jsonl {target}",
     "synth OUT": "synth {target} --drives 1 --frames 2",
     "train --out": "train {demo} --steps 1 --out {target}",
+    "quantize --out": "quantize {demo} --calibration-crops 16 --quiet --out {target}",
 }
 
 
-@pytest.mark.parametrize("slot", [pytest.param(s, marks=[pytest.mark.torch] if s.startswith("train") else [])
+@pytest.mark.parametrize("slot", [pytest.param(s, marks=[pytest.mark.torch] if s.startswith(("train", "quantize"))
+                                               else [])
                                   for s in _OUTPUT_SLOTS])
 def test_every_output_of_every_command_under_a_file_is_refused_in_one_line(tmp_path, capsys, slot):
     nmea = tmp_path / "capture.nmea"  # a GNSS heading, as gnss reads it
