@@ -3,8 +3,10 @@
 Random weights (speed does not depend on them), fp32, ONNX Runtime on the CPU. Per frame: 4 crops
 cut and resized plus one backbone run (done once, when a frame arrives). Per window: one
 aggregator run over 32 cached tokens plus the calibration. Needs the train extra to build models.
+With ``--int8`` each preset is measured again with its backbone quantized (``estimator.quantize``,
+calibrated on the benchmark's own random frames: speed only, no accuracy).
 
-    python3 benchmarks/bench_estimator.py [--presets fast,light,paper] [--threads N]
+    python3 benchmarks/bench_estimator.py [--presets fast,light,paper] [--threads N] [--int8]
 """
 
 from __future__ import annotations
@@ -28,11 +30,13 @@ def main() -> None:
     ap.add_argument("--presets", default="fast,light,paper")
     ap.add_argument("--threads", type=int, default=0, help="ONNX Runtime intra-op threads (0: default)")
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--int8", action="store_true", help="also measure each preset with an int8 backbone")
     args = ap.parse_args()
 
     from estimator import nets
     from estimator.estimator import SunEstimator
     from estimator.export import export_model
+    from estimator.quantize import calibration_crops, quantize_model
     from estimator.runtime import OnnxModel
     from rig.types import Attitude, Frame, HeadingRef, Intrinsics
 
@@ -40,21 +44,28 @@ def main() -> None:
     rng = np.random.default_rng(0)
     frames = [Frame(t_mono_s=0.1 * i, seq=i, image_bgr=rng.integers(0, 256, (375, 1242, 3), dtype=np.uint8),
                     intrinsics=k, attitude=Attitude(math.radians(5.0 * i), HeadingRef.TRUE)) for i in range(8)]
+    def measure(model) -> dict:
+        est = SunEstimator(model)
+        window = est.encode_batch(frames)
+        i = iter(range(10**9))
+        per_frame = time_ms(lambda e=est, i=i: e.encode(frames[next(i) % 8]), repeats=args.repeats)
+        per_window = {agg: time_ms(lambda e=est, w=window, a=agg: e.estimate(w, a), repeats=args.repeats)
+                      for agg in ("transformer", "mean", "meanshift", "single")}
+        return {"frame_encode": per_frame, "window": per_window}
+
     results = {}
     for name in args.presets.split(","):
         cfg = nets.PRESETS[name]
         with tempfile.TemporaryDirectory() as tmp:
             backbone, aggregator = cfg.build(seed=0)
-            export_model(backbone, aggregator, cfg.contract(training={"trained": False}), tmp)
-            model = OnnxModel.load(tmp, intra_op_threads=args.threads or None)
-            est = SunEstimator(model)
-            window = est.encode_batch(frames)
-            i = iter(range(10**9))
-            per_frame = time_ms(lambda e=est, i=i: e.encode(frames[next(i) % 8]), repeats=args.repeats)
-            per_window = {agg: time_ms(lambda e=est, w=window, a=agg: e.estimate(w, a), repeats=args.repeats)
-                          for agg in ("transformer", "mean", "meanshift", "single")}
-            results[name] = {"crop_size_px": cfg.crop_size, "base_width": cfg.base_width,
-                             "frame_encode": per_frame, "window": per_window}
+            export_model(backbone, aggregator, cfg.contract(training={"trained": False}), Path(tmp) / "fp32")
+            model = OnnxModel.load(Path(tmp) / "fp32", intra_op_threads=args.threads or None)
+            results[name] = {"crop_size_px": cfg.crop_size, "base_width": cfg.base_width, **measure(model)}
+            if args.int8:
+                calibration = calibration_crops(SunEstimator(model), [frames], n_crops=256)
+                quantize_model(model, calibration, Path(tmp) / "int8")
+                results[name]["int8"] = measure(OnnxModel.load(Path(tmp) / "int8",
+                                                                intra_op_threads=args.threads or None))
     print(json.dumps({"benchmark": "estimator", "image": [1242, 375], "crops_per_frame": 4,
                       "tokens_per_window": 32, "results": results, "machine": machine()}, indent=2))
 
