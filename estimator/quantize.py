@@ -189,7 +189,8 @@ def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[F
     from estimator.estimator import SunEstimator
     from estimator.recipe import data_fingerprint
 
-    _check_output(model, out_dir)  # refused now, not after minutes of reading the logs
+    _require_onnx()  # both refused now, not after minutes of reading the logs
+    _check_output(model, out_dir)
     estimator = SunEstimator(model, seed=seed)
     calibration = calibration_crops(estimator, (frames for _, frames in log_sources), n_crops, seed=seed,
                                     progress=progress)
