@@ -23,6 +23,7 @@ METADATA_GRAPH_KEY = "sunrig.graph"
 BACKBONE_FILE = "backbone.onnx"
 AGGREGATOR_FILE = "aggregator.onnx"
 CHECKPOINT = "checkpoint.pt"  # a `sunrig train --out` folder's run, not a model until exported
+WEIGHTS_FILE = "weights.npz"  # the float weights a fine-tune starts from (`--init`); the runtime never reads them
 # sha256sum's format (``sha256sum -c SHA256SUMS`` checks a folder by hand): a graph damaged in a
 # copy can still parse and run, and would answer wrong without a word.
 CHECKSUMS_FILE = "SHA256SUMS"

@@ -38,6 +38,7 @@ from estimator.contract import (
     CHECKPOINT,
     CHECKSUMS_FILE,
     METADATA_CONTRACT_KEY,
+    WEIGHTS_FILE,
     format_checksums,
 )
 from rig.errors import MissingExtraError, ValidationError
@@ -47,7 +48,6 @@ from rig.types import Frame
 QUANTIZATION_KEY = "quantization"  # where the contract's training record says how a model was quantized
 DEFAULT_CALIBRATION_CROPS = 1024
 _CALIBRATION_BATCH = 32
-WEIGHTS_FILE = "weights.npz"  # the float weights a fine-tune starts from: copied, as they are unchanged
 
 
 def _require_onnx() -> Any:
@@ -66,9 +66,9 @@ def calibration_crops(estimator: Any, sources: Iterable[Iterable[Frame]], n_crop
     """Up to ``n_crops`` backbone inputs [N, 3, S, S] float32, as ``estimator`` (a
     :class:`estimator.estimator.SunEstimator`) would feed its model from these frames.
 
-    Frames are drawn evenly from every source by reservoir sampling, so a long log does not crowd
-    out the others and nothing is held but the frames kept. ``progress(frames_read)`` is called
-    after each frame."""
+    The frames are a uniform draw from all the sources' frames (reservoir sampling, a reservoir
+    of as many frames as the crops need), so the draw spans every log, not the first ones read,
+    and only the kept frames' crops are held. ``progress(frames_read)`` is called after each frame."""
     if not isinstance(n_crops, int) or n_crops < 1:
         raise ValidationError(f"calibration crops: expected a positive integer, got {n_crops!r}")
     per_frame = estimator.backbone_crops_per_frame

@@ -57,6 +57,7 @@ from estimator.contract import (
     MAX_CROPS_PER_FRAME,
     PAPER_CROP_FOV_DEG,
     PAPER_CROPS_PER_FRAME,
+    WEIGHTS_FILE,
     format_fovs_deg,
     fovs_deg,
     input_affine,
@@ -79,7 +80,6 @@ log = logging.getLogger(__name__)
 # The trained weights beside the exported graphs, as plain arrays (float16, no pickle, ignored by
 # the runtime): what ``--init`` starts a fine-tuning run from. The ONNX graphs cannot serve, since
 # export folds batch-norm into the convolutions.
-WEIGHTS = "weights.npz"
 METRICS = "train_metrics.jsonl"  # one line per 50 steps, appended across resumes (see _trim_metrics)
 
 
@@ -812,7 +812,7 @@ def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
     arrays = {f"{part}/{k}": v.detach().cpu().numpy().astype(np.float16 if v.is_floating_point() else v.numpy().dtype)
               for part, module in (("backbone", backbone), ("aggregator", aggregator))
               for k, v in module.state_dict().items()}
-    path = Path(out_dir) / WEIGHTS
+    path = Path(out_dir) / WEIGHTS_FILE
     _write_atomically(path, lambda tmp: np.savez_compressed(tmp, **arrays))
     return path
 
@@ -826,14 +826,14 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
     """:func:`check_init`'s ``weights.npz``, and the model it loaded to check it (an ``OnnxModel``)."""
     from estimator.runtime import OnnxModel
 
-    path = Path(model_dir) / WEIGHTS
+    path = Path(model_dir) / WEIGHTS_FILE
     if not Path(model_dir).is_dir():
         what = "is a file, not a model folder" if Path(model_dir).exists() else "does not exist"
         raise ValidationError(f"--init {model_dir} {what}; pass a model folder written by `sunrig train`, "
                               "e.g. the shipped model's")
     if not path.is_file():
-        raise ValidationError(f"--init {model_dir}: no {WEIGHTS} there; pass a model folder written by `sunrig train` "
-                              "(the shipped model has one)")
+        raise ValidationError(f"--init {model_dir}: no {WEIGHTS_FILE} there; pass a model folder written by "
+                              "`sunrig train` (the shipped model has one)")
     try:
         start = OnnxModel.load(model_dir)
     except ContractMismatch as exc:  # its remedy named --model, which train does not have
