@@ -9,6 +9,11 @@ a reopen even in the paced run (300 frames: 298 written, 1 timeout, 1 reopen). A
 `SerialPublisher.publish` calls against that stalled reader. Prints JSON.
 
     python3 benchmarks/bench_rig.py [--model DIR] [--frames 400]
+    python3 benchmarks/bench_rig.py --preset paper [--int8]     # the paper's architecture, random weights
+
+``--preset`` runs an untrained model of that network preset (speed does not depend on the weights;
+needs the train extra), ``--int8`` the model with its backbone quantized (``sunrig quantize``,
+calibrated on the bundled drive's frames).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import json
 import os
 import resource
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -54,6 +60,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", help="model folder (default: the shipped model)")
     ap.add_argument("--frames", type=int, default=400)
+    ap.add_argument("--preset", help="an untrained model of this network preset instead (fast, light, paper)")
+    ap.add_argument("--int8", action="store_true", help="quantize the model's backbone first")
     args = ap.parse_args()
 
     from estimator.estimator import SunEstimator
@@ -64,8 +72,21 @@ def main() -> None:
     from rig.publishers import SerialPublisher
     from rig.window import SpreadWindowPolicy
 
-    model = OnnxModel.load(resolve_model_dir(args.model))
     drive = list(open_frames(DEMO_LOG))
+    tmp = tempfile.TemporaryDirectory()
+    if args.preset:
+        from estimator.export import build_random_model
+        from estimator.nets import PRESETS
+
+        model_dir = build_random_model(Path(tmp.name) / "float", PRESETS[args.preset], seed=0)
+    else:
+        model_dir = resolve_model_dir(args.model)
+    model = OnnxModel.load(model_dir)
+    if args.int8:
+        from estimator.quantize import calibration_crops, quantize_model
+
+        calibration = calibration_crops(SunEstimator(model), [drive], n_crops=512)
+        model = OnnxModel.load(quantize_model(model, calibration, Path(tmp.name) / "int8"))
     results = {}
     for name, realtime in (("paced_10hz", True), ("unpaced", False)):
         master, slave = os.openpty()
@@ -107,8 +128,10 @@ def main() -> None:
         "calls": len(calls), "p50_ms": calls[len(calls) // 2], "p99_ms": calls[int(len(calls) * 0.99)],
         "max_ms": calls[-1], "serial": pub_stats,
     }
-    print(json.dumps({"benchmark": "rig", "model": model.model_id, "results": results, "machine": machine()},
-                     indent=2))
+    print(json.dumps({"benchmark": "rig", "model": model.model_id, "preset": args.preset, "int8": args.int8,
+                      "trained": bool(model.contract.training.get("trained", True)), "results": results,
+                      "machine": machine()}, indent=2))
+    tmp.cleanup()
 
 
 if __name__ == "__main__":
