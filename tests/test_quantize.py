@@ -144,3 +144,20 @@ def test_the_weights_for_fine_tuning_come_along(model, tmp_path):
     out = quantize_model(OnnxModel.load(src), calibration_crops(SunEstimator(model), [_frames(4)], n_crops=16),
                          tmp_path / "int8")
     assert (out / "weights.npz").read_bytes() == b"float weights"
+
+
+def test_without_the_onnx_package_it_names_the_extra_before_reading_a_log(model, tmp_path, monkeypatch):
+    import sys
+
+    from estimator.quantize import quantize_logs_model
+    from rig.errors import MissingExtraError
+
+    def never_read():
+        raise AssertionError("a log was read before the missing package was named")
+        yield
+
+    monkeypatch.setitem(sys.modules, "onnx", None)  # as if the train extra were not installed
+    monkeypatch.setitem(sys.modules, "onnxruntime.quantization", None)
+    with pytest.raises(MissingExtraError, match=r"install the train extra with `pip install 'sunrig\[train\]'`"):
+        quantize_logs_model(model, [(tmp_path / "drive.mcap", never_read())], tmp_path / "int8")
+    assert not (tmp_path / "int8").exists()
