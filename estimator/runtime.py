@@ -59,8 +59,8 @@ _AGGREGATOR_IO = {
 
 def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
     """Explicit options so a model runs the same everywhere: full graph optimisation, sequential
-    execution (the graphs are chains; parallel branches would only fight for two cores), quiet
-    logs."""
+    execution (the graphs are chains; parallel branches would only fight for two cores), worker
+    threads that sleep rather than spin when idle, quiet logs."""
     opts = ort.SessionOptions()
     if intra_op_threads is not None:
         if not isinstance(intra_op_threads, int) or intra_op_threads < 1:
@@ -71,6 +71,11 @@ def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # ORT's worker threads spin-wait between ops by default, holding a core that the live rig's
+    # source, outputs and Python code need: on 2 cores that cost the shipped model a third of its
+    # unpaced rate (27-31 against 46-50 Hz) and made the paper's network drop frames of a 10 Hz
+    # camera; offline, with the cores otherwise idle, it gained nothing (benchmarks/bench_rig.py).
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     # errors only: ORT's warnings about unused initializers are noise here
     opts.log_severity_level = 3
     return opts

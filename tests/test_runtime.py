@@ -107,6 +107,16 @@ def test_load_reads_the_contract(model, tiny_model_dir):
 
 
 @pytest.mark.torch
+def test_sessions_sleep_rather_than_spin_between_ops():
+    # Spinning workers held a core the live rig's other threads needed (estimator/runtime.py).
+    from estimator.runtime import session_options
+
+    for threads in (None, 1, 2):
+        opts = session_options(threads)
+        assert opts.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+        assert opts.inter_op_num_threads == 1
+
+
 def test_model_id_follows_the_graph_bytes(tiny_model_dir, tmp_path):
     folder = copy_model(tiny_model_dir, tmp_path / "m")
     before = OnnxModel.load(folder).model_id
