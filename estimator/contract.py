@@ -33,6 +33,17 @@ def format_checksums(digests: dict[str, str]) -> str:
     return "".join(f"{digest}  {name}\n" for name, digest in sorted(digests.items()))
 
 
+def set_metadata(model: Any, entries: dict[str, str]) -> None:
+    """Set ``metadata_props`` keys on an ONNX model (an ``onnx.ModelProto``) in place, replacing
+    existing values and keeping the others. Here, not in the exporter, so that rewriting a graph's
+    contract (``estimator.quantize``) needs the onnx package but not torch."""
+    keep = [p for p in model.metadata_props if p.key not in entries]
+    del model.metadata_props[:]
+    model.metadata_props.extend(keep)
+    for key, value in entries.items():
+        model.metadata_props.add(key=key, value=value)
+
+
 def parse_checksums(text: str) -> dict[str, str]:
     """File name -> hex digest, from sha256sum's output (``HEX  NAME`` or ``HEX *NAME``)."""
     out = {}

@@ -35,6 +35,7 @@ from estimator.contract import (
     PAPER_CROPS_PER_FRAME,
     ModelContract,
     format_checksums,
+    set_metadata,
 )
 from estimator.nets import TINY, Aggregator, Backbone, NetConfig
 from rig.errors import MissingExtraError, ModelError, ValidationError, require_torch
@@ -190,20 +191,11 @@ def export_graph(
             f"{path.name}: the exporter named the graph's inputs {got_in} and outputs {got_out}, "
             f"expected {list(input_names)} and {list(output_names)}; try exporter='legacy'"
         )
-    set_metadata(model, metadata or {})
+    set_metadata(model, dict(metadata or {}))
     onnx.checker.check_model(model, full_check=True)
     # save_as_external_data=False: one file per graph, so a model folder is just two files.
     onnx.save_model(model, str(path), save_as_external_data=False)
     return path
-
-
-def set_metadata(model: onnx.ModelProto, entries: Mapping[str, str]) -> None:
-    """Set ``metadata_props`` keys on an ONNX model in place, replacing existing values."""
-    keep = [p for p in model.metadata_props if p.key not in entries]
-    del model.metadata_props[:]
-    model.metadata_props.extend(keep)
-    for key, value in entries.items():
-        model.metadata_props.add(key=key, value=value)
 
 
 def build_random_nets(config: NetConfig, seed: int) -> tuple[Backbone, Aggregator]:

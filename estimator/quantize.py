@@ -40,6 +40,7 @@ from estimator.contract import (
     METADATA_CONTRACT_KEY,
     WEIGHTS_FILE,
     format_checksums,
+    set_metadata,
 )
 from rig.errors import MissingExtraError, ValidationError
 from rig.files import make_output_folder
@@ -150,8 +151,8 @@ def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLi
     src = Path(model.model_dir)
     with tempfile.TemporaryDirectory(dir=out, prefix=".quantize-") as tmp:
         staged = {BACKBONE_FILE: Path(tmp) / BACKBONE_FILE, AGGREGATOR_FILE: Path(tmp) / AGGREGATOR_FILE}
-        # ONNX Runtime's own preparation (shape inference, graph optimisation), which it asks
-        # for before quantizing: without it some tensors go unquantized for want of a shape.
+        # ONNX Runtime's own preparation for its quantizer (shape inference, graph optimisation),
+        # which the quantizer otherwise warns about.
         prepared = Path(tmp) / "prepared.onnx"
         quantization.quant_pre_process(str(src / BACKBONE_FILE), str(prepared))
         quantization.quantize_static(
@@ -161,13 +162,9 @@ def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLi
             calibrate_method=quantization.CalibrationMethod.MinMax)
         for name, path in ((BACKBONE_FILE, staged[BACKBONE_FILE]), (AGGREGATOR_FILE, src / AGGREGATOR_FILE)):
             graph = onnx.load(str(path))
-            # quantize_static keeps the graph's metadata (the graph's role among it); the contract
-            # is replaced in both, so that they agree.
-            entries = {p.key: p.value for p in graph.metadata_props}
-            entries[METADATA_CONTRACT_KEY] = quantized.to_json()
-            del graph.metadata_props[:]
-            for key, value in entries.items():
-                graph.metadata_props.add(key=key, value=value)
+            # quantize_static keeps the graph's metadata (its role among it); the contract is
+            # replaced in both graphs, so that they agree.
+            set_metadata(graph, {METADATA_CONTRACT_KEY: quantized.to_json()})
             onnx.save(graph, str(staged[name]))
         digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in staged.items()}
         sums = Path(tmp) / CHECKSUMS_FILE

@@ -26,8 +26,9 @@ from estimator.contract import (  # noqa: E402
     BACKBONE_INPUT,
     BACKBONE_OUTPUT,
     CHECKSUMS_FILE,
+    set_metadata,
 )
-from estimator.export import build_random_nets, export_model, set_metadata  # noqa: E402
+from estimator.export import build_random_nets, export_model  # noqa: E402
 from estimator.nets import (  # noqa: E402
     LIGHT,
     PAPER,
