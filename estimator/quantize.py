@@ -96,7 +96,8 @@ def calibration_crops(estimator: Any, sources: Iterable[Iterable[Frame]], n_crop
 
 
 class _CalibrationReader:
-    """onnxruntime's calibration data reader over a fixed array, a batch at a time."""
+    """onnxruntime's calibration data reader (it needs only ``get_next``) over a fixed array, a
+    batch at a time."""
 
     def __init__(self, inputs: np.ndarray) -> None:
         self._inputs = inputs
@@ -108,9 +109,6 @@ class _CalibrationReader:
         batch = self._inputs[self._at : self._at + _CALIBRATION_BATCH]
         self._at += _CALIBRATION_BATCH
         return {BACKBONE_INPUT: batch}
-
-    def rewind(self) -> None:
-        self._at = 0
 
 
 def _check_output(model: Any, out_dir: str | os.PathLike) -> Path:
