@@ -679,9 +679,9 @@ def _expand_logs(items: list[str]) -> list[Path]:
     return paths
 
 
-def _open_logs(command: str, items: list[str],
+def _open_logs(command: str, paths: list[Path],
                utc_offset_h: float | None) -> tuple[list[tuple[Path, Iterable[Frame]]], list[str]]:
-    """The logs of ``items`` (files, or folders of *.mcap files), each opened now so that a bad
+    """The logs at ``paths`` (as :func:`_expand_logs` gives them), each opened now so that a bad
     one fails before any work is done.
 
     A log that holds no frames (a recording cut off before its first frame, as a power cut at
@@ -694,7 +694,7 @@ def _open_logs(command: str, items: list[str],
 
     opened: list[tuple[Path, Iterable[Frame]]] = []
     empty: list[EmptyLogError] = []
-    for path in _expand_logs(items):
+    for path in paths:
         try:
             opened.append((path, open_frames(path, utc_offset_h=utc_offset_h)))
         except EmptyLogError as exc:
@@ -717,8 +717,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     _check_writable("--json", args.json)
     _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
-    _refuse_overwriting(_expand_logs(args.logs), json=args.json, plot=args.plot)
-    opened, left_out = _open_logs("eval", args.logs, args.utc_offset)
+    paths = _expand_logs(args.logs)
+    _refuse_overwriting(paths, json=args.json, plot=args.plot)
+    opened, left_out = _open_logs("eval", paths, args.utc_offset)
     sources = [(str(p), frames) for p, frames in opened]
     model = _load_model(args.model)
     estimator = SunEstimator(model, seed=args.seed)
@@ -778,7 +779,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         # Logs beside --export-only: a checkpoint from before training recorded its data's sun
         # elevations takes them from its logs (checked to be the run's by their fingerprint).
-        logs = [p for p, _ in _open_logs("train", args.logs, args.utc_offset)[0]] if args.logs else []
+        opened, _ = _open_logs("train", _expand_logs(args.logs), args.utc_offset) if args.logs else ([], [])
+        logs = [p for p, _ in opened]
         mirror = args.mirror_windows
         out = export_checkpoint(Path(args.out), Path(args.export_only), run_crops_per_frame=args.crops or 0,
                                 export_command=command_line() if args.crops or logs or args.data_note
@@ -793,7 +795,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise SunrigError("train: --mirror-windows sets how an exported model runs; pass it with --export-only "
                           "once the run is done (a fine-tune keeps its --init model's)")
     # Opened now, so that a bad log fails before minutes of loading the others.
-    paths = [p for p, _ in _open_logs("train", args.logs, args.utc_offset)[0]]
+    opened, _ = _open_logs("train", _expand_logs(args.logs), args.utc_offset)
+    paths = [p for p, _ in opened]
     cfg = TrainConfig(preset=args.preset, layers=args.layers, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
                       crop_fov_deg=args.crop_fov,
@@ -858,7 +861,7 @@ def cmd_quantize(args: argparse.Namespace) -> int:
 
     model = _load_model(args.model)
     # Calibration reads images only: a KITTI drive's UTC offset (its true sun) does not matter here.
-    opened, _ = _open_logs("quantize", args.logs, 0.0)
+    opened, _ = _open_logs("quantize", _expand_logs(args.logs), 0.0)
     # Frames are the unit: how many the logs hold is known only once read.
     progress = Progress("quantize: calibrating", unit="frames", enabled=None if not args.quiet else False)
     out = quantize_logs_model(model, opened, Path(args.out), n_crops=args.calibration_crops, seed=args.seed,
