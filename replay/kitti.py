@@ -220,8 +220,8 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
         date_dir, drive_dir = p.resolve().parent, p
     else:
         drives = drive_folders(p)
-        logs = sorted(p.glob("*.mcap"))
-        if not drives and logs:  # a folder of recordings, given where one log is read
+        logs = [] if drives else sorted(p.glob("*.mcap"))
+        if logs:  # a folder of recordings, given where one log is read
             raise LogError(f"{p}: a folder of {len(logs)} native logs, where one log is read; pass one of them "
                            f"(e.g. {logs[0]}), or the folder to sunrig eval / train")
         if not drives:
