@@ -57,10 +57,11 @@ _AGGREGATOR_IO = {
 }
 
 
-def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
+def session_options(intra_op_threads: int | None = None, *, spin_wait: bool = False) -> ort.SessionOptions:
     """Explicit options so a model runs the same everywhere: full graph optimisation, sequential
     execution (the graphs are chains; parallel branches would only fight for two cores), worker
-    threads that sleep rather than spin when idle, quiet logs."""
+    threads that sleep rather than spin when idle (``spin_wait``: ONNX Runtime's default, for a
+    benchmark to compare), quiet logs."""
     opts = ort.SessionOptions()
     if intra_op_threads is not None:
         if not isinstance(intra_op_threads, int) or intra_op_threads < 1:
@@ -75,7 +76,7 @@ def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
     # source, outputs and Python code need: on 2 cores that cost the shipped model a third of its
     # unpaced rate (27-31 against 46-50 Hz) and made the paper's network drop frames of a 10 Hz
     # camera; offline, with the cores otherwise idle, it gained nothing (benchmarks/bench_rig.py).
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin_wait else "0")
     # errors only: ORT's warnings about unused initializers are noise here
     opts.log_severity_level = 3
     return opts
@@ -117,11 +118,13 @@ class OnnxModel:
         model_dir: str | os.PathLike,
         *,
         intra_op_threads: int | None = None,
+        spin_wait: bool = False,
         expect: Mapping[str, Any] | None = None,
     ) -> OnnxModel:
         """Open ``model_dir`` and check both graphs against their contract.
 
-        ``expect`` optionally names contract fields the caller relies on, e.g.
+        ``spin_wait``: ONNX Runtime's worker threads spin between ops, its default and not the
+        rig's (:func:`session_options`). ``expect`` optionally names contract fields the caller relies on, e.g.
         ``{"crops_per_frame": 4}``; a model that differs is refused (see :func:`check_expected`).
         Raises :class:`ModelError` for an unusable folder and :class:`ContractMismatch` for a
         model that does not fit.
@@ -144,7 +147,7 @@ class OnnxModel:
                 f"model folder {str(root)!r} lacks {' and '.join(missing)}; a model folder holds "
                 f"{BACKBONE_FILE} and {AGGREGATOR_FILE} as written by `sunrig train`"
             )
-        opts = session_options(intra_op_threads)
+        opts = session_options(intra_op_threads, spin_wait=spin_wait)
         blobs = {name: p.read_bytes() for name, p in paths.items()}
         digests = {name: hashlib.sha256(blob).hexdigest() for name, blob in blobs.items()}
         _check_checksums(root, digests)
