@@ -13,7 +13,8 @@ a reopen even in the paced run (300 frames: 298 written, 1 timeout, 1 reopen). A
 
 ``--preset`` runs an untrained model of that network preset (speed does not depend on the weights;
 needs the train extra), ``--int8`` the model with its backbone quantized (``sunrig quantize``,
-calibrated on the bundled drive's frames).
+calibrated on the bundled drive's frames). ``--ort-spinning`` lets ONNX Runtime's threads
+spin between ops, its default, which the rig turns off (docs/model.md, "int8 backbones").
 """
 
 from __future__ import annotations
@@ -62,6 +63,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=400)
     ap.add_argument("--preset", help="an untrained model of this network preset instead (fast, light, paper)")
     ap.add_argument("--int8", action="store_true", help="quantize the model's backbone first")
+    ap.add_argument("--ort-spinning", action="store_true",
+                    help="ONNX Runtime's threads spin between ops (its default, not the rig's), to compare")
     args = ap.parse_args()
 
     from estimator.estimator import SunEstimator
@@ -81,12 +84,13 @@ def main() -> None:
         model_dir = build_random_model(Path(tmp.name) / "float", PRESETS[args.preset], seed=0)
     else:
         model_dir = resolve_model_dir(args.model)
-    model = OnnxModel.load(model_dir)
+    model = OnnxModel.load(model_dir, spin_wait=args.ort_spinning)
     if args.int8:
         from estimator.quantize import calibration_crops, quantize_model
 
         calibration = calibration_crops(SunEstimator(model), [drive], n_crops=512)
-        model = OnnxModel.load(quantize_model(model, calibration, Path(tmp.name) / "int8"))
+        model = OnnxModel.load(quantize_model(model, calibration, Path(tmp.name) / "int8"),
+                               spin_wait=args.ort_spinning)
     results = {}
     for name, realtime in (("paced_10hz", True), ("unpaced", False)):
         master, slave = os.openpty()
@@ -129,6 +133,7 @@ def main() -> None:
         "max_ms": calls[-1], "serial": pub_stats,
     }
     print(json.dumps({"benchmark": "rig", "model": model.model_id, "preset": args.preset, "int8": args.int8,
+                      "ort_spinning": args.ort_spinning,
                       "trained": bool(model.contract.training.get("trained", True)), "results": results,
                       "machine": machine()}, indent=2))
     tmp.cleanup()
