@@ -92,8 +92,9 @@ def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool
 def discard_if_empty(writer: LogWriter) -> bool:
     """Remove a closed recording that holds no frame and no estimate; True when it was removed.
 
-    Made by this run and holding nothing, it would only fail every later replay, eval or train of
-    its folder. (With ``overwrite``, the file it replaced was already gone when it opened.)
+    Made by this run and holding nothing, it would only fail a replay of it and be warned about and
+    left out by every later eval or train of its folder. (With ``overwrite``, the file it replaced
+    was already gone when it opened.)
     """
     if not writer.closed or writer.frames_written or writer.estimates_written or writer.path is None:
         return False
