@@ -29,6 +29,9 @@ class TrainConfig:
     # Weight of nets.tail_loss on each full window's estimate: misses beyond the margin cost more.
     tail_weight: float = 0.0
     tail_margin_deg: float = 15.0
+    # Export a moving average of the weights, decayed by this much a step, instead of the last
+    # step's (0: the last step's). It smooths the step-to-step noise of the final weights.
+    ema_decay: float = 0.0
     precision: str = "auto"  # auto: bf16 autocast where the CPU has native bf16, else fp32
     init: str = ""  # a model folder whose weights.npz a new run starts from (fine-tuning)
     frames_per_window: int = 8

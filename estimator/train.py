@@ -449,6 +449,48 @@ def _trim_metrics(path: Path, step: int) -> int:
     return dropped
 
 
+class WeightAverage:
+    """An exponential moving average of two modules' weights and buffers (the batch-norm
+    statistics too, so the averaged network normalises as its weights expect).
+
+    The decay ramps up as ``(1 + n) / (10 + n)`` until it reaches ``decay``, so the average of a
+    short run (a fine-tune of a few hundred steps) is not mostly the weights it started from.
+    Made after the modules are in their final memory format: it holds their tensors, which a
+    ``.to()`` replaces.
+    """
+
+    def __init__(self, decay: float, modules: dict[str, Any], state: dict[str, Any] | None = None) -> None:
+        self.decay = decay
+        self.updates = 0 if state is None else int(state["updates"])
+        # The modules' own tensors (state_dict() detaches, sharing their storage): the optimiser
+        # and batch norm update them in place, so each update reads the step's values.
+        self._live = [(part, key, t) for part, m in modules.items() for key, t in m.state_dict().items()]
+        self._avg = {part: {key: (t if state is None else state[part][key]).detach().clone()
+                            for p2, key, t in self._live if p2 == part} for part in modules}
+
+    @torch.no_grad()
+    def update(self) -> None:
+        self.updates += 1
+        keep = min(self.decay, (1 + self.updates) / (10 + self.updates))
+        for part, key, t in self._live:
+            avg = self._avg[part][key]
+            if avg.is_floating_point():
+                avg.lerp_(t, 1.0 - keep)
+            else:  # a counter (batch norm's num_batches_tracked): the latest
+                avg.copy_(t)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"updates": self.updates, **{part: dict(tensors) for part, tensors in self._avg.items()}}
+
+
+def averaged_modules(net_cfg: nets.NetConfig, state: dict[str, Any]) -> tuple[Any, Any]:
+    """A backbone and an aggregator holding a :class:`WeightAverage`'s saved weights."""
+    backbone, aggregator = net_cfg.build()
+    backbone.load_state_dict(state["backbone"])
+    aggregator.load_state_dict(state["aggregator"])
+    return backbone, aggregator
+
+
 def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
           progress: Callable[[dict[str, Any]], None] | None = None) -> Path:
     """Train (or resume) and export; returns the model folder."""
@@ -465,6 +507,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     if not (math.isfinite(cfg.tail_weight) and cfg.tail_weight >= 0):
         raise ValidationError(f"tail weight: expected a finite weight >= 0 (0: the paper's loss alone), "
                               f"got {cfg.tail_weight}")
+    if not 0.0 <= cfg.ema_decay < 1.0:
+        raise ValidationError(f"ema decay: expected a decay in [0, 1) (0: export the last step's weights), "
+                              f"got {cfg.ema_decay}")
     if not 0.0 <= cfg.tail_margin_deg <= 180.0:
         raise ValidationError(f"tail margin: expected an angle in [0, 180] deg, got {cfg.tail_margin_deg}")
     if not cfg.max_steps and not (math.isfinite(cfg.minutes) and cfg.minutes > 0):
@@ -576,6 +621,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
         # Module.to(memory_format=...) is documented and works; torch's overloads omit it.
         backbone = backbone.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     log.info("training in %s", "bf16 autocast, channels-last" if bf16 else "float32")
+    average = (WeightAverage(cfg.ema_decay, {"backbone": backbone, "aggregator": aggregator},
+                             (state or {}).get("weight_average")) if cfg.ema_decay else None)
     contract_stub = net_cfg.contract(crops_per_frame=cfg.crops_per_frame,
                                      frames_per_window=cfg.frames_per_window, crop_fov_deg=list(fovs))
     normalise = _Normaliser(contract_stub.input_norm)
@@ -606,6 +653,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "err_deg_ema": None if ema_err is None else round(ema_err, 2),
             "schedule": asdict(schedule), "drive_err_deg": sampler.err_deg.tolist(), "init_info": init_info,
             "run_crops_per_frame": run_crops,
+            "weight_average": None if average is None else average.state_dict(),
         }
 
     try:
@@ -647,6 +695,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, 1.0)
             opt.step()
+            if average is not None:
+                average.update()
             step += 1
 
             with torch.no_grad():
@@ -690,6 +740,8 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # (a second snapshot after a slow save reads a later clock).
     final = state_dict()
     _save_checkpoint(ckpt_path, final)
+    if final["weight_average"] is not None:
+        backbone, aggregator = averaged_modules(net_cfg, final["weight_average"])
     # (memory_format: see the channels_last call above for the ignore)
     return _export(backbone.to(memory_format=torch.contiguous_format),  # type: ignore[call-overload]
                    aggregator, cfg, final, out_dir)
@@ -699,11 +751,13 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
 # about how its model was trained.
 _RUN_IDENTITY = {"preset": "--preset", "layers": "--layers", "lr": "--lr", "batch_windows": "--batch",
                  "seed": "--seed", "hard_share": "--hard-share", "mirror_share": "--mirror-share",
-                 "live_share": "--live-share", "tail_weight": "--tail-weight", "tail_margin_deg": "--tail-margin"}
-# What a checkpoint written before a setting was recorded ran with (all had their preset's depth
-# and trained on the paper's loss alone, and none mirrored its windows or drew them as the rig does).
+                 "live_share": "--live-share", "tail_weight": "--tail-weight", "tail_margin_deg": "--tail-margin",
+                 "ema_decay": "--ema-decay"}
+# What a checkpoint written before a setting was recorded ran with (all had their preset's depth,
+# trained on the paper's loss alone and exported its last weights, and none mirrored its windows
+# or drew them as the rig does).
 _RAN_BEFORE_RECORDED = {"layers": 0, "mirror_share": 0.0, "live_share": 0.0, "tail_weight": 0.0,
-                        "tail_margin_deg": 15.0}
+                        "tail_margin_deg": 15.0, "ema_decay": 0.0}
 # Settings whose 0 means "the run's own" (so a resume need not repeat them): the flag, what a
 # checkpoint written before the setting was recorded ran with, the setting's value as compared
 # (an angle setting of 17.6 and one of [17.6] are one angle) and as the flag takes it.
@@ -949,9 +1003,8 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
                                   "pass the run's training logs, or none")
         if "sun_elevation_deg" not in counts:
             counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
-    backbone, aggregator = net_config(cfg).build()
-    backbone.load_state_dict(state["backbone"])
-    aggregator.load_state_dict(state["aggregator"])
+    # A run with --ema-decay exports its average, as it does when it ends.
+    backbone, aggregator = averaged_modules(net_config(cfg), state.get("weight_average") or state)
     return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command,
                    run_mirror_windows)
 

@@ -803,6 +803,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                       hard_share=args.hard_share, mirror_share=args.mirror_share,
                       live_share=args.live_share, precision=args.precision,
                       tail_weight=args.tail_weight, tail_margin_deg=args.tail_margin,
+                      ema_decay=args.ema_decay,
                       init=str(resolve_init_dir(args.init)) if args.init else "",
                       seed=args.seed, threads=args.threads,
                       command=command_line(),
@@ -1213,6 +1214,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tail-margin", type=_float_in(0.0, 180.0, lo_included=True), default=recipe.tail_margin_deg,
                    metavar="DEG",
                    help=f"miss in deg beyond which --tail-weight counts (default {recipe.tail_margin_deg:g})")
+    p.add_argument("--ema-decay", type=_float_in(0.0, 0.99999, lo_included=True), default=recipe.ema_decay,
+                   metavar="DECAY",
+                   help="export a moving average of the weights, each step weighing the old average by DECAY "
+                        "(e.g. 0.9995: about the last 2000 steps), instead of the last step's weights "
+                        f"(default {recipe.ema_decay:g}: the last step's)")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=recipe.precision,
                    help="auto (default): bf16 autocast where the CPU computes bf16 natively, else fp32")
     p.add_argument("--seed", type=_nonneg_int, default=recipe.seed,

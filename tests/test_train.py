@@ -344,6 +344,9 @@ def test_resume_with_another_mirror_share_is_refused_also_from_a_checkpoint_befo
     # Nor did it train with the tail loss.
     with pytest.raises(ValidationError, match="--tail-weight 0.0, not 1.0"):
         train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0, tail_weight=1.0))
+    # Nor did it average its weights: its export would be the average of only the resumed steps.
+    with pytest.raises(ValidationError, match="--ema-decay 0.0, not 0.9"):
+        train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0, ema_decay=0.9))
     # Given as the refusal says, it resumes.
     train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, mirror_share=0.0))
     assert torch.load(out / CHECKPOINT, weights_only=False)["step"] == 2
@@ -359,7 +362,7 @@ def test_the_cli_and_the_library_train_with_the_same_defaults():
     for flag, key in (("preset", "preset"), ("batch", "batch_windows"), ("lr", "lr"), ("hard_share", "hard_share"),
                       ("mirror_share", "mirror_share"), ("live_share", "live_share"), ("precision", "precision"),
                       ("tail_weight", "tail_weight"), ("tail_margin", "tail_margin_deg"),
-                      ("seed", "seed"), ("layers", "layers"),
+                      ("ema_decay", "ema_decay"), ("seed", "seed"), ("layers", "layers"),
                       ("minutes", "minutes"), ("crop_fov", "crop_fov_deg")):
         assert getattr(args, flag) == getattr(cfg, key), flag
 
@@ -832,4 +835,57 @@ def test_naming_the_presets_own_depth_is_the_same_run(logs, tmp_path):
 def test_a_bad_layer_count_is_refused_before_training(logs, tmp_path, layers):
     with pytest.raises(ValidationError, match="layers: expected a count"):
         train(logs, tmp_path / "m", TrainConfig(preset="tiny", layers=layers, max_steps=1))
+    assert not (tmp_path / "m").exists()
+
+
+def test_the_weight_average_is_the_decayed_mean_of_every_step_with_a_ramped_decay():
+    from estimator.train import WeightAverage
+
+    net = torch.nn.Sequential(torch.nn.Linear(2, 1), torch.nn.BatchNorm1d(1))
+    avg = WeightAverage(0.5, {"net": net})
+    expect = net[0].weight.detach().clone()
+    for value in (1.0, 2.0, 3.0, 4.0):
+        with torch.no_grad():
+            net[0].weight.fill_(value)  # in place, as the optimiser steps
+        net[1].num_batches_tracked += 1
+        avg.update()
+        keep = min(0.5, (1 + avg.updates) / (10 + avg.updates))  # 0.18, 0.25, 0.31, 0.36: below the decay
+        expect = keep * expect + (1 - keep) * value
+    saved = avg.state_dict()
+    assert saved["updates"] == 4
+    torch.testing.assert_close(saved["net"]["0.weight"], expect)
+    assert int(saved["net"]["1.num_batches_tracked"]) == 4  # a counter is the latest, not averaged
+    # Resumed from its saved state it goes on from there.
+    again = WeightAverage(0.5, {"net": net}, saved)
+    torch.testing.assert_close(again.state_dict()["net"]["0.weight"], expect)
+    assert again.updates == 4
+
+
+def test_a_run_with_ema_decay_exports_its_average_at_the_end_and_from_the_checkpoint(logs, tmp_path):
+    from estimator.runtime import OnnxModel
+    from estimator.train import export_checkpoint
+
+    # A high rate, so that six steps move the weights well beyond float16's rounding.
+    cfg = TrainConfig(preset="tiny", max_steps=3, batch_windows=2, warmup_steps=1, lr=0.05, ema_decay=0.99)
+    train(logs, tmp_path / "m", cfg)
+    out = train(logs, tmp_path / "m", replace(cfg, max_steps=6))  # resumed: the average goes on
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    assert state["weight_average"]["updates"] == 6
+    with np.load(out / "weights.npz") as z:
+        exported = {k: z[k].astype(np.float32) for k in z.files if k.startswith("backbone/")}
+    averaged = {f"backbone/{k}": v.float().numpy() for k, v in state["weight_average"]["backbone"].items()}
+    last = {f"backbone/{k}": v.float().numpy() for k, v in state["backbone"].items()}
+    key = "backbone/conv1.weight"
+    np.testing.assert_allclose(exported[key], averaged[key], atol=5e-4)  # weights.npz is float16
+    assert np.abs(exported[key] - last[key]).max() > 3e-3  # not the last step's weights
+    assert OnnxModel.load(out).contract.training["recipe"]["ema_decay"] == 0.99
+    again = export_checkpoint(out, tmp_path / "again")
+    with np.load(again / "weights.npz") as z:
+        np.testing.assert_array_equal(z[key].astype(np.float32), exported[key])
+
+
+@pytest.mark.parametrize("decay", [-0.1, 1.0, math.nan])
+def test_an_ema_decay_outside_0_to_1_is_refused_before_training(logs, tmp_path, decay):
+    with pytest.raises(ValidationError, match="ema decay: expected a decay in"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, ema_decay=decay))
     assert not (tmp_path / "m").exists()
