@@ -483,8 +483,9 @@ class WeightAverage:
         return {"updates": self.updates, **{part: dict(tensors) for part, tensors in self._avg.items()}}
 
 
-def averaged_modules(net_cfg: nets.NetConfig, state: dict[str, Any]) -> tuple[Any, Any]:
-    """A backbone and an aggregator holding a :class:`WeightAverage`'s saved weights."""
+def modules_from(net_cfg: nets.NetConfig, state: dict[str, Any]) -> tuple[Any, Any]:
+    """A backbone and an aggregator loaded from saved ``"backbone"`` and ``"aggregator"`` state
+    dicts: a checkpoint's, or its :class:`WeightAverage`'s."""
     backbone, aggregator = net_cfg.build()
     backbone.load_state_dict(state["backbone"])
     aggregator.load_state_dict(state["aggregator"])
@@ -741,7 +742,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     final = state_dict()
     _save_checkpoint(ckpt_path, final)
     if final["weight_average"] is not None:
-        backbone, aggregator = averaged_modules(net_cfg, final["weight_average"])
+        backbone, aggregator = modules_from(net_cfg, final["weight_average"])
     # (memory_format: see the channels_last call above for the ignore)
     return _export(backbone.to(memory_format=torch.contiguous_format),  # type: ignore[call-overload]
                    aggregator, cfg, final, out_dir)
@@ -1004,7 +1005,7 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
         if "sun_elevation_deg" not in counts:
             counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
     # A run with --ema-decay exports its average, as it does when it ends.
-    backbone, aggregator = averaged_modules(net_config(cfg), state.get("weight_average") or state)
+    backbone, aggregator = modules_from(net_config(cfg), state.get("weight_average") or state)
     return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command,
                    run_mirror_windows)
 
