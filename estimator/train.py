@@ -462,18 +462,21 @@ class WeightAverage:
     def __init__(self, decay: float, modules: dict[str, Any], state: dict[str, Any] | None = None) -> None:
         self.decay = decay
         self.updates = 0 if state is None else int(state["updates"])
-        # The modules' own tensors (state_dict() detaches, sharing their storage): the optimiser
-        # and batch norm update them in place, so each update reads the step's values.
-        self._live = [(part, key, t) for part, m in modules.items() for key, t in m.state_dict().items()]
-        self._avg = {part: {key: (t if state is None else state[part][key]).detach().clone()
-                            for p2, key, t in self._live if p2 == part} for part in modules}
+        self._avg: dict[str, dict[str, Any]] = {}
+        # (average, the module's own tensor) pairs. state_dict() detaches, sharing the storage:
+        # the optimiser and batch norm update it in place, so each update reads the step's values.
+        self._pairs: list[tuple[Any, Any]] = []
+        for part, module in modules.items():
+            live = module.state_dict()
+            self._avg[part] = {key: (t if state is None else state[part][key]).detach().clone()
+                               for key, t in live.items()}
+            self._pairs += [(self._avg[part][key], t) for key, t in live.items()]
 
     @torch.no_grad()
     def update(self) -> None:
         self.updates += 1
         keep = min(self.decay, (1 + self.updates) / (10 + self.updates))
-        for part, key, t in self._live:
-            avg = self._avg[part][key]
+        for avg, t in self._pairs:
             if avg.is_floating_point():
                 avg.lerp_(t, 1.0 - keep)
             else:  # a counter (batch norm's num_batches_tracked): the latest
