@@ -842,22 +842,31 @@ def test_the_weight_average_is_the_decayed_mean_of_every_step_with_a_ramped_deca
     from estimator.train import WeightAverage
 
     net = torch.nn.Sequential(torch.nn.Linear(2, 1), torch.nn.BatchNorm1d(1))
+    with torch.no_grad():
+        net[0].weight.fill_(0.0)
     avg = WeightAverage(0.5, {"net": net})
-    expect = net[0].weight.detach().clone()
     for value in (1.0, 2.0, 3.0, 4.0):
         with torch.no_grad():
             net[0].weight.fill_(value)  # in place, as the optimiser steps
         net[1].num_batches_tracked += 1
         avg.update()
-        keep = min(0.5, (1 + avg.updates) / (10 + avg.updates))  # 0.18, 0.25, 0.31, 0.36: below the decay
-        expect = keep * expect + (1 - keep) * value
+    # By hand: the ramp keeps 2/11, 3/12, 4/13, 5/14 of the average, all below the decay 0.5:
+    # 9/11 = 0.8182; 0.25 * 0.8182 + 0.75 * 2 = 1.7045; 4/13 * 1.7045 + 9/13 * 3 = 2.6014;
+    # 5/14 * 2.6014 + 9/14 * 4 = 3.5005.
     saved = avg.state_dict()
     assert saved["updates"] == 4
-    torch.testing.assert_close(saved["net"]["0.weight"], expect)
+    assert saved["net"]["0.weight"].flatten().tolist() == pytest.approx([3.5005] * 2, abs=1e-4)
     assert int(saved["net"]["1.num_batches_tracked"]) == 4  # a counter is the latest, not averaged
+    # A decay below the ramp's first 2/11 caps it from the first update: each keeps a tenth.
+    capped = WeightAverage(0.1, {"net": net})  # starts from 4.0
+    with torch.no_grad():
+        net[0].weight.fill_(0.0)
+    capped.update()
+    capped.update()
+    assert capped.state_dict()["net"]["0.weight"].flatten().tolist() == pytest.approx([0.04] * 2)
     # Resumed from its saved state it goes on from there.
     again = WeightAverage(0.5, {"net": net}, saved)
-    torch.testing.assert_close(again.state_dict()["net"]["0.weight"], expect)
+    assert again.state_dict()["net"]["0.weight"].flatten().tolist() == pytest.approx([3.5005] * 2, abs=1e-4)
     assert again.updates == 4
 
 
