@@ -74,8 +74,9 @@ def session_options(intra_op_threads: int | None = None, *, spin_wait: bool = Fa
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     # ORT's worker threads spin-wait between ops by default, holding a core that the live rig's
     # source, outputs and Python code need: on 2 cores that cost the shipped model a third of its
-    # unpaced rate (27-31 against 46-50 Hz) and made the paper's network drop frames of a 10 Hz
-    # camera; offline, with the cores otherwise idle, it gained nothing (benchmarks/bench_rig.py).
+    # unpaced rate and made the paper's network drop frames of a 10 Hz camera; offline, with the
+    # cores otherwise idle, it gained nothing (docs/model.md, "int8 backbones", has the figures
+    # and the commands: benchmarks/bench_rig.py --ort-spinning).
     opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin_wait else "0")
     # errors only: ORT's warnings about unused initializers are noise here
     opts.log_severity_level = 3
