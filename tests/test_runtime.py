@@ -106,7 +106,6 @@ def test_load_reads_the_contract(model, tiny_model_dir):
     assert "32px" in repr(model)
 
 
-@pytest.mark.torch
 def test_sessions_sleep_rather_than_spin_between_ops():
     # Spinning workers held a core the live rig's other threads needed (estimator/runtime.py).
     from estimator.runtime import session_options
@@ -119,6 +118,7 @@ def test_sessions_sleep_rather_than_spin_between_ops():
     assert session_options(spin_wait=True).get_session_config_entry("session.intra_op.allow_spinning") == "1"
 
 
+@pytest.mark.torch
 def test_model_id_follows_the_graph_bytes(tiny_model_dir, tmp_path):
     folder = copy_model(tiny_model_dir, tmp_path / "m")
     before = OnnxModel.load(folder).model_id
