@@ -194,6 +194,30 @@ def test_ctrl_c_keeps_the_steps_since_the_last_checkpoint(logs, tmp_path):
     assert [e["step"] for e in events if e["phase"] == "train"] == [3, 4]
 
 
+@pytest.mark.slow
+def test_a_stopped_and_resumed_run_ends_on_the_weights_of_one_never_stopped(logs, tmp_path):
+    # The draws, dropout, hard-draw errors and optimizer all carry on where they stopped, so the
+    # command a contract records names its model exactly. The fast preset: the tiny one has no
+    # dropout to draw.
+    cfg = TrainConfig(preset="fast", max_steps=4, batch_windows=1, warmup_steps=1, checkpoint_every_s=3600.0)
+
+    def interrupt_at_step_2(p):
+        if p["phase"] == "train" and p["step"] == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(logs, tmp_path / "resumed", cfg, progress=interrupt_at_step_2)
+    torch.manual_seed(1)  # as in a new process: not the generator the stopped run left behind
+    train(logs, tmp_path / "resumed", cfg)
+    train(logs, tmp_path / "straight", cfg)
+    resumed, straight = (torch.load(tmp_path / d / CHECKPOINT, weights_only=False) for d in ("resumed", "straight"))
+    assert resumed["step"] == straight["step"] == 4
+    assert resumed["drive_err_deg"] == straight["drive_err_deg"]  # what the hard draws go on drawing by
+    for part in ("backbone", "aggregator"):
+        for name, tensor in straight[part].items():
+            assert torch.equal(resumed[part][name], tensor), f"{part}.{name}"
+
+
 def test_a_budget_that_never_ends_or_never_starts_is_refused(logs, tmp_path):
     for minutes in (float("nan"), -1.0, 0.0):
         with pytest.raises(ValidationError, match="minutes"):
