@@ -7,7 +7,10 @@ eight frames of a drive made black, white, mid-grey or pure noise, with the elev
 answers. Those are estimated directly, as if the exposure gate (``rig/exposure.py``) were off.
 It also gives the range of the drives' frame luma that the gate's thresholds are placed against,
 and the windows grouped by where the answer puts the sun from the camera (ahead, to the side,
-behind; low, mid, high): whether the answer's own place could flag the windows far off.
+behind; low, mid, high): whether the answer's own place could flag the windows far off. For a
+model that runs every window mirrored too (``mirror_windows``), it gives the angle between the
+window's as-seen and mirrored answers, and how many of the windows far off a flag on that gap
+would catch: whether the two runs disagree where the model is wrong.
 
     python3 benchmarks/bench_spread.py [--model DIR] [--data data/val --drives 300 --drive-seed 2500]
 """
@@ -39,6 +42,10 @@ BLANK_IMAGES = {
 }
 
 
+# Shares of the windows a flag on the mirror gap is tried at.
+FLAG_SHARES = (0.01, 0.02, 0.05, 0.10)
+
+
 PLACES = [f"{az} {el}" for az, _, _ in AZIMUTH_BANDS_DEG for el, _, _ in ELEVATION_BANDS_DEG]
 
 
@@ -64,6 +71,50 @@ def by_answer_place(places: list[str], errors_deg: list[float]) -> dict[str, dic
     return out
 
 
+def rank_auc(score: np.ndarray, positive: np.ndarray) -> float | None:
+    """The chance that a positive window scores above a negative one (ties count half): the area
+    under the ROC curve of flagging by ``score``. None when either class is empty."""
+    score, positive = np.asarray(score, dtype=np.float64), np.asarray(positive, dtype=bool)
+    n_pos, n_neg = int(positive.sum()), int((~positive).sum())
+    if not n_pos or not n_neg:
+        return None
+    # Mann-Whitney U from average ranks, so that tied scores share their rank.
+    order = np.argsort(score, kind="stable")
+    ranks = np.empty(score.size)
+    sorted_scores = score[order]
+    starts = np.flatnonzero(np.r_[True, sorted_scores[1:] != sorted_scores[:-1]])
+    ends = np.r_[starts[1:], score.size]
+    for a, b in zip(starts, ends, strict=True):
+        ranks[order[a:b]] = 0.5 * (a + b - 1) + 1.0
+    u = ranks[positive].sum() - n_pos * (n_pos + 1) / 2.0
+    return float(u / (n_pos * n_neg))
+
+
+def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES) -> dict:
+    """What a flag on the windows of the largest ``gap_deg`` would catch: for each share of the
+    windows flagged, its threshold and how many of the windows over 20 and over TAIL_DEG it holds;
+    and the rank AUC of the gap for each."""
+    gap_deg, error_deg = np.asarray(gap_deg, dtype=np.float64), np.asarray(error_deg, dtype=np.float64)
+    out: dict = {"median": float(np.median(gap_deg)), "p99": float(np.percentile(gap_deg, 99))}
+    for limit in (20.0, TAIL_DEG):
+        far = error_deg > limit
+        out[f"windows_over_{limit:.0f}_deg"] = int(far.sum())
+        out[f"auc_over_{limit:.0f}_deg"] = rank_auc(gap_deg, far)
+    tail = gap_deg[error_deg > TAIL_DEG]
+    out[f"on_windows_over_{TAIL_DEG:.0f}_deg"] = (
+        {"min": float(tail.min()), "median": float(np.median(tail)), "max": float(tail.max())} if tail.size else None)
+    out["flag_largest"] = []
+    for share in shares:
+        threshold = float(np.quantile(gap_deg, 1.0 - share))
+        flagged = gap_deg > threshold
+        out["flag_largest"].append({
+            "share": share, "threshold_deg": threshold, "flagged": int(flagged.sum()),
+            **{f"caught_over_{limit:.0f}_deg": int((flagged & (error_deg > limit)).sum())
+               for limit in (20.0, TAIL_DEG)},
+            "max_deg_left": float(error_deg[~flagged].max()) if (~flagged).any() else None})
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_drive_args(ap, data="data/val", drives=300, drive_seed=VALIDATION_SEED,
@@ -71,18 +122,32 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="crop seed (default 0)")
     args = ap.parse_args()
 
-    from estimator.estimator import SunEstimator
+    from estimator.calibration import mean_direction
+    from estimator.estimator import SunEstimator, mirrored_joint_runs, window_tokens
     from replay.sources import open_frames
     from rig.exposure import luminance_stats
-    from rig.geometry import az_el_from_enu, wrap_pi
+    from rig.geometry import angle_between, az_el_from_enu, wrap_pi
     from rig.offline import estimate_stream
     from rig.window import SpreadWindowPolicy
 
+    class GapRecordingEstimator(SunEstimator):
+        """The shipped estimator, which also keeps the angle between the last window's as-seen and
+        mirrored answers (the aggregator runs once more; the crops' embeddings are reused)."""
+
+        mirror_gap_deg: float | None = None
+
+        def estimate_many(self, window, aggregators):
+            if self.mirror_windows:
+                plain, mirrored = mirrored_joint_runs(self.model, window_tokens(window), window)
+                gap = angle_between(mean_direction(plain)[0], mean_direction(mirrored)[0])
+                self.mirror_gap_deg = math.degrees(float(gap))
+            return super().estimate_many(window, aggregators)
+
     paths, model = drives_and_model(args)
-    estimator = SunEstimator(model, seed=args.seed)
+    estimator = GapRecordingEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
 
-    spread, error, luma, places = [], [], [], []
+    spread, error, luma, places, gaps = [], [], [], [], []
 
     def measured(frames):
         for frame in frames:
@@ -97,6 +162,7 @@ def main() -> None:
                 error.append(math.degrees(est.error_rad))
                 az, el = az_el_from_enu(est.sun_enu)
                 places.append(answer_place(math.degrees(float(wrap_pi(az - est.heading_rad))), math.degrees(float(el))))
+                gaps.append(estimator.mirror_gap_deg)
     spread_a, error_a = np.asarray(spread), np.asarray(error)
     tail = spread_a[error_a > TAIL_DEG]
     luma_a = np.asarray(luma)
@@ -121,6 +187,7 @@ def main() -> None:
         f"spread_deg_on_windows_over_{TAIL_DEG:.0f}_deg": (
             {"min": float(tail.min()), "max": float(tail.max())} if tail.size else None),
         "by_answer_place": by_answer_place(places, error),
+        "mirror_gap_deg": gap_flags(np.asarray(gaps), error_a) if estimator.mirror_windows else None,
         "blank_windows": blank,
         "frame_luma": {"frames": len(luma_a), "mean_min": float(luma_a[:, 0].min()),
                        "mean_max": float(luma_a[:, 0].max()), "std_min": float(luma_a[:, 1].min())},
