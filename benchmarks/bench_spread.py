@@ -131,7 +131,7 @@ def main() -> None:
     from rig.window import SpreadWindowPolicy
 
     class GapRecordingEstimator(SunEstimator):
-        """The shipped estimator, which also keeps the angle between the last window's as-seen and
+        """The estimator every command uses, which also keeps the angle between the last window's as-seen and
         mirrored answers (the aggregator runs once more; the crops' embeddings are reused)."""
 
         mirror_gap_deg: float | None = None
