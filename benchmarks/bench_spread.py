@@ -75,19 +75,11 @@ def rank_auc(score: np.ndarray, positive: np.ndarray) -> float | None:
     """The chance that a positive window scores above a negative one (ties count half): the area
     under the ROC curve of flagging by ``score``. None when either class is empty."""
     score, positive = np.asarray(score, dtype=np.float64), np.asarray(positive, dtype=bool)
-    n_pos, n_neg = int(positive.sum()), int((~positive).sum())
-    if not n_pos or not n_neg:
+    if positive.all() or not positive.any():
         return None
-    # Mann-Whitney U from average ranks, so that tied scores share their rank.
-    order = np.argsort(score, kind="stable")
-    ranks = np.empty(score.size)
-    sorted_scores = score[order]
-    starts = np.flatnonzero(np.r_[True, sorted_scores[1:] != sorted_scores[:-1]])
-    ends = np.r_[starts[1:], score.size]
-    for a, b in zip(starts, ends, strict=True):
-        ranks[order[a:b]] = 0.5 * (a + b - 1) + 1.0
-    u = ranks[positive].sum() - n_pos * (n_pos + 1) / 2.0
-    return float(u / (n_pos * n_neg))
+    # Every (positive, negative) pair: a few hundred thousand for the 5100 windows of a run.
+    diff = score[positive][:, None] - score[~positive][None, :]
+    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
 
 
 def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES) -> dict:
