@@ -177,13 +177,14 @@ def test_a_run_started_without_a_data_note_gets_one_at_export_checked_against_it
     assert same.contract.training["data"]["source"] == note
 
 
+def interrupt_at_step_2(p):
+    """A progress callback that presses Ctrl-C once step 2 is done."""
+    if p["phase"] == "train" and p["step"] == 2:
+        raise KeyboardInterrupt
+
+
 def test_ctrl_c_keeps_the_steps_since_the_last_checkpoint(logs, tmp_path):
     out = tmp_path / "model"
-
-    def interrupt_at_step_2(p):
-        if p["phase"] == "train" and p["step"] == 2:
-            raise KeyboardInterrupt
-
     # No checkpoint is due for an hour: without the save on Ctrl-C, both steps would be lost.
     cfg = TrainConfig(preset="tiny", max_steps=4, batch_windows=1, warmup_steps=1, checkpoint_every_s=3600.0)
     with pytest.raises(KeyboardInterrupt):
@@ -200,11 +201,6 @@ def test_a_stopped_and_resumed_run_ends_on_the_weights_of_one_never_stopped(logs
     # command a contract records names its model exactly. The fast preset: the tiny one has no
     # dropout to draw.
     cfg = TrainConfig(preset="fast", max_steps=4, batch_windows=1, warmup_steps=1, checkpoint_every_s=3600.0)
-
-    def interrupt_at_step_2(p):
-        if p["phase"] == "train" and p["step"] == 2:
-            raise KeyboardInterrupt
-
     with pytest.raises(KeyboardInterrupt):
         train(logs, tmp_path / "resumed", cfg, progress=interrupt_at_step_2)
     torch.manual_seed(1)  # as in a new process: not the generator the stopped run left behind
