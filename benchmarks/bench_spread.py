@@ -10,7 +10,10 @@ and the windows grouped by where the answer puts the sun from the camera (ahead,
 behind; low, mid, high): whether the answer's own place could flag the windows far off. For a
 model that runs every window mirrored too (``mirror_windows``), it gives the angle between the
 window's as-seen and mirrored answers, and how many of the windows far off a flag on that gap
-would catch: whether the two runs disagree where the model is wrong.
+would catch: whether the two runs disagree where the model is wrong. The same for the angle
+between the transformer's answer and its crops' own (the ``mean`` aggregator: each crop run alone,
+their answers averaged): whether the window's joint answer strays from what its crops say where
+the model is wrong.
 
     python3 benchmarks/bench_spread.py [--model DIR] [--data data/val --drives 300 --drive-seed 2500]
 """
@@ -139,7 +142,9 @@ def main() -> None:
     estimator = GapRecordingEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
 
-    spread, error, luma, places, gaps = [], [], [], [], []
+    spread, error, luma, places, gaps, crop_gaps = [], [], [], [], [], []
+    # The crops' own answer rides along: the mean aggregator reuses the window's embeddings.
+    aggregators = [estimator.aggregator] + (["mean"] if estimator.aggregator == "transformer" else [])
 
     def measured(frames):
         for frame in frames:
@@ -147,7 +152,7 @@ def main() -> None:
             yield frame
 
     for path in paths:
-        for result in estimate_stream(measured(open_frames(path)), estimator, policy):
+        for result in estimate_stream(measured(open_frames(path)), estimator, policy, aggregators=aggregators):
             est = result[estimator.aggregator]
             if est.n_frames == policy.n_frames and est.error_rad is not None:
                 spread.append(math.degrees(est.spread_rad))
@@ -155,6 +160,8 @@ def main() -> None:
                 az, el = az_el_from_enu(est.sun_enu)
                 places.append(answer_place(math.degrees(float(wrap_pi(az - est.heading_rad))), math.degrees(float(el))))
                 gaps.append(estimator.mirror_gap_deg)
+                if "mean" in result:
+                    crop_gaps.append(math.degrees(float(angle_between(est.sun_enu, result["mean"].sun_enu))))
     spread_a, error_a = np.asarray(spread), np.asarray(error)
     tail = spread_a[error_a > TAIL_DEG]
     luma_a = np.asarray(luma)
@@ -180,6 +187,7 @@ def main() -> None:
             {"min": float(tail.min()), "max": float(tail.max())} if tail.size else None),
         "by_answer_place": by_answer_place(places, error),
         "mirror_gap_deg": gap_flags(np.asarray(gaps), error_a) if estimator.mirror_windows else None,
+        "crop_gap_deg": gap_flags(np.asarray(crop_gaps), error_a) if crop_gaps else None,
         "blank_windows": blank,
         "frame_luma": {"frames": len(luma_a), "mean_min": float(luma_a[:, 0].min()),
                        "mean_max": float(luma_a[:, 0].max()), "std_min": float(luma_a[:, 1].min())},
