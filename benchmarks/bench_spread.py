@@ -32,6 +32,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import VALIDATION_SEED, add_drive_args, drives_and_model, machine  # noqa: E402
+from estimator.calibration import mean_direction  # noqa: E402
+from estimator.estimator import SunEstimator, mirrored_joint_runs, window_tokens  # noqa: E402
+from rig.geometry import angle_between  # noqa: E402
 
 TAIL_DEG = 30.0
 # Where an answer puts the sun from the camera: |azimuth from the heading| and elevation bands, deg.
@@ -110,6 +113,28 @@ def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES) ->
     return out
 
 
+class RunRecordingEstimator(SunEstimator):
+    """The estimator every command uses, which also keeps the last window's as-seen and mirrored
+    runs (world vectors, (T, 3) each) of a model run mirrored (``mirror_windows``): the aggregator
+    runs once more, on the crops' embeddings already made. ``window`` is the last window's frames."""
+
+    runs: tuple[np.ndarray, np.ndarray] | None = None
+    window: list = []
+
+    def estimate_many(self, window, aggregators):
+        self.window = list(window)
+        if self.mirror_windows:
+            self.runs = mirrored_joint_runs(self.model, window_tokens(window), window)
+        return super().estimate_many(window, aggregators)
+
+    def mirror_gap_deg(self) -> float | None:
+        """The angle between the last window's as-seen and mirrored answers, deg."""
+        if self.runs is None:
+            return None
+        plain, mirrored = self.runs
+        return math.degrees(float(angle_between(mean_direction(plain)[0], mean_direction(mirrored)[0])))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_drive_args(ap, data="data/val", drives=300, drive_seed=VALIDATION_SEED,
@@ -117,29 +142,14 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="crop seed (default 0)")
     args = ap.parse_args()
 
-    from estimator.calibration import mean_direction
-    from estimator.estimator import SunEstimator, mirrored_joint_runs, window_tokens
     from replay.sources import open_frames
     from rig.exposure import luminance_stats
-    from rig.geometry import angle_between, az_el_from_enu, wrap_pi
+    from rig.geometry import az_el_from_enu, wrap_pi
     from rig.offline import estimate_stream
     from rig.window import SpreadWindowPolicy
 
-    class GapRecordingEstimator(SunEstimator):
-        """The estimator every command uses, which also keeps the angle between the last window's as-seen and
-        mirrored answers (the aggregator runs once more; the crops' embeddings are reused)."""
-
-        mirror_gap_deg: float | None = None
-
-        def estimate_many(self, window, aggregators):
-            if self.mirror_windows:
-                plain, mirrored = mirrored_joint_runs(self.model, window_tokens(window), window)
-                gap = angle_between(mean_direction(plain)[0], mean_direction(mirrored)[0])
-                self.mirror_gap_deg = math.degrees(float(gap))
-            return super().estimate_many(window, aggregators)
-
     paths, model = drives_and_model(args)
-    estimator = GapRecordingEstimator(model, seed=args.seed)
+    estimator = RunRecordingEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=4.0)
 
     spread, error, luma, places, gaps, crop_gaps = [], [], [], [], [], []
@@ -159,7 +169,7 @@ def main() -> None:
                 error.append(math.degrees(est.error_rad))
                 az, el = az_el_from_enu(est.sun_enu)
                 places.append(answer_place(math.degrees(float(wrap_pi(az - est.heading_rad))), math.degrees(float(el))))
-                gaps.append(estimator.mirror_gap_deg)
+                gaps.append(estimator.mirror_gap_deg())
                 if "mean" in result:
                     crop_gaps.append(math.degrees(float(angle_between(est.sun_enu, result["mean"].sun_enu))))
     spread_a, error_a = np.asarray(spread), np.asarray(error)
