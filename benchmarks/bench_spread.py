@@ -90,8 +90,8 @@ def rank_auc(score: np.ndarray, positive: np.ndarray) -> float | None:
 
 def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES) -> dict:
     """What a flag on the windows of the largest ``gap_deg`` would catch: for each share of the
-    windows flagged, its threshold and how many of the windows over 20 and over TAIL_DEG it holds;
-    and the rank AUC of the gap for each."""
+    windows flagged, its threshold, how many of the windows over 20 and over TAIL_DEG it holds, the
+    worst window it leaves and how good the windows it takes are; and the rank AUC of the gap for each."""
     gap_deg, error_deg = np.asarray(gap_deg, dtype=np.float64), np.asarray(error_deg, dtype=np.float64)
     out: dict = {"median": float(np.median(gap_deg)), "p99": float(np.percentile(gap_deg, 99))}
     for limit in (20.0, TAIL_DEG):
@@ -109,7 +109,10 @@ def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES) ->
             "share": share, "threshold_deg": threshold, "flagged": int(flagged.sum()),
             **{f"caught_over_{limit:.0f}_deg": int((flagged & (error_deg > limit)).sum())
                for limit in (20.0, TAIL_DEG)},
-            "max_deg_left": float(error_deg[~flagged].max()) if (~flagged).any() else None})
+            "max_deg_left": float(error_deg[~flagged].max()) if (~flagged).any() else None,
+            # What the flag costs: how good the windows it would take away are.
+            "mean_deg_flagged": float(error_deg[flagged].mean()) if flagged.any() else None,
+            "flagged_under_10_deg": int((flagged & (error_deg < 10.0)).sum())})
     return out
 
 

@@ -49,5 +49,6 @@ def test_a_flag_on_the_largest_gaps_counts_what_it_catches_and_the_worst_it_leav
     (flag,) = out["flag_largest"]
     assert flag["flagged"] == 2 and flag["caught_over_20_deg"] == 1 and flag["caught_over_30_deg"] == 0
     assert flag["max_deg_left"] == 40.0
+    assert flag["mean_deg_flagged"] == 15.0 and flag["flagged_under_10_deg"] == 1  # 25 and 5 deg
     # The 40-deg window has the third smallest gap: 2 of the 9 others are below it.
     assert out["auc_over_30_deg"] == pytest.approx(2 / 9)
