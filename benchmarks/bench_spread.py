@@ -122,10 +122,10 @@ class RunRecordingEstimator(SunEstimator):
     runs once more, on the crops' embeddings already made. ``window`` is the last window's frames."""
 
     runs: tuple[np.ndarray, np.ndarray] | None = None
-    window: list = []
+    window: tuple = ()
 
     def estimate_many(self, window, aggregators):
-        self.window = list(window)
+        self.window = tuple(window)
         if self.mirror_windows:
             self.runs = mirrored_joint_runs(self.model, window_tokens(window), window)
         return super().estimate_many(window, aggregators)
