@@ -157,10 +157,7 @@ def main() -> None:
     tests = {}
     for folder, drives, seed in args.test:
         x, err = features(folder, drives, seed, 0)
-        flags = gap_flags(predict(x), err)
-        # gap_flags speaks of a gap in degrees; here its thresholds are the probe's scores.
-        for row in flags["flag_largest"]:
-            row["threshold_score"] = row.pop("threshold_deg")
+        flags = gap_flags(predict(x), err, unit="score")
         tests[f"{folder} (seed {seed})"] = {
             "windows": len(err), "max_deg": float(err.max()),
             **{k: v for k, v in flags.items() if k.startswith(("windows_", "auc_", "flag_"))}}

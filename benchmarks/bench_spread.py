@@ -88,10 +88,11 @@ def rank_auc(score: np.ndarray, positive: np.ndarray) -> float | None:
     return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
 
 
-def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES) -> dict:
+def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES, unit: str = "deg") -> dict:
     """What a flag on the windows of the largest ``gap_deg`` would catch: for each share of the
     windows flagged, its threshold, how many of the windows over 20 and over TAIL_DEG it holds, the
-    worst window it leaves and how good the windows it takes are; and the rank AUC of the gap for each."""
+    worst window it leaves and how good the windows it takes are; and the rank AUC of the gap for each.
+    ``unit`` names the gap's unit in the threshold's key (``threshold_deg``); any score will do."""
     gap_deg, error_deg = np.asarray(gap_deg, dtype=np.float64), np.asarray(error_deg, dtype=np.float64)
     out: dict = {"median": float(np.median(gap_deg)), "p99": float(np.percentile(gap_deg, 99))}
     for limit in (20.0, TAIL_DEG):
@@ -106,7 +107,7 @@ def gap_flags(gap_deg: np.ndarray, error_deg: np.ndarray, shares=FLAG_SHARES) ->
         threshold = float(np.quantile(gap_deg, 1.0 - share))
         flagged = gap_deg > threshold
         out["flag_largest"].append({
-            "share": share, "threshold_deg": threshold, "flagged": int(flagged.sum()),
+            "share": share, f"threshold_{unit}": threshold, "flagged": int(flagged.sum()),
             **{f"caught_over_{limit:.0f}_deg": int((flagged & (error_deg > limit)).sum())
                for limit in (20.0, TAIL_DEG)},
             "max_deg_left": float(error_deg[~flagged].max()) if (~flagged).any() else None,

@@ -52,3 +52,5 @@ def test_a_flag_on_the_largest_gaps_counts_what_it_catches_and_the_worst_it_leav
     assert flag["mean_deg_flagged"] == 15.0 and flag["flagged_under_10_deg"] == 1  # 25 and 5 deg
     # The 40-deg window has the third smallest gap: 2 of the 9 others are below it.
     assert out["auc_over_30_deg"] == pytest.approx(2 / 9)
+    # Another score's threshold is named by its unit.
+    assert set(gap_flags(gap, err, shares=(0.2,), unit="score")["flag_largest"][0]) - set(flag) == {"threshold_score"}
