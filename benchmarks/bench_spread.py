@@ -48,7 +48,7 @@ BLANK_IMAGES = {
 }
 
 
-# Shares of the windows a flag on the mirror gap is tried at.
+# Shares of the windows a flag (on the mirror gap, the crop gap or any score) is tried at.
 FLAG_SHARES = (0.01, 0.02, 0.05, 0.10)
 
 

@@ -1,6 +1,6 @@
 """benchmarks/bench_spread.py's grouping of windows by where the answer puts the sun, and its
-figures for a flag on the mirror gap, which the model card quotes to say whether either could flag
-the windows far off."""
+figures for a flag on a gap (mirror, crop) or score, which the model card quotes to say whether
+any of them could flag the windows far off."""
 
 import numpy as np
 import pytest
