@@ -79,9 +79,14 @@ class SpreadWindowPolicy:
         dist = np.hypot(t[:, None] - t[None, :], wrap_pi(yaw[:, None] - yaw[None, :]) / self.yaw_scale_rad)
         chosen = [n_pool - 1]  # the newest frame is always in
         nearest = dist[-1].copy()
+        # A chosen frame is never chosen again, even where frames share a time and a heading (a
+        # coarse or frozen clock while the vehicle stands): every distance is then 0, and the
+        # argmax would take the newest frame again and again.
+        nearest[n_pool - 1] = -np.inf
         for _ in range(self.n_frames - 1):
             # Ties (e.g. equal distances) go to the newer frame: argmax of the reversed array.
             best = n_pool - 1 - int(np.argmax(nearest[::-1]))
             chosen.append(best)
             nearest = np.minimum(nearest, dist[best])
+            nearest[best] = -np.inf
         return [first + i for i in sorted(chosen)]

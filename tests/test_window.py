@@ -101,6 +101,20 @@ def test_distinct_frames_even_when_sparse():
     assert chosen[0] is ring[0] and chosen[-1] is ring[-1]
 
 
+def test_frames_sharing_a_time_and_heading_are_each_chosen_once():
+    # A coarse or frozen clock while the vehicle stands: 12 frames at 3 (time, heading) points, or
+    # all at one. Every distance to a chosen frame is then 0, which once took the newest frame
+    # again and again and sent one frame 8 times as a full window.
+    policy = SpreadWindowPolicy(8, 4.0)
+    for times in ([1.0 + 0.1 * (i // 4) for i in range(12)], [5.0] * 12):
+        chosen = policy.select([feats(i, t, yaw=0.3) for i, t in enumerate(times)])
+        seqs = [f.frame.seq for f in chosen]
+        assert len(set(seqs)) == len(seqs) == 8 and seqs[-1] == 11, (times, seqs)
+    # The earliest time point is still reached: spreading holds among the repeated stamps.
+    chosen = policy.select([feats(i, 1.0 + 0.1 * (i // 4), yaw=0.3) for i in range(12)])
+    assert chosen[0].frame.t_mono_s == 1.0
+
+
 def test_bad_policy():
     with pytest.raises(ValidationError):
         SpreadWindowPolicy(0, 1.0)
