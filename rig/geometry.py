@@ -13,6 +13,8 @@ from north too, elevation is above the horizon. Transforms are named ``<to>_from
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -21,13 +23,28 @@ TWO_PI = 2.0 * np.pi
 def wrap_2pi(angle_rad) -> np.ndarray:
     """Wrap angles to [0, 2 pi)."""
     wrapped = np.mod(angle_rad, TWO_PI)
-    # np.mod can return exactly 2 pi for tiny negative inputs through rounding.
-    return np.where(wrapped >= TWO_PI, wrapped - TWO_PI, wrapped)
+    # np.mod can return exactly 2 pi for tiny negative inputs through rounding. Multiplying by the
+    # mask, not np.where, keeps a scalar a numpy scalar for the callers that format it.
+    return wrapped - TWO_PI * (wrapped >= TWO_PI)
 
 
 def wrap_pi(angle_rad):
     """Wrap angles to [-pi, pi)."""
-    return np.mod(np.asarray(angle_rad) + np.pi, TWO_PI) - np.pi
+    wrapped = np.mod(np.asarray(angle_rad) + np.pi, TWO_PI)
+    # As in wrap_2pi: a tiny negative sum would come back as 2 pi, i.e. +pi.
+    return wrapped - TWO_PI * (wrapped >= TWO_PI) - np.pi
+
+
+def wrapped_deg(angle_rad: float, low_deg: float = 0.0, *, float32: bool = False) -> float:
+    """An angle already wrapped to [low, low + 2 pi) rad, in degrees within [low_deg, low_deg + 360).
+
+    Converting can round a value just below the top onto the top itself: ``math.degrees`` of the
+    largest double under 2 pi is 360.0, and a float32 holds about 2e-5 deg at 360. The wire's
+    ranges say the top is never sent, so the top becomes the bottom, the same direction."""
+    deg = math.degrees(angle_rad)
+    if float32:
+        deg = float(np.float32(deg))
+    return low_deg if deg >= low_deg + 360.0 else deg
 
 
 def enu_from_az_el(azimuth_rad, elevation_rad) -> np.ndarray:
@@ -40,7 +57,7 @@ def enu_from_az_el(azimuth_rad, elevation_rad) -> np.ndarray:
 def az_el_from_enu(v_enu) -> tuple[np.ndarray, np.ndarray]:
     """Azimuth in [0, 2 pi) clockwise from north and elevation in [-pi/2, pi/2] of (..., 3)."""
     v = np.asarray(v_enu, dtype=np.float64)
-    az = np.mod(np.arctan2(v[..., 0], v[..., 1]), TWO_PI)
+    az = wrap_2pi(np.arctan2(v[..., 0], v[..., 1]))
     el = np.arctan2(v[..., 2], np.hypot(v[..., 0], v[..., 1]))
     return az, el
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from rig.errors import ProtocolError, ValidationError
+from rig.geometry import wrapped_deg
 from rig.types import HeadingRef, SunEstimate
 
 PROTOCOL_VERSION = 1
@@ -378,10 +379,11 @@ def binary_payload(est: SunEstimate, rule: StatusRule = DEFAULT_STATUS_RULE) -> 
         e,
         n,
         u,
-        math.degrees(est.azimuth_rad),
+        # The float32 fields keep the wrapped ranges: 359.99999 deg would round to 360.0.
+        wrapped_deg(est.azimuth_rad, float32=True),
         math.degrees(est.elevation_rad),
-        math.degrees(est.relative_bearing_rad),
-        math.degrees(est.heading_rad),
+        wrapped_deg(est.relative_bearing_rad, -180.0, float32=True),
+        wrapped_deg(est.heading_rad, float32=True),
         math.degrees(est.spread_rad),
         min(est.n_frames, 0xFFFF),
         min(est.n_tokens, 0xFFFF),

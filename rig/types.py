@@ -15,7 +15,7 @@ from datetime import UTC, datetime
 import numpy as np
 
 from rig.errors import ValidationError
-from rig.geometry import angle_between, az_el_from_enu, wrap_2pi, wrap_pi
+from rig.geometry import angle_between, az_el_from_enu, wrap_2pi, wrap_pi, wrapped_deg
 
 _UNIT_TOL = 1e-3
 
@@ -337,11 +337,11 @@ class SunEstimate:
             "t": self.t_mono_s,
             "seq": self.seq,
             "sun_enu": [round(float(x), 7) for x in self.sun_enu],
-            "azimuth_deg": math.degrees(self.azimuth_rad),
+            "azimuth_deg": wrapped_deg(self.azimuth_rad),
             "elevation_deg": math.degrees(self.elevation_rad),
-            "heading_deg": math.degrees(self.heading_rad),
+            "heading_deg": wrapped_deg(self.heading_rad),
             "heading_ref": self.heading_ref.value,
-            "relative_bearing_deg": math.degrees(self.relative_bearing_rad),
+            "relative_bearing_deg": wrapped_deg(self.relative_bearing_rad, -180.0),
             "spread_deg": math.degrees(self.spread_rad),
             "n_frames": self.n_frames,
             "n_tokens": self.n_tokens,

@@ -14,6 +14,7 @@ from rig.geometry import (
     world_from_heading,
     wrap_2pi,
     wrap_pi,
+    wrapped_deg,
 )
 from tests.tolerances import ANGLE_RAD_F64, EXACT_F64
 
@@ -91,6 +92,19 @@ def test_wraps():
     assert float(wrap_2pi(-1e-18)) < 2 * math.pi
     np.testing.assert_allclose(wrap_2pi([-math.pi / 2, 5 * math.pi]), [1.5 * math.pi, math.pi])
     np.testing.assert_allclose(wrap_pi([3 * math.pi / 2, -3 * math.pi / 2]), [-math.pi / 2, math.pi / 2])
+    # Just below -pi the sum rounds to 2 pi in the modulo, which once came back as +pi.
+    assert float(wrap_pi(np.nextafter(-math.pi, -math.inf))) == -math.pi
+    assert float(az_el_from_enu([-1e-17, 1.0, 0.0])[0]) == 0.0  # not 2 pi
+    assert isinstance(wrap_2pi(0.5), np.floating) and isinstance(wrap_pi(0.5), np.floating)
+
+
+def test_wrapped_deg_never_sends_the_top_of_its_range():
+    assert wrapped_deg(2 * math.pi) == 0.0
+    assert float(np.float32(359.99999)) == 360.0  # what a plain float32 field would carry
+    assert wrapped_deg(math.radians(359.99999), float32=True) == 0.0
+    assert wrapped_deg(math.radians(179.999999), -180.0, float32=True) == -180.0
+    assert wrapped_deg(math.radians(359.9), float32=True) == pytest.approx(359.9, abs=1e-4)
+    assert wrapped_deg(-math.pi, -180.0) == -180.0
 
 
 def test_angle_between_small_and_opposite():

@@ -547,6 +547,22 @@ def test_decode_binary_four_bytes_is_the_shortest_frame():
     assert info.value.reason == "framing"
 
 
+def test_binary_and_jsonl_angles_stay_below_the_top_of_their_ranges():
+    # Within 2e-5 deg of the wrap a float32 field rounds onto 360.0 or +180.0, and a sun with a
+    # vanishing west component once gave an azimuth of exactly 2 pi: both are sent as the bottom.
+    est = make_estimate(359.99999, 10.0, heading_deg=359.99999)
+    got = decode_binary(encode_binary(est))
+    assert got["azimuth_deg"] == 0.0 and got["heading_deg"] == 0.0
+    est = make_estimate(179.999999, 10.0, heading_deg=0.0)
+    assert decode_binary(encode_binary(est))["relative_bearing_deg"] == -180.0
+    due_north = SunEstimate(
+        t_mono_s=1.0, seq=1, sun_enu=np.array([-1e-17, 1.0, 0.0]), heading_rad=0.0, heading_ref="true",
+        spread_rad=0.0, n_frames=1, n_tokens=1, aggregator="mean",
+    )
+    assert due_north.to_json_dict()["azimuth_deg"] == 0.0
+    assert decode_binary(encode_binary(due_north))["azimuth_deg"] == 0.0
+
+
 def test_binary_payload_utc_zero_and_counts_clamped_to_u16():
     no_utc = cobs_decode(encode_binary(make_estimate(100, 30, utc_ns=None))[1:-1])
     assert no_utc[2] & FLAG_HAS_UTC == 0
