@@ -13,7 +13,8 @@ from rig.geometry import angle_between, normalize, world_from_heading
 
 
 class EstimationError(SunrigError):
-    """A window cannot give an estimate (no heading, mixed heading references, tokens cancel out)."""
+    """A window cannot give an estimate (no heading, mixed heading references, tokens cancel out,
+    a model that computed NaN)."""
 
 
 def world_from_tokens(v_heading: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
@@ -34,6 +35,13 @@ def mean_direction(v_world: np.ndarray) -> tuple[np.ndarray, float]:
     The mean is of the raw vectors (the loss trains their norm towards 1), as in the paper.
     """
     v = np.asarray(v_world, dtype=np.float64)
+    if not np.isfinite(v).all():
+        # Not a window the tokens disagree on: the model itself computed NaN or inf.
+        bad = int((~np.isfinite(v).all(axis=1)).sum())
+        raise EstimationError(
+            f"the model gave {bad} of {len(v)} token vectors that are not finite (NaN or inf); "
+            "check the model folder, or re-export it"
+        )
     mean = v.mean(axis=0)
     norm = np.linalg.norm(mean)
     if not np.isfinite(norm) or norm < 1e-6:

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from estimator.calibration import EstimationError
 from rig.geometry import angle_between, normalize
 
 DEFAULT_BANDWIDTH_RAD = math.radians(15.0)
@@ -18,6 +19,8 @@ DEFAULT_OUTLIER_RAD = math.radians(60.0)
 # 1.4826 * MAD estimates a normal standard deviation; 3 of them bound the inliers.
 _MAD_TO_SIGMA = 1.4826
 _MAD_K = 3.0
+# Below this a token vector has no direction to normalise (mean_direction's bound too).
+_MIN_NORM = 1e-6
 
 
 def remove_outliers(units: np.ndarray, outlier_rad: float = DEFAULT_OUTLIER_RAD,
@@ -61,7 +64,20 @@ def meanshift_sphere(units: np.ndarray, bandwidth_rad: float = DEFAULT_BANDWIDTH
 
 def meanshift_aggregate(units: np.ndarray, bandwidth_rad: float = DEFAULT_BANDWIDTH_RAD,
                         outlier_rad: float = DEFAULT_OUTLIER_RAD) -> tuple[np.ndarray, np.ndarray]:
-    """Outlier removal then mean shift: (mode unit vector, inlier mask)."""
-    inliers = remove_outliers(units, outlier_rad=outlier_rad, floor_rad=bandwidth_rad)
-    mode = meanshift_sphere(np.asarray(units)[inliers], bandwidth_rad=bandwidth_rad)
+    """Outlier removal then mean shift: (mode unit vector, inlier mask).
+
+    A token with no direction (a zero or non-finite vector) is no sample and never an inlier;
+    with none that has one, the window has no answer (:class:`EstimationError`, which the rig
+    counts and skips, as it does the other aggregators' bad windows)."""
+    v = np.asarray(units, dtype=np.float64)
+    usable = np.isfinite(v).all(axis=1)
+    usable[usable] = np.linalg.norm(v[usable], axis=1) >= _MIN_NORM
+    if not usable.any():
+        raise EstimationError(
+            f"none of the {len(v)} token estimates has a direction (all zero or not finite); "
+            "no meanshift answer for this window"
+        )
+    inliers = np.zeros(len(v), dtype=bool)
+    inliers[usable] = remove_outliers(v[usable], outlier_rad=outlier_rad, floor_rad=bandwidth_rad)
+    mode = meanshift_sphere(v[inliers], bandwidth_rad=bandwidth_rad)
     return mode, inliers

@@ -67,7 +67,7 @@ def test_cancelling_tokens_raise():
         mean_direction(np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]))
 
 
-def test_a_nan_token_raises_instead_of_giving_a_nan_estimate():
-    # Caught by the non-finite mean norm, which the cancel-out guard also reports.
-    with pytest.raises(EstimationError, match="mean norm nan"):
-        mean_direction(np.array([[np.nan, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+def test_a_nan_token_raises_as_the_model_s_fault_not_as_cancelling_tokens():
+    for bad in (np.nan, np.inf):
+        with pytest.raises(EstimationError, match="1 of 2 token vectors that are not finite.*re-export"):
+            mean_direction(np.array([[bad, 0.0, 0.0], [0.0, 1.0, 0.0]]))

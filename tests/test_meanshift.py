@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from estimator.calibration import EstimationError
 from estimator.meanshift import DEFAULT_BANDWIDTH_RAD, meanshift_aggregate, meanshift_sphere, remove_outliers
 from rig.geometry import angle_between, enu_from_az_el, normalize
 
@@ -124,3 +125,16 @@ def test_any_count(n):
     units = normalize(np.random.default_rng(n).normal(size=(n, 3)) + [0, 0, 2])
     mode, _ = meanshift_aggregate(units)
     assert np.linalg.norm(mode) == pytest.approx(1.0)
+
+
+def test_tokens_without_a_direction_are_no_samples_and_none_is_no_answer():
+    # A model that gives zero or NaN vectors once returned [0, 0, 0] as the "unit" mode (or raised
+    # a numpy error), which ended a live run; the other aggregators skip such a window.
+    sun = enu_from_az_el(math.radians(120), math.radians(40))
+    units = np.stack([sun, sun, np.zeros(3), np.full(3, np.nan), sun])
+    mode, inliers = meanshift_aggregate(units)
+    assert math.degrees(angle_between(mode, sun)) < 1e-6
+    assert inliers.tolist() == [True, True, False, False, True]
+    for bad in (np.zeros((64, 3)), np.full((64, 3), np.nan), np.full((4, 3), np.inf)):
+        with pytest.raises(EstimationError, match="has a direction"):
+            meanshift_aggregate(bad)
