@@ -303,6 +303,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(f"sunrig: error: {log_path}: no frame of it could be read (the warnings above say why); "
               "replay another log, or re-record this one", file=sys.stderr)
         return EXIT_USER_ERROR
+    if stats.windows and stats.windows_failed == stats.windows:  # frames, yet not one answer
+        print(f"sunrig: error: {log_path}: every one of its {stats.windows} windows failed (the warnings above "
+              "say why); check the model (--model) or replay another log", file=sys.stderr)
+        return EXIT_USER_ERROR
     return lost
 
 
@@ -751,6 +755,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if result.interrupted:
         return args.stop.exit_code()  # as for any Ctrl-C, but with the work so far written
     if not lines:  # an error, so said even with --quiet (which silences progress, not errors)
+        if result.windows_failed:  # first: the warnings above say what the model did with the windows
+            print(f"sunrig: error: eval graded nothing: {result.windows_failed} windows failed and none was "
+                  "estimated (the warnings above say why); check the model (--model)", file=sys.stderr)
+            return EXIT_USER_ERROR
         if result.frames_without_heading:  # frames with truth but no heading make no window to grade
             why = f"{result.frames_without_heading} of the {result.frames} frames have no heading"
         elif result.windows_without_truth:

@@ -236,6 +236,51 @@ def test_replay_writes_one_json_object_per_estimate(tmp_path, tiny_model_dir, ag
     assert rows[0]["n_frames"] == 1 and max(r["n_frames"] for r in rows) > 1
 
 
+def _model_computing_nan(src: Path, dst: Path) -> Path:
+    """A copy of the model at ``src`` whose aggregator computes NaN: every float weight NaN, its
+    checksums written anew, as a bad export or a run that diverged would leave it."""
+    import hashlib
+
+    onnx = pytest.importorskip("onnx")
+    from onnx import numpy_helper
+
+    from estimator.contract import AGGREGATOR_FILE, BACKBONE_FILE, CHECKSUMS_FILE, format_checksums
+
+    dst.mkdir()
+    shutil.copy(src / BACKBONE_FILE, dst / BACKBONE_FILE)
+    graph = onnx.load(str(src / AGGREGATOR_FILE))
+    for init in graph.graph.initializer:
+        weights = numpy_helper.to_array(init)
+        if weights.dtype == np.float32:
+            init.CopyFrom(numpy_helper.from_array(np.full_like(weights, np.nan), init.name))
+    onnx.save(graph, str(dst / AGGREGATOR_FILE))
+    digests = {n: hashlib.sha256((dst / n).read_bytes()).hexdigest() for n in (BACKBONE_FILE, AGGREGATOR_FILE)}
+    (dst / CHECKSUMS_FILE).write_text(format_checksums(digests))
+    return dst
+
+
+@pytest.mark.torch
+@pytest.mark.parametrize("aggregator", ["transformer", "meanshift"])
+def test_a_model_computing_nan_fails_replay_and_eval_and_the_live_rig_skips_its_windows(
+    tmp_path, tiny_model_dir, aggregator
+):
+    # Each window is skipped with a warning that blames the model; a replay or an evaluation
+    # that so made nothing fails, while the live rig goes on (it once ended on meanshift's NaN).
+    log = _write_log(tmp_path / "a.mcap")
+    model = _model_computing_nan(tiny_model_dir, tmp_path / "nan-model")
+    res = run_cli("replay", str(log), "--model", str(model), "--aggregator", aggregator, "--jsonl", "-")
+    assert res.returncode == 2 and res.stdout == "", res.stderr
+    assert "not finite" in res.stderr or "has a direction" in res.stderr
+    assert res.stderr.strip().splitlines()[-1].startswith(f"sunrig: error: {log}: every one of its 11 windows failed")
+    res = run_cli("eval", str(log), "--model", str(model), "--json", str(tmp_path / "e.json"))
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1].startswith("sunrig: error: eval graded nothing: 11 windows failed")
+    res = run_cli("run", "--camera", f"file:{log}", "--heading", "log", "--model", str(model), "--aggregator",
+                  aggregator, "--jsonl", str(tmp_path / "live.jsonl"))
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert (tmp_path / "live.jsonl").read_text() == ""
+
+
 @pytest.mark.torch
 def test_replay_to_stdout(tmp_path, tiny_model_dir):
     log = _write_log(tmp_path / "a.mcap", n=3)
