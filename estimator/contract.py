@@ -285,7 +285,18 @@ def _input_norm_problems(norm: dict[str, Any]) -> list[str]:
         problems.append(f"input_norm.mean: expected 3 finite numbers, got {mean!r}")
     if not (isinstance(std, list | tuple) and len(std) == 3 and all(_is_positive_number(v) for v in std)):
         problems.append(f"input_norm.std: expected 3 finite numbers > 0, got {std!r}")  # each divides
+    if not problems:
+        # The crops are normalised in float32: a gain or offset beyond its range (a scale of 1e300,
+        # a std of 1e-300) would feed the graphs inf and every window would fail on NaN.
+        _, gain, offset = input_affine(norm)
+        if not all(abs(g) * 255.0 + abs(o) < _FLOAT32_MAX for g, o in zip(gain, offset, strict=True)):
+            problems.append(
+                f"input_norm: scale {norm['scale']!r}, mean {mean!r} and std {std!r} give pixel values beyond float32"
+            )
     return problems
+
+
+_FLOAT32_MAX = 3.4028234663852886e38
 
 
 def _is_int(v: Any) -> TypeGuard[int]:

@@ -366,6 +366,15 @@ def _check_io(
     """Compare the graph's declared inputs and outputs with the contract's names and sizes."""
     sizes = {"S": contract.crop_size_px, "D": contract.embedding_dim}
     labels = {"S": "crop_size_px", "D": "embedding_dim"}
+    # An input the contract does not name would be missing from every feed, and the model would
+    # load and then fail on the first frame. (ONNX Runtime lists an input that has a default value
+    # among the overridable initializers, not here: it needs no feed.)
+    unknown = sorted({a.name for a in session.get_inputs()} - set(spec["inputs"]))
+    if unknown:
+        raise ContractMismatch(
+            f"{path}: input(s) {unknown} that no sunrig runtime feeds (it feeds {sorted(spec['inputs'])}); "
+            "re-export the model"
+        )
     for kind, args in (("inputs", session.get_inputs()), ("outputs", session.get_outputs())):
         declared = {a.name: a for a in args}
         for name, (dtype, shape) in spec[kind].items():

@@ -406,6 +406,20 @@ def test_refuses_swapped_graphs(tiny_model_dir, tmp_path):
 
 
 @pytest.mark.torch
+@pytest.mark.parametrize("graph", [BACKBONE_FILE, AGGREGATOR_FILE])
+def test_refuses_a_graph_with_an_input_the_runtime_does_not_feed(tiny_model_dir, tmp_path, graph):
+    # It loaded once, and the first frame or window failed for a feed without that input.
+    onnx = pytest.importorskip("onnx")
+    folder = copy_model(tiny_model_dir, tmp_path / "m")
+    model = onnx.load(str(folder / graph))
+    model.graph.input.append(onnx.helper.make_tensor_value_info("frame_valid", onnx.TensorProto.FLOAT, ["B"]))
+    onnx.save(model, str(folder / graph))
+    message = refusal(ContractMismatch, folder)
+    assert f"{graph}: input(s) ['frame_valid'] that no sunrig runtime feeds" in message
+    assert message.endswith("re-export the model")
+
+
+@pytest.mark.torch
 @pytest.mark.parametrize(
     ("changes", "expected"),
     [
@@ -577,6 +591,9 @@ def test_an_encoding_missing_a_parameter_is_refused_by_name():
     ({"input_norm": {**CONTRACT.input_norm, "mean": ["a", "b", "c"]}},
      "input_norm.mean: expected 3 finite numbers, got ['a', 'b', 'c']"),
     ({"input_norm": {**CONTRACT.input_norm, "std": [0, 0, 0]}}, "input_norm.std: expected 3 finite numbers > 0"),
+    # Finite in the contract, inf in the float32 crops: every window failed on the model's NaN.
+    ({"input_norm": {**CONTRACT.input_norm, "scale": 1e300}}, "give pixel values beyond float32"),
+    ({"input_norm": {**CONTRACT.input_norm, "std": [1e-300, 1.0, 1.0]}}, "give pixel values beyond float32"),
     ({"encoding": {**CONTRACT.encoding, "depth_per_angle": "x"}},
      "encoding.depth_per_angle: expected an even number > 0, got 'x'"),
     ({"encoding": {**CONTRACT.encoding, "alpha": float("nan")}}, "encoding.alpha: expected a finite number > 0"),
