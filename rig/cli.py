@@ -424,11 +424,13 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     ``stop``: the command's stop signals; ``record_words``: how errors name the recording's
     options, as there."""
     from estimator.estimator import SunEstimator
+    from rig.config import check_window_fits
     from rig.pipeline import RigConfig, RigPipeline
     from rig.window import SpreadWindowPolicy
 
     model = _load_model(cfg["estimator"]["model"])
     estimator = SunEstimator(model, aggregator=cfg["estimator"]["aggregator"], seed=cfg["estimator"]["seed"])
+    check_window_fits(cfg, estimator.frames_per_window)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=cfg["window"]["span_s"],
                                 yaw_scale_rad=math.radians(cfg["window"]["yaw_scale_deg"]))
     # Checked before the outputs open: opening truncates an existing JSONL file or recording.

@@ -146,6 +146,24 @@ def check_option(section: str, key: str, value: Any) -> Any:
     return value
 
 
+def check_window_fits(cfg: Mapping[str, Mapping[str, Any]], frames_per_window: int) -> None:
+    """Refuse a ring that can never hold a full window of the model's (ConfigError). Each option is
+    in range alone (:func:`check_option`); together they would stream partial windows, all
+    flagged invalid, for as long as the rig runs."""
+    rig, window = cfg["rig"], cfg["window"]
+    if rig["ring_capacity"] < frames_per_window:
+        raise ConfigError(
+            f"[rig] ring_capacity: {rig['ring_capacity']} frames is fewer than the model's window of "
+            f"{frames_per_window}, so no window would ever be full; set it to {frames_per_window} or more"
+        )
+    if rig["ring_max_age_s"] < window["span_s"]:
+        raise ConfigError(
+            f"[rig] ring_max_age_s: {rig['ring_max_age_s']:g} s is shorter than [window] span_s "
+            f"{window['span_s']:g} s, so frames would leave the ring before a window could reach them; "
+            "raise ring_max_age_s or lower span_s"
+        )
+
+
 def shown_value(value: Any) -> str:
     """``value`` for an error line: a 400-digit number is cut, so the message stays one line."""
     text = repr(value)

@@ -550,6 +550,14 @@ def test_run_errors_are_one_line(tmp_path):
                  ["run", "--camera", f"file:{tmp_path}", "--config", str(tmp_path / "missing.toml")]):
         res = run_cli(*args)
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, (args, res.stderr)
+    # A ring too small for the shipped model's window: refused once the model is known, before
+    # any output is made.
+    (tmp_path / "small.toml").write_text("[rig]\nring_capacity = 4\n")
+    out = tmp_path / "est.jsonl"
+    res = run_cli("run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--config", str(tmp_path / "small.toml"),
+                  "--jsonl", str(out))
+    assert res.returncode == 2 and res.stderr.startswith("sunrig: error: [rig] ring_capacity: 4 frames"), res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
 
 
 def test_gnss_stopped_while_its_output_opens_ends_with_the_summary(tmp_path, monkeypatch, capsys):

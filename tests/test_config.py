@@ -7,7 +7,16 @@ import tomllib
 
 import pytest
 
-from rig.config import DEFAULTS, ConfigError, check_option, dump_toml, load_config, merge, override
+from rig.config import (
+    DEFAULTS,
+    ConfigError,
+    check_option,
+    check_window_fits,
+    dump_toml,
+    load_config,
+    merge,
+    override,
+)
 
 
 def _same(a, b):
@@ -178,3 +187,18 @@ def test_the_configuration_in_docs_deploy_is_valid(tmp_path):
     path.write_text(blocks[0])
     cfg = load_config(path)
     assert cfg["source"]["camera"] == "opencv:0" and cfg["output"]["record"].endswith("{start}.mcap")
+
+
+def test_a_ring_that_can_never_hold_a_full_window_is_refused():
+    # Each value alone is in range; together they once streamed partial windows, every one
+    # flagged invalid, without a word.
+    check_window_fits(load_config(), 8)  # the defaults fit
+    small = merge(load_config(), {"rig": {"ring_capacity": 4}})
+    fewer = r"^\[rig\] ring_capacity: 4 frames is fewer than the model's window of 8.*8 or more$"
+    with pytest.raises(ConfigError, match=fewer):
+        check_window_fits(small, 8)
+    check_window_fits(small, 4)
+    short = merge(load_config(), {"rig": {"ring_max_age_s": 0.5}})
+    with pytest.raises(ConfigError, match=r"^\[rig\] ring_max_age_s: 0.5 s is shorter than \[window\] span_s 4 s"):
+        check_window_fits(short, 8)
+    check_window_fits(merge(short, {"window": {"span_s": 0.5}}), 8)
