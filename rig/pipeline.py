@@ -236,6 +236,12 @@ class RigPipeline:
             end = time.monotonic() + _JOIN_S
             for done in stages.values():
                 done.wait(max(0.0, end - time.monotonic()))
+            # A stop (Ctrl-C, a timeout) leaves what was queued for a stage that has ended: counted
+            # as dropped, so that every frame captured and every frame encoded is accounted for.
+            if self._encode_done.is_set():
+                self.stats.frames_dropped_queue += len(self._frames)
+            if estimate_done.is_set():
+                self.stats.windows_skipped += len(self._mailbox)
             self.stats.ended_s = self.clock()
             self._collect_publisher_stats()
         stuck = [f"sunrig-{name}" for name, done in stages.items() if not done.is_set()]

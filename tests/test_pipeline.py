@@ -97,6 +97,22 @@ def test_overload_drops_frames_and_keeps_latency_and_memory_bounded(model):
     assert len(pipe.ring) <= 16 and len(pipe._frames) <= 2
 
 
+def test_a_stopped_run_accounts_for_what_was_still_queued(model):
+    # An endless, unpaced source stopped by the timeout, as Ctrl-C stops a live rig: frames still
+    # queued for the backbone, and a window waiting for the aggregator, once went uncounted.
+    def endless():
+        for frame in itertools.cycle(frames(50)):
+            yield dataclasses.replace(frame, t_mono_s=time.monotonic())
+
+    est = SlowEstimator(model, delay_s=0.01)
+    _, stats = run_pipeline(endless(), est, [Collect()], timeout_s=1.0, queue_size=4)
+    assert stats.frames_captured > stats.frames_encoded > 0
+    assert stats.frames_captured == (stats.frames_encoded + stats.frames_dropped_queue + stats.frames_without_heading
+                                     + stats.frames_bad_exposure)
+    assert stats.frames_encoded == (stats.estimates + stats.windows_skipped + stats.estimates_failed
+                                    + stats.frames_out_of_order)
+
+
 @pytest.mark.parametrize("where", ["source", "encode"])
 def test_a_stage_that_raises_ends_the_pipeline_with_the_error(model, where):
     def bad_source():
