@@ -198,7 +198,7 @@ def encode_nmea(est: SunEstimate, rule: StatusRule = DEFAULT_STATUS_RULE) -> byt
 _SENTENCE_RE = re.compile(rb"^\$([^$*\x00-\x1f\x7f-\xff]*)\*([0-9A-Fa-f]{2})\r?\n?$")
 _FIELD_RE = {
     "time": re.compile(r"^\d{6}\.\d{2}$"),
-    "int": re.compile(r"^\d{1,5}$"),
+    "int": re.compile(r"^(0|[1-9]\d{0,4})$"),  # no leading zeros (docs/protocol.md)
     "deg1": re.compile(r"^-?\d{1,3}\.\d$"),
     "unit3": re.compile(r"^-?\d\.\d{3}$"),
 }
@@ -277,7 +277,7 @@ def decode_nmea(line: bytes) -> dict[str, Any]:
         ),
         "relative_bearing_deg": _number("relative_bearing", rb, "deg1", -180.0, 179.9),
         "spread_deg": _number("spread", spread, "deg1", 0.0, 180.0),
-        "n_frames": int(_field("n_frames", nf, "int")),
+        "n_frames": int(_in_range("n_frames", int(_field("n_frames", nf, "int")), 1, 99)),
         "heading_ref": _REF_FROM_CODE[ref].value,
         "valid": status == "A",
     }

@@ -489,7 +489,7 @@ def test_nmea_spread_at_both_ends_of_its_range():
 
 
 _V1_FIELDS = "1,,1,10.0,5.0,0.173,0.981,0.087,20.0,12.0,3,R,V".split(",")
-_V1_INDEX = {"utc": 1, "el": 4, "e": 5, "n": 6, "u": 7, "brg": 8, "spread": 9}
+_V1_INDEX = {"utc": 1, "seq": 2, "el": 4, "e": 5, "n": 6, "u": 7, "brg": 8, "spread": 9, "frames": 10}
 
 
 def _v1_with(name: str, text: str) -> bytes:
@@ -502,7 +502,8 @@ def _v1_with(name: str, text: str) -> bytes:
     "name, text",
     [("utc", "125900.00"), ("utc", "235960.99"), ("el", "90.0"), ("el", "-90.0"),
      ("e", "1.000"), ("e", "-1.000"), ("n", "1.000"), ("n", "-1.000"), ("u", "1.000"), ("u", "-1.000"),
-     ("brg", "179.9"), ("brg", "-180.0"), ("spread", "180.0"), ("spread", "0.0")],
+     ("brg", "179.9"), ("brg", "-180.0"), ("spread", "180.0"), ("spread", "0.0"), ("frames", "1"),
+     ("frames", "99"), ("seq", "0"), ("seq", "99999")],
 )
 def test_decode_nmea_accepts_each_range_end(name, text):
     assert decode_nmea(_v1_with(name, text))  # a dict, no ProtocolError
@@ -512,7 +513,8 @@ def test_decode_nmea_accepts_each_range_end(name, text):
     "name, text",
     [("utc", "126000.00"), ("utc", "235961.00"), ("el", "90.1"), ("el", "-90.1"),
      ("e", "1.001"), ("e", "-1.001"), ("n", "1.001"), ("n", "-1.001"), ("u", "1.001"), ("u", "-1.001"),
-     ("brg", "180.0"), ("brg", "-180.1"), ("spread", "180.1")],
+     ("brg", "180.0"), ("brg", "-180.1"), ("spread", "180.1"), ("frames", "0"), ("frames", "100"),
+     ("frames", "07"), ("seq", "007"), ("seq", "100000")],
 )
 def test_decode_nmea_refuses_one_step_past_each_range_end(name, text):
     with pytest.raises(ProtocolError) as info:
