@@ -351,7 +351,9 @@ class GnssReader:
             self._failing = True
             log.warning("GNSS read from %s failed (%s); reopening with backoff", self._name, message)
         self._close_port()
-        self._stream.reset()
+        self._stream.reset()  # counts the sentence the outage cut short as truncated
+        with self._cond:  # ... which stats() shows now, not only once the device sends again
+            self._stream_counts = self._stream.counts
 
     def _reopen(self) -> bool:
         try:

@@ -704,9 +704,11 @@ def test_a_failing_port_is_reopened_with_backoff_and_recovers():
 
 
 def test_a_port_that_never_comes_back_does_not_spin_or_hang():
-    port = FlakyPort([serial.SerialException("gone")], fail_opens=10**6)
+    port = FlakyPort([HDT_10[:10], serial.SerialException("gone")], fail_opens=10**6)
     reader = GnssReader(port, timeout_s=0.05, backoff_s=(0.01, 0.04))
     assert wait_until(lambda: len(port.open_times) >= 4)
+    # The sentence the unplug cut short shows at once, not only once the device sends again.
+    assert reader.stats()["truncated"] == 1
     started = time.monotonic()
     reader.close()
     assert time.monotonic() - started < 3.0 and reader.finished
