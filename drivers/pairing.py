@@ -11,7 +11,9 @@ used: a frame gets no attitude (``None``, counted) when
 - ``before``: it is older than the oldest sample kept;
 - ``stale``: no sample after it arrived within ``max_age_s`` of it (a live source stalled), or
   ``after``: the heading source has ended before it;
-- ``mixed``: the samples around it have different references (true vs magnetic).
+- ``mixed``: the samples around it have different references (true vs magnetic), and neither
+  reference's own samples give it a heading. A source that interleaves references (HDT beside an
+  HDG without variation) gives each frame the best one that brackets it: true, then magnetic.
 
 Live, the sample after a frame arrives after the frame, so the stream wrapper holds each frame
 until its heading is known (at most ``max_age_s``, in a bounded buffer): this delays frames by
@@ -36,7 +38,7 @@ from typing import Any
 from drivers.nmea import HeadingSample
 from rig.errors import ValidationError
 from rig.geometry import wrap_pi
-from rig.types import Attitude, Frame
+from rig.types import Attitude, Frame, HeadingRef
 
 # The default gap covers a 1 Hz GNSS compass that misses one sentence now and then; the default
 # age lets a frame wait for the next of those sentences (plus its transmit time and jitter).
@@ -44,6 +46,9 @@ DEFAULT_MAX_GAP_S = 1.5
 DEFAULT_MAX_AGE_S = 1.5
 
 FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed")
+# Which heading a frame takes where a source gives several references (HeadingRef.RELATIVE last:
+# its zero is the source's start, not north).
+_PREFERENCE = (HeadingRef.TRUE, HeadingRef.MAGNETIC, HeadingRef.RELATIVE)
 
 
 @dataclass(frozen=True)
@@ -94,6 +99,27 @@ class HeadingInterpolator:
         return self.lookup(samples, t_mono_s).attitude
 
     def _lookup(self, samples: Sequence[HeadingSample], t: float, now_s: float | None) -> Lookup:
+        references = {s.reference for s in samples}
+        if len(references) < 2:
+            return self._lookup_one(samples, t, now_s)
+        # A receiver that sends both HDT and an HDG without variation interleaves true and magnetic
+        # samples, so the two around a frame were nearly always mixed and no frame got a heading.
+        # Each reference is looked up among its own samples, the best first: true, then magnetic.
+        # A better one still pending is waited for; a worse one is taken only where the better
+        # has nothing (before it began, after it ended, across its gap).
+        for ref in _PREFERENCE:
+            if ref not in references:
+                continue
+            found = self._lookup_one([s for s in samples if s.reference is ref], t, now_s)
+            if found.attitude is not None or found.status == "pending":
+                return found
+        # None gives a heading. Say "mixed" where that is why (the samples around t differ in
+        # reference), otherwise what the whole sequence says (before all of them, a gap, ...). It
+        # has no heading either: two samples around t of one reference are neighbours in that
+        # reference's own samples too.
+        return self._lookup_one(samples, t, now_s)
+
+    def _lookup_one(self, samples: Sequence[HeadingSample], t: float, now_s: float | None) -> Lookup:
         times = [s.t_mono_s - self.latency_s for s in samples]
         if not times or t < times[0]:
             return Lookup(None, "before")

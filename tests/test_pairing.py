@@ -115,6 +115,27 @@ def test_mixed_references_are_not_interpolated():
     assert interp.at(samples, 1.0).reference is HeadingRef.MAGNETIC
 
 
+def test_interleaved_references_give_each_frame_the_best_one_around_it():
+    # HDT and an HDG without variation from one receiver, 20 ms apart at 10 Hz: every pair of
+    # samples around a frame was mixed, and no frame got a heading.
+    samples = []
+    for k in range(10):
+        samples += [sample(0.1 * k, 90.0 + k, HeadingRef.TRUE), sample(0.1 * k + 0.02, 80.0 + k, HeadingRef.MAGNETIC)]
+    interp = HeadingInterpolator()
+    got = [interp.at(samples, 0.05 + 0.1 * i) for i in range(9)]
+    assert all(a is not None and a.reference is HeadingRef.TRUE for a in got)
+    assert math.degrees(got[3].heading_rad) == pytest.approx(93.5)  # between the true samples, 3.05 s
+    # Live: a frame after the newest true sample waits for the next one, though a magnetic
+    # sample after it is already there.
+    assert interp.lookup(samples, 0.91, now_s=0.95).status == "pending"
+    # Magnetic where true has nothing: a compass before its GNSS heading came up.
+    switching = [sample(0.0, 10.0, HeadingRef.MAGNETIC), sample(1.0, 12.0, HeadingRef.MAGNETIC),
+                 sample(2.0, 30.0, HeadingRef.TRUE), sample(3.0, 32.0, HeadingRef.TRUE)]
+    assert interp.at(switching, 0.5).reference is HeadingRef.MAGNETIC
+    assert interp.at(switching, 2.5).reference is HeadingRef.TRUE
+    assert interp.lookup(switching, 1.5).status == "mixed"
+
+
 def test_latency_moves_the_samples_earlier():
     interp = HeadingInterpolator(latency_s=0.2)
     samples = [sample(10.2, 0.0), sample(11.2, 10.0)]
