@@ -75,8 +75,8 @@ class CameraTarget:
 
 
 def parse_target(text: str | int) -> CameraTarget:
-    """A device index (``0``), a stream URL (``rtsp://...``), a GStreamer pipeline (contains
-    ``!``) or a video file path."""
+    """A device index (``0``) or path (``/dev/video0``), a stream URL (``rtsp://...``), a GStreamer
+    pipeline (contains ``!``) or a video file path."""
     if isinstance(text, int):
         return CameraTarget("device", text)
     text = text.strip()
@@ -84,6 +84,10 @@ def parse_target(text: str | int) -> CameraTarget:
         raise CameraError("empty camera: pass a device index (opencv:0), a video file or an rtsp:// URL")
     if text.isdigit():
         return CameraTarget("device", int(text))
+    if text.startswith("/dev/"):
+        # A device by path, such as the stable /dev/v4l/by-id/... names of a rig with several
+        # cameras: live, like an index, not a recording to replay.
+        return CameraTarget("device", text)
     if text.lower().startswith(_URL_SCHEMES):
         return CameraTarget("url", text)
     if "!" in text:
@@ -250,6 +254,8 @@ def open_capture(target: CameraTarget, width: int | None = None, height: int | N
                                     cv2.CAP_PROP_READ_TIMEOUT_MSEC, _READ_TIMEOUT_MS])
         elif target.kind == "gstreamer":
             cap = cv2.VideoCapture(target.value, cv2.CAP_GSTREAMER)
+        elif target.kind == "device" and isinstance(target.value, str):
+            cap = cv2.VideoCapture(target.value, cv2.CAP_V4L2)  # a path: only V4L2 opens one as a device
         else:
             cap = cv2.VideoCapture(target.value)
     if cap.isOpened() and target.kind == "device":
@@ -266,8 +272,9 @@ def open_capture(target: CameraTarget, width: int | None = None, height: int | N
 
 def _open_failure(target: CameraTarget) -> CameraError:
     if target.kind == "device":
-        return CameraError(f"no camera at index {target.value}: check it is plugged in (ls /dev/video*), "
-                           "that the user is in the 'video' group, and the index")
+        where = f"index {target.value}" if isinstance(target.value, int) else str(target.value)
+        return CameraError(f"no camera at {where}: check it is plugged in (ls /dev/video*), "
+                           "that the user is in the 'video' group, and the index or path")
     if target.kind == "gstreamer" and "NO" in _build_line("GStreamer"):
         return CameraError("this OpenCV has no GStreamer support; pass an rtsp:// URL or a device index instead")
     if target.kind == "file":

@@ -75,6 +75,9 @@ def collect(camera: OpenCvCamera, limit: int = 1000) -> list:
     ("HTTP://host/mjpg", "url", "HTTP://host/mjpg"),
     ("videotestsrc ! videoconvert ! appsink", "gstreamer", "videotestsrc ! videoconvert ! appsink"),
     ("/data/drive.mp4", "file", "/data/drive.mp4"),
+    # A device by path is live, not a recording (which a live --heading nmea: was refused for).
+    ("/dev/video0", "device", "/dev/video0"),
+    ("/dev/v4l/by-id/usb-cam-video-index0", "device", "/dev/v4l/by-id/usb-cam-video-index0"),
 ])
 def test_parse_target(text, kind, value):
     assert parse_target(text) == CameraTarget(kind, value)
@@ -272,7 +275,8 @@ def test_a_folder_is_not_called_missing(tmp_path):
 
 @pytest.mark.skipif(not Path("/dev/zero").exists(), reason="needs /dev/zero")
 def test_a_device_file_is_not_called_missing():
-    with pytest.raises(CameraError, match="is a device or special file, not a video file"):
+    # Under /dev a path is a device, opened as one: /dev/zero is no camera.
+    with pytest.raises(CameraError, match="^no camera at /dev/zero: check it is plugged in"):
         OpenCvCamera("/dev/zero", hfov_deg=60.0)
 
 
@@ -292,6 +296,12 @@ def test_a_file_that_is_not_a_video(tmp_path):
 def test_a_missing_device_index_is_one_clear_error():
     with pytest.raises(CameraError, match="no camera at index 63") as info:
         OpenCvCamera(63, hfov_deg=60.0)
+    assert "\n" not in str(info.value)
+
+
+def test_a_missing_device_path_is_one_clear_error(tmp_path):
+    with pytest.raises(CameraError, match=r"^no camera at /dev/video-none-63: check it is plugged in") as info:
+        OpenCvCamera("/dev/video-none-63", hfov_deg=60.0)
     assert "\n" not in str(info.value)
 
 
