@@ -25,6 +25,7 @@ import importlib
 import logging
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from rig.errors import SourceError, SunrigError
@@ -101,6 +102,12 @@ def check_pair(camera: CameraSpec, heading: HeadingSpec) -> None:
         # compass read now cannot be matched to them.
         raise SourceError(f"--camera {camera} replays a recording; a live --heading nmea: cannot be matched to "
                           f"its times; use --heading {_headings_for(camera)}")
+    if heading.kind == "nmea" and Path(heading.target).is_file():
+        # A capture is read to its end as the source opens, so every frame of a live camera comes
+        # after its last sample: each would be counted "after" and none estimated.
+        raise SourceError(f"--heading nmea:{heading.target} is a capture file, read to its end before the "
+                          f"first frame of --camera {camera}; pass the live port (nmea:/dev/ttyUSB0 or "
+                          "nmea:socket://HOST:PORT), or replay the capture with `sunrig gnss`")
 
 
 def _headings_for(camera: CameraSpec) -> str:

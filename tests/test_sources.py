@@ -118,6 +118,18 @@ def test_combinations_that_work(camera, heading):
     check_pair(parse_camera(camera), parse_heading(heading))
 
 
+def test_a_live_camera_with_an_nmea_capture_file_is_refused(tmp_path):
+    # The capture is read to its end as it opens: every live frame came after its last sample,
+    # was counted "after", and the run exited 0 having estimated nothing.
+    capture = tmp_path / "compass.nmea"
+    capture.write_bytes(b"$GPHDT,10.0,T*0A\r\n")
+    for camera in ("opencv:0", "opencv:rtsp://h/p", "opencv:/dev/video0", "oak"):
+        with pytest.raises(SourceError, match=r"is a capture file, read to its end before the first frame.*"
+                                              r"nmea:/dev/ttyUSB0"):
+            check_pair(parse_camera(camera), parse_heading(f"nmea:{capture}"))
+    check_pair(parse_camera("opencv:0"), parse_heading(f"nmea:{tmp_path / 'ttyNOPE'}"))  # a port: its open says
+
+
 # --- LiveSource: closing, stopping, truncation (fake parts: only the bookkeeping is under test) ----
 
 
