@@ -349,6 +349,10 @@ class SerialPublisher:
             outcome = "dropped_write_timeout"
         except PORT_ERRORS as exc:
             outcome, error = "write_errors", f"{type(exc).__name__}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - a transport may raise anything; the writer must live on
+            # pyserial's loop:// raises queue.Full once nobody reads it; that killed this thread,
+            # and every estimate after was counted as dropped with no error said.
+            outcome, error = "write_errors", f"{type(exc).__name__}: {exc}"
         with self._cond:
             self._counts[outcome] += 1
             self._in_flight = False

@@ -1012,3 +1012,23 @@ def test_a_close_interrupted_by_a_signal_leaves_the_finish_to_the_thread():
     release.set()
     real_join(HANG_GUARD_S)
     assert finished == [True] and w.finished and not w.left_behind
+
+
+def test_a_transport_raising_something_unforeseen_is_a_write_error_and_the_writer_lives_on():
+    # pyserial's own loop:// port raises queue.Full once its 4096-byte buffer fills with nobody
+    # reading. That killed the writer thread, and every estimate after it was a silent drop.
+    pub = SerialPublisher("loop://", write_timeout_s=0.05)
+    try:
+        for i in range(200):  # 4096 bytes are about 57 sentences
+            pub.publish(make_estimate(100.0, 30.0, seq=i))
+            wait_until(lambda: (pub.stats()["pending"], pub.stats()["in_flight"]) == (0, 0)
+                       or pub.stats()["write_errors"] > 0, "the writer to take the sentence")
+            if pub.stats()["write_errors"]:
+                break
+        stats = pub.stats()
+        assert stats["write_errors"] == 1 and stats["last_error"].startswith("Full"), stats
+        pub.publish(make_estimate(100.0, 30.0, seq=1000))  # the writer is there to take it: it reopens
+        wait_until(lambda: pub.stats()["reopens"] >= 1, "the writer to reopen the port")
+        assert pub.stats()["writer_alive"]
+    finally:
+        within(5.0, pub.close)
