@@ -96,6 +96,10 @@ _DECODE_ERRORS: tuple[type[BaseException], ...] = (
     EOFError,
     _ZstdError,
     RuntimeError,
+    # A length field damaged into a huge number: the reader's slice or allocation of it fails
+    # before any CRC could.
+    OverflowError,
+    MemoryError,
 )
 # What reading a log's summary can raise: a damaged summary section also fails its lookups. (A
 # named tuple, not a starred one in the except: mypy does not accept a starred except tuple.)

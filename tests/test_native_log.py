@@ -632,7 +632,7 @@ def test_a_refused_calibration_drops_frames_until_the_next_one(tmp_path, monkeyp
     assert src.stats.corrupt_skipped == 3  # the calibration and the two images after it
 
 
-@pytest.mark.parametrize("damage", ["bytes", "name-length"])
+@pytest.mark.parametrize("damage", ["bytes", "name-length", "records-length-sign", "uncompressed-size-sign"])
 @pytest.mark.parametrize("which", ["middle", "first"])
 def test_a_corrupt_chunk_loses_only_its_own_frames(tmp_path, caplog, which, damage):
     # The first chunk is where the data section declares the channels; the summary at the end
@@ -649,8 +649,15 @@ def test_a_corrupt_chunk_loses_only_its_own_frames(tmp_path, caplog, which, dama
     if damage == "bytes":
         mid = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2
         data[mid : mid + 16] = bytes(b ^ 0x5A for b in data[mid : mid + 16])
-    else:
+    elif damage == "name-length":
         data[_chunk_name_length_at(victim) + 2] = 0x7F
+    else:
+        # The top bit of a 64-bit length: an OverflowError (no index holds it) ended the replay
+        # as an internal error, where a CRC mismatch is a skipped chunk.
+        name_length = struct.unpack_from("<I", data, _chunk_name_length_at(victim))[0]
+        field_at = (_chunk_name_length_at(victim) + 4 + name_length if damage == "records-length-sign"
+                    else victim.chunk_start_offset + 9 + 16)
+        data[field_at + 7] |= 0x80
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(bytes(data))
     src = open_log(damaged)
