@@ -307,6 +307,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(f"sunrig: error: {log_path}: every one of its {stats.windows} windows failed (the warnings above "
               "say why); check the model (--model) or replay another log", file=sys.stderr)
         return EXIT_USER_ERROR
+    if not stats.windows:  # frames, yet none fit for a window: say which kind of frame it lacks
+        why = (f"{stats.frames_without_heading} of its {stats.frames} frames have no heading; record with "
+               "a heading source (--heading)" if stats.frames_without_heading else
+               f"{stats.frames_bad_exposure} of its {stats.frames} frames are too dark, bright or flat to show "
+               "the sun" if stats.frames_bad_exposure else f"none of its {stats.frames} frames made a window")
+        print(f"sunrig: error: {log_path}: no estimate: {why}", file=sys.stderr)
+        return EXIT_USER_ERROR
     return lost
 
 

@@ -70,6 +70,23 @@ def test_replay_of_a_log_none_of_whose_frames_can_be_read_fails(tmp_path, monkey
         "replay another log, or re-record this one")
 
 
+def test_replay_of_a_log_with_no_heading_fails_saying_so(tmp_path):
+    # Every frame read, none with a heading: it replayed "0 estimates" and exited 0.
+    from replay.native import LogWriter
+
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    log = tmp_path / "nohead.mcap"
+    with LogWriter(log) as w:
+        for i in range(4):
+            w.write_frame(Frame(t_mono_s=0.2 * i, seq=i, image_bgr=np.full((80, 128, 3), 90 + i, np.uint8),
+                                intrinsics=intr))
+    res = run_cli("replay", str(log), "--jsonl", str(tmp_path / "out.jsonl"), "--quiet")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"sunrig: error: {log}: no estimate: 4 of its 4 frames have no heading; record with a heading source "
+        "(--heading)")
+
+
 def test_debug_shows_the_traceback(bad_inputs):
     res = run_cli("--debug", "replay", str(bad_inputs["random"]))
     assert res.returncode != 0 and "Traceback" in res.stderr
