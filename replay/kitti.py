@@ -40,6 +40,7 @@ Choices, all stated in ``docs/ground-truth.md``:
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import re
@@ -98,6 +99,29 @@ def parse_timestamps_ns(text: str, name: str = "timestamps.txt") -> np.ndarray:
 
 
 UTC_OFFSET_LIMIT_H = 14  # the widest of the world's time zones (Kiribati, +14)
+
+
+def longest_increasing(values: np.ndarray) -> list[int]:
+    """Indices, ascending, of a longest strictly increasing subsequence of ``values`` (one of them
+    where several are as long). O(n log n): patience sorting, then back along the predecessors."""
+    tails: list[int] = []  # tails[k]: index of the smallest last value of an increasing run of k + 1
+    tail_values: list[float] = []
+    before = [-1] * len(values)
+    for i, v in enumerate(values.tolist()):
+        k = bisect.bisect_left(tail_values, v)
+        if k:
+            before[i] = tails[k - 1]
+        if k == len(tails):
+            tails.append(i)
+            tail_values.append(v)
+        else:
+            tails[k], tail_values[k] = i, v
+    out = []
+    i = tails[-1] if tails else -1
+    while i >= 0:
+        out.append(i)
+        i = before[i]
+    return out[::-1]
 
 
 def utc_offset_ns(utc_offset_h: float) -> int:
@@ -316,14 +340,12 @@ class KittiDrive:
             self._warn(f"{name}/oxts/data/{oxts_files[i].name}: lat/lon/roll/pitch out of range "
                        f"{oxts[i, :5].tolist()}; frame {i} has no heading, position or truth")
         # The timestamps must increase: a step back would break the monotonic clock downstream.
-        self.time_ok = np.ones(n, dtype=bool)
-        latest = image_ns[0]
-        for i in range(1, n):
-            if image_ns[i] <= latest:
-                self.time_ok[i] = False
-                self._warn(f"{name}: frame {i}'s timestamp is not after the previous one's; frame skipped")
-            else:
-                latest = image_ns[i]
+        # The frames kept are the longest run of increasing times, so that one stamp far ahead
+        # costs its own frame, not every frame after it (which a running maximum dropped).
+        self.time_ok = np.zeros(n, dtype=bool)
+        self.time_ok[longest_increasing(image_ns)] = True
+        for i in np.flatnonzero(~self.time_ok).tolist():
+            self._warn(f"{name}: frame {i}'s timestamp is out of order with the frames around it; frame skipped")
         self.sun_enu = np.full((n, 3), np.nan)
         ok = self.pose_ok
         if np.any(ok):

@@ -30,6 +30,7 @@ from replay.kitti import (
     KittiDrive,
     attitude_from_oxts,
     intrinsics_from_calib,
+    longest_increasing,
     open_kitti,
     parse_calib,
     parse_dataformat,
@@ -397,15 +398,44 @@ def test_training_reads_a_kitti_drive(tmp_path):
 
 
 def test_frames_whose_timestamp_does_not_increase_are_skipped(tmp_path):
-    # Downstream the clock must increase: a frame stamped at or before the latest one kept (not only
-    # the one just before it) is skipped and counted. Seconds 0, .1, .4, then .2 (back), .4 (again), .5.
+    # Downstream the clock must increase: the frames kept are the longest run of increasing
+    # stamps, the others skipped and counted. Seconds 0, .1, .4 (ahead), .2, .4, .5: the .4 ahead
+    # is the one out of line.
     date = make_drive(tmp_path, 6)
     stamps = "".join(f"2011-09-26 13:02:25.{t:09d}\n"
                      for t in (0, 100_000_000, 400_000_000, 200_000_000, 400_000_000, 500_000_000))
     (date / DRIVE / "image_02" / "timestamps.txt").write_text(stamps)
     drive = open_kitti(date, utc_offset_h=2.0)
-    assert [f.seq for f in drive] == [0, 1, 2, 5]
-    assert drive.corrupt_skipped == 2
+    assert [f.seq for f in drive] == [0, 1, 3, 4, 5]
+    assert drive.corrupt_skipped == 1
+
+
+def test_one_timestamp_far_ahead_costs_only_its_own_frame(tmp_path):
+    # Frame 4 stamped 8 hours ahead (a night sun for its truth): against a running maximum every
+    # frame after it was "not after the previous one" and dropped, and frame 4 was kept and graded.
+    date = make_drive(tmp_path, 12)
+    path = date / DRIVE / "image_02" / "timestamps.txt"
+    lines = path.read_text().splitlines()
+    lines[4] = "2011-09-26 21:02:25.000000000"
+    path.write_text("\n".join(lines) + "\n")
+    drive = open_kitti(date, utc_offset_h=2.0)
+    assert [f.seq for f in drive] == [i for i in range(12) if i != 4]
+    assert drive.corrupt_skipped == 1
+
+
+def test_longest_increasing_keeps_a_longest_strictly_increasing_run():
+    assert longest_increasing(np.array([1, 2, 3, 100, 5, 6, 7])) == [0, 1, 2, 4, 5, 6]
+    assert longest_increasing(np.array([5, 1, 2, 3])) == [1, 2, 3]
+    assert len(longest_increasing(np.array([1, 2, 2, 3]))) == 3
+    assert longest_increasing(np.array([], dtype=np.int64)) == []
+    rng = np.random.default_rng(0)
+    for _ in range(50):  # against the O(n^2) definition
+        v = rng.integers(0, 20, rng.integers(1, 30))
+        best = [1] * len(v)
+        for i in range(len(v)):
+            best[i] = 1 + max([best[j] for j in range(i) if v[j] < v[i]], default=0)
+        got = longest_increasing(v)
+        assert len(got) == max(best) and all(v[a] < v[b] for a, b in zip(got, got[1:], strict=False))
 
 
 def test_oxts_records_out_of_range_or_not_finite_cost_only_their_frame(tmp_path):
