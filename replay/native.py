@@ -233,6 +233,9 @@ def _jsonspec(data: bytes) -> _ChannelSpec:
     return _ChannelSpec(json.loads(data)["title"], "jsonschema", "json", data)
 
 
+# The channels of a frame's messages, in the order a frame writes them (the image last).
+_FRAME_TOPICS = (TOPIC_CALIBRATION, TOPIC_HEADING, TOPIC_GNSS, TOPIC_UTC, TOPIC_SUN_TRUTH, TOPIC_IMAGE)
+
 CHANNELS: dict[str, _ChannelSpec] = {
     TOPIC_IMAGE: _proto(CompressedImage),
     TOPIC_CALIBRATION: _proto(CameraCalibration),
@@ -559,6 +562,13 @@ class LogWriter:
         t_ns = ns_from_s(frame.t_mono_s)
         # Encode the image first: if that fails, no orphan per-frame messages are left behind.
         image = encode_image(frame.image_bgr, t_ns, jpeg_quality)
+        if not self.frames_written:
+            # Every per-frame channel is declared in the first frame's chunk, the image's last,
+            # even those with no message yet. Declared where first used (a heading from frame 5
+            # on, once a compass had its fix), a channel lost with a later damaged chunk took
+            # every later message on it along, in a log cut off before its summary.
+            for topic in _FRAME_TOPICS:
+                self._channel(topic)
         if frame.intrinsics != self._last_intrinsics or not self._calibration_in_chunk:
             self._add(TOPIC_CALIBRATION, t_ns, seq, encode_calibration(frame.intrinsics, t_ns))
             self._last_intrinsics = frame.intrinsics

@@ -194,7 +194,8 @@ def test_frames_without_attitude_gnss_utc_or_truth(tmp_path):
         )
     with open(path, "rb") as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
-    assert topics == {TOPIC_IMAGE, TOPIC_CALIBRATION}  # channels appear only when used
+    # Every per-frame channel is declared with the first frame, used or not (docs/log-format.md).
+    assert topics == {TOPIC_IMAGE, TOPIC_CALIBRATION, TOPIC_HEADING, TOPIC_GNSS, TOPIC_UTC, TOPIC_SUN_TRUTH}
 
 
 def test_mixed_optional_fields_do_not_leak_between_frames(tmp_path):
@@ -673,6 +674,36 @@ def test_a_corrupt_chunk_loses_only_its_own_frames(tmp_path, caplog, which, dama
     assert src.stats.corrupt_skipped == 1
     assert not src.truncated
     assert any("corrupt chunk" in r.getMessage() for r in caplog.records)
+
+
+def test_a_damaged_chunk_of_an_unfinished_log_loses_no_channel(tmp_path):
+    # A recording cut off before its summary, one frame a chunk, whose heading and truth begin at
+    # frame 5 (a compass getting its fix late). Their channels were declared in frame 5's chunk,
+    # so damaging it cost every later frame its heading and truth, not only frame 5.
+    frames = make_frames(5, seed=4, full=False) + make_frames(12, seed=4)[5:]
+    path = tmp_path / "live.mcap"
+    w = LogWriter(path, chunk_size=1)  # every frame ends its chunk and goes to the OS
+    for f in frames:
+        w.write_frame(f, jpeg_quality=95)
+    data = bytearray(path.read_bytes())  # as a killed process leaves it: no summary
+    w.close()
+    chunk_starts, at = [], 8
+    while at < len(data):
+        opcode, length = struct.unpack_from("<BQ", data, at)
+        if opcode == 0x06:
+            chunk_starts.append(at)
+        at += 9 + length
+    assert len(chunk_starts) == len(frames)
+    victim = chunk_starts[5]
+    mid = victim + (chunk_starts[6] - victim) // 2
+    data[mid : mid + 16] = bytes(b ^ 0x5A for b in data[mid : mid + 16])
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    src = open_log(damaged)
+    got = list(src)
+    assert [g.seq for g in got] == [f.seq for i, f in enumerate(frames) if i != 5]
+    assert all(g.attitude is not None and g.sun_enu_truth is not None for g in got[5:])
+    assert src.stats.corrupt_skipped == 1
 
 
 def _chunk_name_length_at(chunk_index) -> int:
