@@ -182,15 +182,39 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             if node.empty() or node.isNone():
                 continue
             if node.isMap() or node.isSeq():
-                mat = node.mat()
-                if mat is None and node.isSeq():
-                    mat = np.array([node.at(i).real() for i in range(node.size())])
-                values[key] = mat
+                try:
+                    values[key] = _node_array(node)
+                except (cv2.error, ValueError) as exc:
+                    reason = _parse_reason(str(exc)) if isinstance(exc, cv2.error) else str(exc)
+                    raise CameraError(f"calibration file {p}: {key} is not a matrix OpenCV or ROS writes "
+                                      f"({reason}); {remedy}") from None
             elif node.isInt() or node.isReal():
                 values[key] = node.real()
         return calibration_from_mapping(values, f"calibration file {p}")
     finally:
         fs.release()
+
+
+def _node_array(node: Any) -> np.ndarray:
+    """A matrix node as an array: an ``opencv-matrix`` (``rows``, ``cols``, ``dt``, ``data``),
+    the same without ``dt`` as ROS ``camera_calibration`` writes it, or a list, flat or nested
+    (JSON). Raises ValueError (or cv2.error) for anything else."""
+    if node.isMap() and node.getNode("dt").empty():
+        rows, cols, data = (node.getNode(k) for k in ("rows", "cols", "data"))
+        if rows.empty() or cols.empty() or not data.isSeq():
+            raise ValueError("a map without rows, cols and data")
+        values = _node_array(data).ravel()
+        if values.size != int(rows.real()) * int(cols.real()):
+            raise ValueError(f"{values.size} values for {int(rows.real())} x {int(cols.real())}")
+        return values.reshape(int(rows.real()), int(cols.real()))
+    if node.isSeq():
+        items = [node.at(i) for i in range(node.size())]
+        if items and all(item.isSeq() for item in items):
+            return np.array([_node_array(item) for item in items])  # ragged rows: ValueError
+        if not all(item.isInt() or item.isReal() for item in items):
+            raise ValueError("a list of other than numbers")
+        return np.array([item.real() for item in items])
+    return node.mat()
 
 
 def fit_intrinsics(width: int, height: int, *, calibration: Calibration | None = None,

@@ -192,6 +192,46 @@ def test_load_calibration_file(tmp_path, name, keys):
     assert np.allclose(cal.k, k)
 
 
+# The file ROS camera_calibration writes (its ost.yaml): matrices as rows, cols and data, no dt.
+_ROS_CAMERA_INFO = """image_width: 1280
+image_height: 720
+camera_name: narrow_stereo
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [910.2, 0.0, 641.7, 0.0, 909.8, 362.4, 0.0, 0.0, 1.0]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [-0.31, 0.11, 0.0, 0.0, 0.0]
+"""
+
+
+@pytest.mark.parametrize(("name", "text"), [
+    ("ost.yaml", _ROS_CAMERA_INFO),
+    ("nested.json", '{"image_width": 1280, "image_height": 720, "camera_matrix": [[910.2, 0, 641.7], '
+                    '[0, 909.8, 362.4], [0, 0, 1]], "distortion_coefficients": [-0.31, 0.11, 0, 0, 0]}'),
+])
+def test_load_a_ros_or_nested_list_calibration(tmp_path, name, text):
+    # Both were an OpenCV assertion ("internal error" at the CLI): node.mat() wants a dt.
+    (tmp_path / name).write_text(text)
+    cal = load_calibration(tmp_path / name)
+    assert (cal.width, cal.height) == (1280, 720)
+    np.testing.assert_array_equal(cal.k, [[910.2, 0, 641.7], [0, 909.8, 362.4], [0, 0, 1]])
+    np.testing.assert_array_equal(cal.distortion, [-0.31, 0.11, 0, 0, 0])
+
+
+@pytest.mark.parametrize("matrix", ["{rows: 3, cols: 3, data: [1, 2]}", "{foo: 1}", "[[1, 2, 3], [4, 5]]",
+                                    "[a, b, c]"])
+def test_a_matrix_of_no_known_shape_is_one_line_naming_its_key(tmp_path, matrix):
+    path = tmp_path / "odd.yaml"
+    path.write_text(f"%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: {matrix}\n")
+    with pytest.raises(CameraError, match=r"odd.yaml: camera_matrix is not a matrix OpenCV or ROS writes") as err:
+        load_calibration(path)
+    assert "\n" not in str(err.value)
+
+
 def test_calibration_file_errors(tmp_path):
     with pytest.raises(CameraError, match="does not exist"):
         load_calibration(tmp_path / "none.yaml")
