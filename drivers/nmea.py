@@ -513,6 +513,9 @@ class HeadingSample:
     roll_rad: float | None
     source_sentence: str
     utc_ns: int | None
+    # Which zero a relative heading counts from (Attitude.epoch): visual odometry starts a new one
+    # where it cannot carry its heading over (a gap in the frames, a new camera mode). 0 otherwise.
+    epoch: int = 0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.t_mono_s) and math.isfinite(self.heading_rad)):
@@ -522,7 +525,8 @@ class HeadingSample:
         object.__setattr__(self, "reference", HeadingRef(self.reference))
 
     def attitude(self) -> Attitude:
-        return Attitude(self.heading_rad, self.reference, pitch_rad=self.pitch_rad, roll_rad=self.roll_rad)
+        return Attitude(self.heading_rad, self.reference, pitch_rad=self.pitch_rad, roll_rad=self.roll_rad,
+                        epoch=self.epoch)
 
 
 @dataclass(frozen=True, slots=True)

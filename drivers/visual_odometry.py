@@ -30,7 +30,8 @@ The heading is :attr:`HeadingRef.RELATIVE`, 0 at the first frame, and drifts: ev
 its rotation error (``benchmarks/bench_vo.py`` measures the drift per 100 m on synthetic drives).
 When tracking is lost (too few points, a failed or refused fit) the frame gets no heading and
 odometry restarts from it, carrying over the rough turn (image shift or rotation-only fit) where
-there is one: its error goes into the drift. ``stats`` counts each case; ``docs/drivers.md``
+there is one: its error goes into the drift. Across a gap in the frames or a change of camera mode
+no turn can be carried: the heading starts again at 0 in a new epoch. ``stats`` counts each case; ``docs/drivers.md``
 states it.
 
 :class:`VisualOdometry` is pure (an image and a time in, a heading sample out, no clock, no I/O);
@@ -88,6 +89,7 @@ class VoConfig:
     shift_min_response: float = 0.05  # phase correlation peak below this: no usable image shift
     coarse_tol_rad: float = math.radians(3.0)  # a fit further than this from the coarse image-shift yaw ...
     coarse_tol_frac: float = 0.5  # ... and than this fraction of it is rejected
+    max_gap_s: float = 1.0  # frames further apart: the turn between them is unknown, a new epoch starts
 
     def __post_init__(self) -> None:
         for name in ("max_width_px", "max_features", "lk_window_px", "lk_levels", "min_points", "min_inliers"):
@@ -95,6 +97,8 @@ class VoConfig:
                 raise ValidationError(f"VoConfig.{name}: expected a positive integer, got {getattr(self, name)!r}")
         if not 0.0 < self.refresh_fraction < 1.0:
             raise ValidationError(f"VoConfig.refresh_fraction: expected within (0, 1), got {self.refresh_fraction}")
+        if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
+            raise ValidationError(f"VoConfig.max_gap_s: expected a number of seconds > 0, got {self.max_gap_s!r}")
         if self.ransac not in _ESTIMATORS:
             raise ValidationError(f"VoConfig.ransac: expected one of {', '.join(_ESTIMATORS)}, got {self.ransac!r}")
 
@@ -244,11 +248,15 @@ class VisualOdometry:
     ``rotation_only``, ``still``; ``prior``: the essential fit chosen by the motion prior); frames
     without heading (``lost``), of which ``rejected`` had a fit that disagreed with both the image
     shift and the rotation-only fit; ``carried``: losses over which a rough turn was carried;
-    ``restarts`` (the intrinsics changed).
+    ``restarts`` (the intrinsics changed) and ``gaps`` (frames more than ``max_gap_s`` apart).
+
+    A restart or a gap hides the turn made meanwhile, so the heading cannot go on: the frame after
+    it starts a new epoch (:attr:`epoch`, carried by each sample) at heading 0, as the first frame
+    did, and the rig never puts frames of two epochs in one window (``docs/conventions.md``).
     """
 
     STATS = ("frames", "keyframes", "essential", "rotation_only", "still", "prior", "lost", "rejected", "carried",
-             "restarts")
+             "restarts", "gaps")
 
     # The tracking state, set by _forget_images and each keyframe.
     _heading_key: float
@@ -263,6 +271,8 @@ class VisualOdometry:
         self.config = config or VoConfig()
         self.stats = dict.fromkeys(self.STATS, 0)
         self._last_heading = float(start_heading_rad)
+        self._last_t_s: float | None = None
+        self.epoch = 0
         self._intrinsics: Intrinsics | None = None
         self._k = np.eye(3)
         self._scale = 1.0
@@ -279,15 +289,19 @@ class VisualOdometry:
         cfg = self.config
         self.stats["frames"] += 1
         restart = self._intrinsics is not None and intrinsics != self._intrinsics
+        gap = self._last_t_s is not None and t_mono_s - self._last_t_s > cfg.max_gap_s
+        self._last_t_s = t_mono_s
         if intrinsics != self._intrinsics:
             self._set_camera(intrinsics)
             self._forget_images()
         gray = self._gray(image_bgr)
-        if restart:
-            # Another camera mode: nothing tracks across it, and the turn meanwhile is unknown.
-            self.stats["restarts"] += 1
-            self._lose(gray, None)
-            return None
+        if restart or gap:
+            # Another camera mode, or a gap in the frames: nothing tracks across it and the turn
+            # meanwhile is unknown, so this frame is the zero of a new epoch.
+            self.stats["restarts" if restart else "gaps"] += 1
+            self.epoch += 1
+            self._last_heading = 0.0
+            self._forget_images()
         if self._prev_gray is None:
             self._new_keyframe(gray, self._last_heading)
             return self._sample(t_mono_s, self._last_heading)
@@ -357,7 +371,7 @@ class VisualOdometry:
     def _sample(self, t_mono_s: float, heading: float) -> HeadingSample:
         self._last_heading = heading
         return HeadingSample(t_mono_s=t_mono_s, heading_rad=heading, reference=HeadingRef.RELATIVE, pitch_rad=None,
-                             roll_rad=None, source_sentence=SOURCE_NAME, utc_ns=None)
+                             roll_rad=None, source_sentence=SOURCE_NAME, utc_ns=None, epoch=self.epoch)
 
     def _lose(self, gray: np.ndarray, carry_rad: float | None) -> None:
         """No heading for this frame; odometry starts again from it.

@@ -170,14 +170,28 @@ def test_a_featureless_image_gives_no_heading_and_no_crash():
     assert vo.stats["lost"] == 1
 
 
-def test_new_intrinsics_restart_without_a_heading():
+def test_new_intrinsics_or_a_gap_start_a_new_epoch_at_zero():
+    # The turn across a change of camera mode, or a gap in the frames, is unknown: the heading
+    # carried on in the same epoch, so the rig could window frames from before and after it as
+    # if nothing had turned (docs/conventions.md: odometry that restarts begins a new epoch).
     vo = VisualOdometry()
     image = textured(4)
-    assert vo.update(0.0, image, INTR) is not None
+    first = vo.update(0.0, image, INTR)
+    assert first is not None and first.attitude().epoch == 0
+    vo._last_heading = 0.5  # as if it had turned since
     other = Intrinsics.from_hfov(320, 240, math.radians(60.0))
-    assert vo.update(0.1, image, other) is None
+    restarted = vo.update(0.1, image, other)
+    assert restarted is not None and restarted.heading_rad == 0.0 and restarted.attitude().epoch == 1
     assert vo.stats["restarts"] == 1
-    assert vo.update(0.2, image, other) is not None
+    after = vo.update(0.2, image, other)
+    assert after is not None and after.attitude().epoch == 1
+    vo._last_heading = 0.5
+    resumed = vo.update(0.2 + vo.config.max_gap_s + 0.01, image, other)
+    assert resumed is not None and resumed.heading_rad == 0.0 and resumed.attitude().epoch == 2
+    assert vo.stats["gaps"] == 1
+    # A frame within the gap allowance goes on in its epoch.
+    kept = vo.update(0.3 + vo.config.max_gap_s, image, other)
+    assert kept is not None and kept.attitude().epoch == 2 and vo.stats["gaps"] == 1
 
 
 def test_config_is_checked():
