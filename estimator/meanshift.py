@@ -70,8 +70,8 @@ def meanshift_aggregate(units: np.ndarray, bandwidth_rad: float = DEFAULT_BANDWI
     with none that has one, the window has no answer (:class:`EstimationError`, which the rig
     counts and skips, as it does the other aggregators' bad windows)."""
     v = np.asarray(units, dtype=np.float64)
-    usable = np.isfinite(v).all(axis=1)
-    usable[usable] = np.linalg.norm(v[usable], axis=1) >= _MIN_NORM
+    with np.errstate(invalid="ignore", over="ignore"):  # the non-finite rows are left out anyway
+        usable: np.ndarray = np.isfinite(v).all(axis=1) & (np.linalg.norm(np.nan_to_num(v), axis=1) >= _MIN_NORM)
     if not usable.any():
         raise EstimationError(
             f"none of the {len(v)} token estimates has a direction (all zero or not finite); "
