@@ -30,9 +30,9 @@ The heading is :attr:`HeadingRef.RELATIVE`, 0 at the first frame, and drifts: ev
 its rotation error (``benchmarks/bench_vo.py`` measures the drift per 100 m on synthetic drives).
 When tracking is lost (too few points, a failed or refused fit) the frame gets no heading and
 odometry restarts from it, carrying over the rough turn (image shift or rotation-only fit) where
-there is one: its error goes into the drift. Across a gap in the frames or a change of camera mode
-no turn can be carried: the heading starts again at 0 in a new epoch. ``stats`` counts each case; ``docs/drivers.md``
-states it.
+there is one: its error goes into the drift. Across a gap in the frames or a change of camera
+mode no turn can be carried: the heading starts again at 0 in a new epoch. ``stats`` counts each
+case; ``docs/drivers.md`` states it.
 
 :class:`VisualOdometry` is pure (an image and a time in, a heading sample out, no clock, no I/O);
 :func:`with_visual_heading` attaches its heading to a frame stream.
