@@ -894,7 +894,13 @@ def _inspect(path: Path) -> _LogInfo:
             elif isinstance(record, Metadata) and record.name == METADATA_NAME:
                 info.metadata = dict(record.metadata)
                 found = info.metadata.get("format_version")
-                if found != FORMAT_VERSION:
+                if found is None:
+                    # The key itself damaged (one flipped bit, and the metadata has no CRC of its
+                    # own): the data may be whole. Read it as this version; the channel checks
+                    # below still refuse what is not a sunrig log.
+                    logger.warning("%s: its sunrig metadata has no format_version (damaged?); read as version %s",
+                                   name, FORMAT_VERSION)
+                elif found != FORMAT_VERSION:
                     raise LogError(
                         f"{name} is in sunrig log format version {found}; this sunrig reads "
                         f"version {FORMAT_VERSION}: use the sunrig that wrote it or upgrade"

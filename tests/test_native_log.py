@@ -822,6 +822,19 @@ def test_newer_format_version_is_refused(tmp_path):
         open_log(path)
 
 
+def test_a_damaged_format_version_key_warns_and_reads_the_log(tmp_path, caplog):
+    # One flipped bit in the key's name refused the whole log as "version None", its data intact.
+    path = write_log(tmp_path / "log.mcap", make_frames(3))
+    data = path.read_bytes()
+    at = data.index(b"format_version")
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data[:at] + b"f" + bytes([data[at + 1] ^ 0x01]) + data[at + 2 :])
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        got = list(open_log(damaged))
+    assert_same_frames(got, list(read_frames(path)))
+    assert any("has no format_version (damaged?)" in r.getMessage() for r in caplog.records)
+
+
 # ---------------------------------------------------------------------------------------------
 # Writer contract
 
