@@ -401,6 +401,9 @@ class KittiDrive:
                 self._warn(f"{self.path.name}: {path.name} is missing or not an image; frame {i} skipped")
                 continue
             yield self.frame(i, image)
+        if self.corrupt_skipped > _MAX_WARNINGS:  # the warnings stopped at the first few: say the total
+            logger.warning("%s: %d frames or records skipped or left without pose in all", self.path.name,
+                           self.corrupt_skipped)
 
     def __repr__(self) -> str:
         return f"KittiDrive({str(self.path)!r}, utc_offset_h={self.utc_offset_h:+g})"

@@ -423,6 +423,20 @@ def test_one_timestamp_far_ahead_costs_only_its_own_frame(tmp_path):
     assert drive.corrupt_skipped == 1
 
 
+def test_more_skips_than_warnings_end_with_the_total(tmp_path, caplog):
+    # The warnings stop after the first few so a broken drive cannot flood the log; the total was
+    # then said nowhere (native logs say theirs).
+    date = make_drive(tmp_path, 12)
+    for i in range(8):
+        (date / DRIVE / "image_02" / "data" / f"{i:010d}.png").write_bytes(b"not a png")
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        frames = list(open_kitti(date, utc_offset_h=2.0))
+    assert len(frames) == 4
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("is missing or not an image" in m for m in said) == 5
+    assert said[-1].endswith("8 frames or records skipped or left without pose in all")
+
+
 def test_longest_increasing_keeps_a_longest_strictly_increasing_run():
     assert longest_increasing(np.array([1, 2, 3, 100, 5, 6, 7])) == [0, 1, 2, 4, 5, 6]
     assert longest_increasing(np.array([5, 1, 2, 3])) == [1, 2, 3]
