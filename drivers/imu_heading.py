@@ -465,7 +465,12 @@ class GyroIntegrator:
             self.counts["gyro_out_of_order"] += 1
             return None
         if dt > self.max_step_s:
-            self.counts["gyro_gaps"] += 1  # reports lost: the rotation meanwhile is unknown
+            # Reports lost: the rotation meanwhile is unknown, and integrating across the gap would
+            # invent one (the mean of the rates at its ends times its length). Start again from the
+            # accelerometer, with a new zero; the tracker gives its headings a new epoch.
+            self.counts["gyro_gaps"] += 1
+            self._q, self._t, self._w = self._initial(accel_imu), float(t_s), w
+            return self._q.copy()
         rate = 0.5 * (w + self._w)
         if accel_imu is not None and self.tilt_gain > 0:
             a = np.asarray(accel_imu, dtype=np.float64)
@@ -580,7 +585,10 @@ class AttitudeTracker:
         accel = None
         if self._accel is not None and abs(self._accel[0] - t_s) < 0.1:
             accel = self._accel[1]
+        gaps = self.gyro.counts["gyro_gaps"]
         q = self.gyro.update(t_s, gyro_imu_rad_s, accel)
+        if self.gyro.counts["gyro_gaps"] != gaps:
+            self._new_zero()  # the integrator started again after a gap in its reports
         return q is not None and self._store(t_s, q)
 
     def attitude_at(self, t_s: float) -> tuple[Attitude | None, str]:
@@ -599,9 +607,17 @@ class AttitudeTracker:
         return Attitude(heading, self.heading_ref, pitch, roll, epoch=self.epoch), OK
 
     def reset(self) -> None:
-        """Forget everything (a new device session): relative headings restart from a new zero."""
-        self.buffer.clear()
+        """Forget everything (a new device session): relative headings restart from a new zero,
+        in a new epoch."""
         self._accel = None
-        self._zero_rad = None
+        self._new_zero()
         if self.gyro is not None:
             self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=self.gyro.tilt_gain)
+
+    def _new_zero(self) -> None:
+        """Orientations from here on have another zero: none before is kept to interpolate with,
+        and a relative heading counts in the next epoch, so no window mixes the two zeros."""
+        self.buffer.clear()
+        self._zero_rad = None
+        if self.heading_ref is HeadingRef.RELATIVE:
+            self.epoch += 1

@@ -521,6 +521,7 @@ class OakCamera:
         self._finished = threading.Event()
         self._warned: set[str] = set()
         self._got_frame = False  # the current session has delivered a frame (resets the backoff)
+        self._last_tracker: AttitudeTracker | None = None  # the last session's: its epoch is taken
         first = None if wait_for_device else self._open(self.config)
         self._thread = threading.Thread(target=self._run, args=(first,), name="sunrig-oak", daemon=True)
         self._thread.start()
@@ -636,13 +637,18 @@ class OakCamera:
         if session.cam_from_imu_source.startswith("default"):
             self._warn_once("mount", "OAK %s: IMU-to-camera rotation is the %s: check it (docs/oak.md) or set "
                             "cam_from_imu", session.description, session.cam_from_imu_source)
-        # Each session re-zeroes a relative heading: its session number is the heading epoch.
+        # Each session re-zeroes a relative heading: its session number is the heading epoch, or
+        # one past the last tracker's, which moves on by itself after a gap in gyro reports.
         with self._cond:
             epoch = self._counts["sessions"]
-        return AttitudeTracker(session.imu_mode, session.cam_from_imu, declination_rad=cfg.declination_rad,
-                               sensor_world=cfg.sensor_world, history_s=cfg.imu_history_s,
-                               max_gap_s=cfg.max_imu_gap_s, max_accuracy_rad=math.radians(cfg.max_rv_accuracy_deg),
-                               epoch=epoch)
+        if self._last_tracker is not None:
+            epoch = max(epoch, self._last_tracker.epoch + 1)
+        tracker = AttitudeTracker(session.imu_mode, session.cam_from_imu, declination_rad=cfg.declination_rad,
+                                  sensor_world=cfg.sensor_world, history_s=cfg.imu_history_s,
+                                  max_gap_s=cfg.max_imu_gap_s, max_accuracy_rad=math.radians(cfg.max_rv_accuracy_deg),
+                                  epoch=epoch)
+        self._last_tracker = tracker
+        return tracker
 
     def _serve(self, session: OakSession) -> None:
         """Run one session until close() (returns) or a loss (raises)."""

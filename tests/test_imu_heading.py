@@ -555,8 +555,8 @@ def test_gyro_counts_gaps_and_ignores_old_samples():
     integ = GyroIntegrator(CAM_FROM_IMU_OAK_D_PRO)
     integ.update(1.0, np.zeros(3))
     assert integ.update(1.0, np.zeros(3)) is None
-    integ.update(1.5, np.zeros(3))
-    assert integ.counts == {"gyro_steps": 1, "gyro_gaps": 1, "gyro_out_of_order": 1}
+    integ.update(1.5, np.zeros(3))  # a gap: the integrator starts again, no step across it
+    assert integ.counts == {"gyro_steps": 0, "gyro_gaps": 1, "gyro_out_of_order": 1}
 
 
 def test_gyro_gap_is_a_step_longer_than_a_tenth_of_a_second():
@@ -564,7 +564,41 @@ def test_gyro_gap_is_a_step_longer_than_a_tenth_of_a_second():
     integ = GyroIntegrator(CAM_FROM_IMU_OAK_D_PRO)
     for t in (0.0, 0.1, 0.22):  # steps of 0.1 s (not a gap) and 0.12 s (a gap)
         integ.update(t, np.zeros(3))
-    assert integ.counts == {"gyro_steps": 2, "gyro_gaps": 1, "gyro_out_of_order": 0}
+    assert integ.counts == {"gyro_steps": 1, "gyro_gaps": 1, "gyro_out_of_order": 0}
+
+
+def _gyro_report(tracker, t, heading_deg, rate_deg_s):
+    """A level camera at ``heading_deg`` turning clockwise at ``rate_deg_s``: its accelerometer
+    and gyro reports (IMU axes) at ``t``."""
+    imu_to_world = world_from_cam(math.radians(heading_deg)) @ CAM_FROM_IMU_OAK_D_PRO
+    tracker.add_accelerometer(t, imu_to_world.T @ [0.0, 0.0, 9.81])
+    tracker.add_gyro(t, imu_to_world.T @ [0.0, 0.0, -math.radians(rate_deg_s)])  # clockwise: -z
+
+
+def test_a_gap_in_gyro_reports_starts_a_new_zero_in_a_new_epoch():
+    # 30 deg/s clockwise for 0.5 s (0 -> 15 deg), then still, with no reports from 0.5 to 1.5 s.
+    # Integrated across the gap, the mean of the rates at its ends (15 deg/s) over 1 s invented a
+    # turn: 30 deg in the same epoch, where the truth is 15 and the turn meanwhile is unknown.
+    tracker = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D_PRO, epoch=3)
+    for k in range(51):
+        _gyro_report(tracker, k * 0.01, 30.0 * k * 0.01, 30.0)
+    before, _ = tracker.attitude_at(0.2)
+    assert before is not None and before.epoch == 3 and math.degrees(before.heading_rad) == pytest.approx(6.0, abs=0.1)
+    for k in range(51):
+        _gyro_report(tracker, 1.5 + k * 0.01, 15.0, 0.0)
+    after, _ = tracker.attitude_at(1.8)
+    assert after is not None and after.epoch == 4 and ang_diff(after.heading_rad, 0.0) < TILT_RAD  # a new zero
+    assert tracker.attitude_at(0.2)[0] is None  # nothing of the old zero is kept to interpolate with
+    assert tracker.gyro is not None and tracker.gyro.counts["gyro_gaps"] == 1
+
+
+def test_reset_starts_a_relative_heading_in_a_new_epoch():
+    tracker = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D_PRO, epoch=3)
+    tracker.reset()
+    assert tracker.epoch == 4
+    absolute = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, declination_rad=0.1)
+    absolute.reset()
+    assert absolute.epoch == 0  # absolute headings keep epoch 0
 
 
 @pytest.mark.parametrize(
