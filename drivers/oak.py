@@ -42,6 +42,7 @@ import numpy as np
 from drivers.imu_heading import (
     ENU_FROM_SENSOR_WORLD,
     IMU_PENDING,
+    NO_IMU_YET,
     OK,
     WANTS,
     AttitudeTracker,
@@ -310,12 +311,6 @@ class OakMessageHandler:
             self.counts["bad_frames"] += 1
             log.debug("unusable frame message: %s", exc)
             return
-        want = (self.intrinsics.height, self.intrinsics.width, 3)
-        if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.shape != want:
-            self.counts["bad_frames"] += 1
-            log.debug("frame is %s %s, expected uint8 %s", getattr(img, "dtype", None), getattr(img, "shape", None),
-                      want)
-            return
         if self._last_dev_seq is not None:
             if dev_seq <= self._last_dev_seq:
                 self.counts["seq_backwards"] += 1
@@ -323,7 +318,15 @@ class OakMessageHandler:
             self.counts["frames_dropped_device"] += dev_seq - self._last_dev_seq - 1
         if self._offset is None:
             self._offset = self.next_seq - dev_seq
+        # Before the size check: a frame of the wrong size was sent, and counted as bad; left out
+        # of the sequence, the next frame counted it as dropped by the device too.
         self._last_dev_seq = dev_seq
+        want = (self.intrinsics.height, self.intrinsics.width, 3)
+        if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.shape != want:
+            self.counts["bad_frames"] += 1
+            log.debug("frame is %s %s, expected uint8 %s", getattr(img, "dtype", None), getattr(img, "shape", None),
+                      want)
+            return
         if not img.flags.owndata:
             img = img.copy()  # the message's buffer is not ours to keep
         self._pending.append((t_mid, dev_seq + self._offset, img, float(now_s)))
@@ -337,7 +340,8 @@ class OakMessageHandler:
                 att, reason = None, "no_imu"
             else:
                 att, reason = self.tracker.attitude_at(t_mid)
-                if reason == IMU_PENDING and now_s - arrived < self.imu_wait_s:
+                # A frame before the session's first IMU report waits for it too (docs/oak.md).
+                if reason in (IMU_PENDING, NO_IMU_YET) and now_s - arrived < self.imu_wait_s:
                     if len(self._pending) <= self.max_pending:
                         break
                     self.counts["pending_overflow"] += 1

@@ -280,6 +280,36 @@ def test_handler_frames_wait_for_the_imu_then_get_the_interpolated_heading():
     assert c["no_heading_imu_pending"] == 1 and c["imu_reports"] == 4  # 2 rotation vectors + 2 accelerometers
 
 
+def test_handler_a_frame_of_the_wrong_size_is_bad_not_also_dropped_by_the_device():
+    # It was left out of the sequence, so the next frame counted it as never sent too: 4 device
+    # frames accounted for where the device sent 3.
+    h = OakMessageHandler(INTR, None)
+    h.on_frame(img_frame(0, BASE_S), now_s=0.0)
+    h.on_frame(img_frame(1, BASE_S + 0.1, img=np.zeros((H, W + 2, 3), np.uint8)), now_s=0.0)
+    h.on_frame(img_frame(2, BASE_S + 0.2), now_s=0.0)
+    assert [f.seq for f in h.drain()] == [0, 2]
+    c = h.counts
+    assert (c["frames_in"], c["frames_out"], c["bad_frames"], c["frames_dropped_device"]) == (3, 2, 1, 0)
+
+
+def test_handler_a_frame_before_the_first_imu_report_waits_for_it():
+    # docs/oak.md: a frame that arrives before its IMU reports waits up to imu_wait_s. Before the
+    # session's first report it went out at once, without a heading.
+    h = OakMessageHandler(INTR, AttitudeTracker(ImuMode.ROTATION_VECTOR, MOUNT), imu_wait_s=0.15)
+    h.on_frame(img_frame(0, BASE_S + 0.015), now_s=10.0)  # mid-exposure at +0.010
+    assert h.ready(10.0) == []
+    h.on_imu(imu_rv(BASE_S, q_level(40.0)))
+    h.on_imu(imu_rv(BASE_S + 0.02, q_level(40.0)))
+    [frame] = h.ready(10.005)
+    assert frame.attitude is not None and math.degrees(frame.attitude.heading_rad) == pytest.approx(40.0, abs=0.01)
+    # An IMU that never reports: the wait is bounded.
+    no_tracker_yet = OakMessageHandler(INTR, AttitudeTracker(ImuMode.ROTATION_VECTOR, MOUNT), imu_wait_s=0.15)
+    no_tracker_yet.on_frame(img_frame(0, BASE_S), now_s=20.0)
+    assert no_tracker_yet.ready(20.1) == []
+    [alone] = no_tracker_yet.ready(20.2)
+    assert alone.attitude is None and no_tracker_yet.counts["no_heading_no_imu_yet"] == 1
+
+
 def test_handler_gyro_mode_from_imudata_gyroscope_reports():
     """A BMI270-like IMU: gyro + accelerometer reports, integrated on the host, relative heading."""
     tracker = AttitudeTracker(ImuMode.GYRO, MOUNT)
