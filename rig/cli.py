@@ -445,15 +445,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     rig_cfg = RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
                         ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
                         realtime=r["realtime"])
-    out = cfg["output"]
-    with _recording_refusals(*record_words):  # the file is made now: one may have appeared since the check
-        pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
-                           jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
-                           record=out["record"] or None, record_overwrite=out["record_overwrite"],
-                           record_frames=out["record_frames"], nmea_stdout=nmea_stdout, live=True, stop=stop)
     from rig.recorder import RecorderPublisher
-
-    recorder = next((p for p in pubs if isinstance(p, RecorderPublisher)), None)
 
     live_line = sys.stderr.isatty()
 
@@ -463,10 +455,27 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
             sys.stderr.write(f"\rsunrig: {line}\033[K" if live_line else f"sunrig: {line}\n")
             sys.stderr.flush()
 
-    pipe = RigPipeline(source, estimator, policy, pubs, config=rig_cfg, on_status=status,
-                       on_frame=recorder.record_frame if recorder is not None else None)
+    out = cfg["output"]
+    recorder: RecorderPublisher | None = None
+    with _recording_refusals(*record_words):  # the file is made now: one may have appeared since the check
+        pubs = _publishers(serial=out["serial"] or None, baud=out["baud"], fmt=out["format"],
+                           jsonl=out["jsonl"] or None, rule=estimator.status_rule(),
+                           record=out["record"] or None, record_overwrite=out["record_overwrite"],
+                           record_frames=out["record_frames"], nmea_stdout=nmea_stdout, live=True, stop=stop)
+    # From here every output is open: a stop at any point after closes them (a SIGTERM while the
+    # pipeline was being built once left a 0-byte recording, never finished nor discarded).
     try:
+        recorder = next((p for p in pubs if isinstance(p, RecorderPublisher)), None)
+        pipe = RigPipeline(source, estimator, policy, pubs, config=rig_cfg, on_status=status,
+                           on_frame=recorder.record_frame if recorder is not None else None)
         stats = pipe.run()  # ends by itself when every output's reader has gone (`| head`)
+    except KeyboardInterrupt:
+        # Stopped before the pipeline ran (it takes a stop itself and returns): the outputs are
+        # closed as at any end, and a recording that got nothing is not left behind.
+        _close_all(pubs, stop)
+        if recorder is not None and recorder.discard_if_empty():
+            print(f"sunrig: nothing was recorded, so {recorder.path} is not kept", file=sys.stderr)
+        raise
     finally:
         try:
             _close_all(pubs, stop)

@@ -979,6 +979,24 @@ def _main_in_process(argv, capsys):
     return rc, capsys.readouterr()
 
 
+def test_a_stop_while_the_pipeline_is_built_closes_the_outputs_and_keeps_no_empty_recording(
+    tmp_path, monkeypatch, capsys
+):
+    # The outputs were open and the pipeline not yet running: a SIGTERM there skipped the close,
+    # and left a 0-byte recording that every later replay of its folder refused.
+    import rig.pipeline
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt  # what the stop handler raises on a first signal (rig/stopping.py)
+
+    monkeypatch.setattr(rig.pipeline.RigPipeline, "__init__", stopped)
+    rec, jsonl = tmp_path / "rec.mcap", tmp_path / "est.jsonl"
+    rc, captured = _main_in_process(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--record", str(rec),
+                                     "--record-frames", "--jsonl", str(jsonl)], capsys)
+    assert rc == 130 and not rec.exists() and jsonl.read_text() == ""
+    assert f"nothing was recorded, so {rec} is not kept" in captured.err
+
+
 def _assert_one_line_error(rc, captured, *, names):
     assert rc == 2, captured.err
     assert "Traceback" not in captured.err and "internal error" not in captured.err, captured.err
