@@ -164,6 +164,7 @@ class RigPipeline:
         self._failure: tuple[str, BaseException] | None = None
         self._failure_lock = threading.Lock()
         self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
+        self._warned_sparse = False  # said once that windows cannot fill (_warn_if_sparse)
         # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
         # what its publish() raised on, and whether its reader is gone.
         self._names: list[str] = []
@@ -307,6 +308,25 @@ class RigPipeline:
             except Exception as exc:  # noqa: BLE001 - one broken output must not silence the others
                 self._raised[i].add(exc, est.seq)
 
+    def _warn_if_sparse(self, candidates: list[FrameFeatures], window: list[FrameFeatures],
+                        newest: FrameFeatures) -> None:
+        """Once: a partial window although the ring reaches back past the window's span with
+        frames of the newest one's heading zero. Fewer frames than a window holds come in a span
+        (a slow camera, or frames dropped for a slow estimator), so no window is ever full and
+        every estimate goes out flagged partial, for as long as that lasts."""
+        att = newest.frame.attitude
+        if att is None:
+            return
+        same_zero = [f for f in candidates if f.frame.attitude is not None
+                     and (f.frame.attitude.reference, f.frame.attitude.epoch) == (att.reference, att.epoch)]
+        if not same_zero or newest.frame.t_mono_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
+            return  # still filling (start-up, or a new heading zero)
+        self._warned_sparse = True
+        log.warning("windows hold %d of the model's %d frames: fewer frames than that come in [window] span_s "
+                    "(%g s), so every estimate goes out flagged as a partial window; raise span_s or the "
+                    "camera's frame rate, or lighten the load that drops frames", len(window), self.policy.n_frames,
+                    self.policy.span_s)
+
     def _log_exposure_change(self, seq: int, reason: str | None) -> None:
         # Once per change, not per frame: a night is one message, not one per frame.
         if reason:
@@ -344,8 +364,10 @@ class RigPipeline:
                     return
                 continue
             feats, arrived = item
-            window = [f for f in self.ring.snapshot() if f.frame.t_mono_s <= feats.frame.t_mono_s]
-            window = self.policy.select(window)
+            candidates = [f for f in self.ring.snapshot() if f.frame.t_mono_s <= feats.frame.t_mono_s]
+            window = self.policy.select(candidates)
+            if len(window) < self.policy.n_frames and not self._warned_sparse:
+                self._warn_if_sparse(candidates, window, feats)
             try:
                 est = self.estimator.estimate(window)
             except EstimationError as exc:

@@ -97,6 +97,20 @@ def test_overload_drops_frames_and_keeps_latency_and_memory_bounded(model):
     assert len(pipe.ring) <= 16 and len(pipe._frames) <= 2
 
 
+def test_a_camera_too_slow_to_fill_a_window_is_said_once(model, caplog):
+    # 1.4 frames a second into a 4 s span: at most 6 frames, never a full window, and every
+    # estimate went out flagged partial without a word.
+    with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
+        _, stats = run_pipeline(frames(20, dt=0.7), SunEstimator(model), [Collect()], queue_size=100)
+    said = [r.getMessage() for r in caplog.records if "partial window" in r.getMessage()]
+    assert stats.estimates > 0 and len(said) == 1
+    assert said[0].startswith("windows hold 6 of the model's 8 frames")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
+        run_pipeline(frames(60, dt=0.1), SunEstimator(model), [Collect()], queue_size=100)  # 10 Hz: they fill
+    assert not [r for r in caplog.records if "partial window" in r.getMessage()]
+
+
 def test_a_stopped_run_accounts_for_what_was_still_queued(model):
     # An endless, unpaced source stopped by the timeout, as Ctrl-C stops a live rig: frames still
     # queued for the backbone, and a window waiting for the aggregator, once went uncounted.
