@@ -35,6 +35,7 @@ graphs with the contract, including the command and data that produced it.
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
@@ -420,12 +421,22 @@ def _write_atomically(path: Path, write: Callable[[Path], object]) -> None:
     """``write`` a hidden sibling, then rename it over ``path``: a kill mid-write leaves the previous
     file intact. The sibling keeps the suffix, which ``np.savez`` would otherwise append."""
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    write(tmp)
-    os.replace(tmp, path)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)  # a torn copy would only hold a full disk full
+        if isinstance(exc, OSError) and exc.filename is None:  # name the file the error is about
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        raise
 
 
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    _write_atomically(path, lambda tmp: torch.save(state, tmp))
+    # Serialised in memory first: torch.save reports a full disk as a bare RuntimeError ("unexpected
+    # pos"), an internal error at the CLI; Python's own write says ENOSPC, with what to do.
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    _write_atomically(path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
 
 
 def _trim_metrics(path: Path, step: int) -> int:

@@ -918,3 +918,28 @@ def test_an_ema_decay_outside_0_to_1_is_refused_before_training(logs, tmp_path, 
     with pytest.raises(ValidationError, match="ema decay: expected a decay in"):
         train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, ema_decay=decay))
     assert not (tmp_path / "m").exists()
+
+
+def test_a_checkpoint_that_fills_the_disk_is_an_os_error_naming_it_and_leaves_no_torn_copy(tmp_path, monkeypatch):
+    # torch.save reports a full disk as a bare RuntimeError ("unexpected pos"): an internal error at
+    # the CLI, with the torn temporary copy left to keep the disk full. Serialised in memory and
+    # written by Python, the write says ENOSPC, which the CLI turns into one line (rig/cli.py).
+    import errno
+    from pathlib import Path
+
+    from estimator.train import _save_checkpoint
+
+    def disk_full(self, data):
+        with open(self, "wb") as f:
+            f.write(bytes(data)[:100])  # what fitted
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", disk_full)
+    path = tmp_path / "checkpoint.pt"
+    with pytest.raises(OSError) as info:
+        _save_checkpoint(path, {"w": torch.zeros(1000)})
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(path)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    _save_checkpoint(path, {"w": torch.arange(5.0)})  # and a checkpoint written so loads as before
+    assert torch.equal(torch.load(path)["w"], torch.arange(5.0))
