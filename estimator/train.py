@@ -998,6 +998,7 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     path = Path(checkpoint_dir) / CHECKPOINT
     if not path.is_file():
         raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")
+    _refuse_export_over_others(Path(out_dir), Path(checkpoint_dir))
     state = torch.load(path, weights_only=False)
     cfg = TrainConfig(**state["config"])  # train() saves the crop count resolved, never 0
     counts = state.setdefault("data_counts", {})
@@ -1022,6 +1023,21 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     backbone, aggregator = modules_from(net_config(cfg), state.get("weight_average") or state)
     return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command,
                    run_mirror_windows)
+
+
+def _refuse_export_over_others(out_dir: Path, checkpoint_dir: Path) -> None:
+    """An export replaces a folder's graphs: refuse one that holds another run (its graphs would
+    no longer be its checkpoint's) or logs. A model folder alone, or the run's own, is re-exported,
+    as docs/model.md does to the shipped model."""
+    if not out_dir.is_dir() or out_dir.resolve() == checkpoint_dir.resolve():
+        return
+    if (out_dir / CHECKPOINT).exists():
+        raise ValidationError(f"--export-only {out_dir} holds another training run ({CHECKPOINT}); its graphs "
+                              "would no longer be its checkpoint's: pass a new folder, or that run's own")
+    logs = sorted(p.name for p in out_dir.glob("*.mcap"))
+    if logs:
+        raise ValidationError(f"--export-only {out_dir} holds logs ({logs[0]}"
+                              f"{f' and {len(logs) - 1} more' if len(logs) > 1 else ''}); pass a folder for the model")
 
 
 def sun_elevation_range_deg(sun_enu: Iterable[np.ndarray]) -> list[float]:

@@ -943,3 +943,23 @@ def test_a_checkpoint_that_fills_the_disk_is_an_os_error_naming_it_and_leaves_no
     monkeypatch.undo()
     _save_checkpoint(path, {"w": torch.arange(5.0)})  # and a checkpoint written so loads as before
     assert torch.equal(torch.load(path)["w"], torch.arange(5.0))
+
+
+def test_export_only_refuses_a_folder_of_another_run_or_of_logs(tmp_path):
+    # It overwrote another run's graphs (no longer its checkpoint's) or wrote among logs, where
+    # --out and quantize --out refuse such folders.
+    from estimator.train import CHECKPOINT, _refuse_export_over_others
+
+    run, other, logs, model = (tmp_path / n for n in ("run", "other", "logs", "model"))
+    for folder in (run, other, logs, model):
+        folder.mkdir()
+    (run / CHECKPOINT).write_bytes(b"x")
+    (other / CHECKPOINT).write_bytes(b"x")
+    (logs / "drive_0.mcap").write_bytes(b"x")
+    (model / "backbone.onnx").write_bytes(b"x")
+    with pytest.raises(ValidationError, match=r"holds another training run \(checkpoint.pt\)"):
+        _refuse_export_over_others(other, run)
+    with pytest.raises(ValidationError, match=r"holds logs \(drive_0.mcap\); pass a folder for the model"):
+        _refuse_export_over_others(logs, run)
+    for fine in (run, model, tmp_path / "new"):  # its own folder, a model alone (docs/model.md), a new one
+        _refuse_export_over_others(fine, run)
