@@ -783,8 +783,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
             why = f"{result.windows_without_truth} windows had no true sun"
         elif result.frames_bad_exposure:
             why = f"{result.frames_bad_exposure} of the {result.frames} frames too dark, bright or flat to use"
-        else:
-            why = f"{result.frames} frames, too few for a full window"
+        else:  # short logs, or frames too far apart (a slow camera) for the span: not a log without truth
+            print(f"sunrig: error: eval graded nothing: no log has {policy.n_frames} frames within "
+                  f"--window-span-s {policy.span_s:g} s ({result.frames} frames in all); give longer logs, or "
+                  "raise --window-span-s for a camera slower than "
+                  f"{policy.n_frames / policy.span_s:g} frames a second", file=sys.stderr)
+            return EXIT_USER_ERROR
         print(f"sunrig: error: eval graded nothing: no full window with ground truth in these logs ({why}); "
               "evaluate logs from `sunrig synth`, KITTI drives, or recordings with GNSS time and position "
               "(docs/ground-truth.md)", file=sys.stderr)
