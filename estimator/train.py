@@ -67,6 +67,7 @@ from estimator.contract import (
 from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
+from rig.files import write_replacing
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.types import Frame, HeadingRef
 from rig.window import SpreadWindowPolicy
@@ -417,26 +418,12 @@ class _Normaliser:
         return x * self.gain + self.offset
 
 
-def _write_atomically(path: Path, write: Callable[[Path], object]) -> None:
-    """``write`` a hidden sibling, then rename it over ``path``: a kill mid-write leaves the previous
-    file intact. The sibling keeps the suffix, which ``np.savez`` would otherwise append."""
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        tmp.unlink(missing_ok=True)  # a torn copy would only hold a full disk full
-        if isinstance(exc, OSError) and exc.filename is None:  # name the file the error is about
-            raise OSError(exc.errno, exc.strerror, str(path)) from exc
-        raise
-
-
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     # Serialised in memory first: torch.save reports a full disk as a bare RuntimeError ("unexpected
     # pos"), an internal error at the CLI; Python's own write says ENOSPC, with what to do.
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    _write_atomically(path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
+    write_replacing(path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
 
 
 def _trim_metrics(path: Path, step: int) -> int:
@@ -456,7 +443,7 @@ def _trim_metrics(path: Path, step: int) -> int:
         else:
             dropped += 1
     if dropped:
-        _write_atomically(path, lambda tmp: tmp.write_text("".join(kept), encoding="utf-8"))
+        write_replacing(path, lambda tmp: tmp.write_text("".join(kept), encoding="utf-8"))
     return dropped
 
 
@@ -882,7 +869,7 @@ def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
               for part, module in (("backbone", backbone), ("aggregator", aggregator))
               for k, v in module.state_dict().items()}
     path = Path(out_dir) / WEIGHTS_FILE
-    _write_atomically(path, lambda tmp: np.savez_compressed(tmp, **arrays))
+    write_replacing(path, lambda tmp: np.savez_compressed(tmp, **arrays))
     return path
 
 

@@ -735,6 +735,7 @@ def _open_logs(command: str, paths: list[Path],
 def cmd_eval(args: argparse.Namespace) -> int:
     from estimator.estimator import AGGREGATORS, SunEstimator
     from estimator.evaluate import TAIL_DEG, TAIL_KEY, evaluate, plot_eval
+    from rig.files import write_replacing
     from rig.window import SpreadWindowPolicy
 
     _check_writable("--json", args.json)
@@ -757,7 +758,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     text = json.dumps(summary, indent=2)
     with args.stop.finishing():  # the work is done: a stop signal now must not lose its record
         if args.json and args.json != "-":
-            Path(args.json).write_text(text + "\n", encoding="utf-8")
+            # Whole or not at all: a full disk left an empty JSON where the results were to go.
+            write_replacing(args.json, lambda tmp: tmp.write_text(text + "\n", encoding="utf-8"))
         else:
             print(text)
         if args.plot:

@@ -997,6 +997,24 @@ def test_a_stop_while_the_pipeline_is_built_closes_the_outputs_and_keeps_no_empt
     assert f"nothing was recorded, so {rec} is not kept" in captured.err
 
 
+def test_eval_on_a_full_disk_leaves_no_empty_json(tmp_path, monkeypatch, capsys):
+    # The JSON was written in place: a full disk left it empty (0 bytes), results lost, beside a
+    # one-line error. Written whole or not at all, the error names the file and nothing is left.
+    import errno
+
+    def disk_full(self, text, encoding=None):
+        with open(self, "w", encoding=encoding) as f:
+            f.write(text[:10])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", disk_full)
+    out = tmp_path / "eval.json"
+    rc, captured = _main_in_process(["eval", str(DEMO_LOG), "--aggregators", "mean", "--quiet", "--json", str(out)],
+                                    capsys)
+    assert rc == 2 and captured.err.startswith(f"sunrig: error: {out}: No space left on device"), captured.err
+    assert list(tmp_path.iterdir()) == []
+
+
 def _assert_one_line_error(rc, captured, *, names):
     assert rc == 2, captured.err
     assert "Traceback" not in captured.err and "internal error" not in captured.err, captured.err
