@@ -1129,6 +1129,17 @@ def frame_count(path: str | os.PathLike[str]) -> int | None:
     return sum(summary.statistics.channel_message_counts.get(cid, 0) for cid in ids) if ids else None
 
 
+def time_span_s(path: str | os.PathLike[str]) -> float | None:
+    """Seconds from a finished log's first message to its last, from its summary's statistics (no
+    chunk is read); None when it has no summary."""
+    f, size = _open_log_file(Path(path))
+    with f:
+        summary = _summary(f, size)
+    if summary is None or summary.statistics is None:
+        return None
+    return (summary.statistics.message_end_time - summary.statistics.message_start_time) / 1e9
+
+
 def read_estimates(path: str | os.PathLike[str]) -> Iterator[dict]:
     """The ``/sun/estimate`` messages as dicts (rebuild with :func:`estimate_from_dict`).
 

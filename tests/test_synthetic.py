@@ -526,6 +526,9 @@ def test_a_resumed_set_keeps_its_drives_and_refuses_drives_of_another_length(tmp
     assert more[0].stat().st_mtime_ns == 1 and [frame_count(p) for p in more] == [2, 2]
     with pytest.raises(ValidationError, match="drive_9_0000.mcap is kept .* holds 2 frames, not the 3 asked for"):
         write_synthetic_logs(tmp_path, drives=2, frames=3, seed=9, intrinsics=SMALL, progress=False)
+    # Nor, asked for at another rate, drives 0.1 s apart (it once mixed 10 fps and 1 fps drives).
+    with pytest.raises(ValidationError, match=r"drive_9_0000.mcap is kept .* 0.1 s apart, not the 1 s of --fps 1"):
+        write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False, fps=1.0)
     whole = more[1].read_bytes()
     (tmp_path / "drive_9_0001.mcap").write_bytes(first[0].read_bytes()[:-100])  # a summary cut off
     assert frame_count(tmp_path / "drive_9_0001.mcap") is None

@@ -61,10 +61,11 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
     return path, frames
 
 
-def _kept(paths: list[Path], frames: int) -> set[Path]:
+def _kept(paths: list[Path], frames: int, fps: float) -> set[Path]:
     """The drives kept from an earlier run. Each must be the drive asked for: the name fixes the
-    seed, and the frame count is checked (a set asked for with 20 frames must not be 10-frame drives)."""
-    from replay.native import frame_count
+    seed, and the frame count and rate are checked (a set asked for with 20 frames at 1 fps must not
+    be 10-frame drives, nor 10 fps ones)."""
+    from replay.native import frame_count, time_span_s
 
     kept = {path for path in paths if path.exists()}
     for path in sorted(kept):
@@ -76,6 +77,13 @@ def _kept(paths: list[Path], frames: int) -> set[Path]:
             raise ValidationError(
                 f"{path} is kept from an earlier run but holds {found} frames, not the {frames} asked for: "
                 "pass another folder, or delete the folder's drives to make them again"
+            )
+        span = time_span_s(path)
+        want = (frames - 1) / fps  # the frames are 1 / fps apart, the first at 0
+        if frames > 1 and span is not None and abs(span - want) > 1e-3:
+            raise ValidationError(
+                f"{path} is kept from an earlier run but its frames are {span / (frames - 1):g} s apart, not the "
+                f"{1 / fps:g} s of --fps {fps:g}: pass another folder, or delete the folder's drives to make them again"
             )
     return kept
 
@@ -97,7 +105,7 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
         )
     out = make_output_folder(out_dir, what="folder", holds="OUT is the folder the drives are written to")
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
-    kept = _kept(paths, frames)
+    kept = _kept(paths, frames, fps)
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
             for i, p in enumerate(paths) if p not in kept]
     bar = Progress("synth", total=drives * frames, unit="frames", enabled=None if progress else False)
