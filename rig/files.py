@@ -24,12 +24,17 @@ def make_output_folder(path: str | os.PathLike[str], *, what: str, holds: str) -
     return out
 
 
-
 def write_replacing(path: str | os.PathLike[str], write: Callable[[Path], object]) -> None:
     """``write`` a hidden sibling of ``path``, then rename it over ``path``: a kill or a full disk
     mid-write leaves the file that was there (or none), never a torn or empty one, and a sibling
-    that failed is removed. The sibling keeps the suffix, which ``np.savez`` would otherwise append."""
+    that failed is removed. The sibling keeps the suffix, which ``np.savez`` would otherwise append.
+
+    A ``path`` that exists and is not a regular file (a FIFO, a terminal, /dev/full) is written in
+    place: renamed over, the device itself would be replaced by a file."""
     path = Path(path)
+    if path.exists() and not path.is_file():
+        write(path)
+        return
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
     try:
         write(tmp)

@@ -202,3 +202,33 @@ def test_a_ring_that_can_never_hold_a_full_window_is_refused():
     with pytest.raises(ConfigError, match=r"^\[rig\] ring_max_age_s: 0.5 s is shorter than \[window\] span_s 4 s"):
         check_window_fits(short, 8)
     check_window_fits(merge(short, {"window": {"span_s": 0.5}}), 8)
+
+
+def test_write_replacing_writes_a_device_or_fifo_in_place_and_a_file_whole(tmp_path):
+    # Renamed over, `eval --json /dev/full` replaced the device itself with a regular file (found
+    # when the disk-full tests that use /dev/full then passed). A FIFO stands in for the device.
+    import os
+    import stat
+    import threading
+
+    from rig.files import write_replacing
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    write_replacing(fifo, lambda p: p.write_text("through\n"))
+    reader.join(5.0)
+    assert got == ["through\n"] and stat.S_ISFIFO(os.stat(fifo).st_mode)
+    plain = tmp_path / "out.json"
+    plain.write_text("old")
+
+    def torn(p):
+        p.write_text("half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space left") as info:
+        write_replacing(plain, torn)
+    assert info.value.filename == str(plain) and plain.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json", "pipe"]  # no torn sibling left
