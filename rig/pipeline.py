@@ -314,11 +314,7 @@ class RigPipeline:
         frames of the newest one's heading zero. Fewer frames than a window holds come in a span
         (a slow camera, or frames dropped for a slow estimator), so no window is ever full and
         every estimate goes out flagged partial, for as long as that lasts."""
-        att = newest.frame.attitude
-        if att is None:
-            return
-        same_zero = [f for f in candidates if f.frame.attitude is not None
-                     and (f.frame.attitude.reference, f.frame.attitude.epoch) == (att.reference, att.epoch)]
+        same_zero = self.policy.same_zero(candidates)
         if not same_zero or newest.frame.t_mono_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
             return  # still filling (start-up, or a new heading zero)
         self._warned_sparse = True

@@ -51,15 +51,21 @@ class SpreadWindowPolicy:
         Only frames whose heading shares the newest heading's zero are candidates: the same
         reference and, for relative headings, the same epoch (after a source lost its zero, the
         window starts again from the frames after it)."""
-        # Each candidate with its attitude, so the filter's None check carries to the uses below.
+        usable = self.same_zero(candidates)
+        t_s = np.array([c.frame.t_mono_s for c in usable])
+        # Every one has an attitude (same_zero); the test only tells the type checker so.
+        heading_rad = np.array([c.frame.attitude.heading_rad for c in usable if c.frame.attitude is not None])
+        return [usable[i] for i in self.select_indices(t_s, heading_rad)] if usable else []
+
+    @staticmethod
+    def same_zero(candidates: Sequence[T]) -> list[T]:
+        """The candidates (in order) whose heading shares the newest heading's zero: the same
+        reference and epoch. The frames a window can be made of."""
         with_attitude = [(c, c.frame.attitude) for c in candidates if c.frame.attitude is not None]
         if not with_attitude:
             return []
         newest = with_attitude[-1][1]
-        usable = [(c, a) for c, a in with_attitude if (a.reference, a.epoch) == (newest.reference, newest.epoch)]
-        t_s = np.array([c.frame.t_mono_s for c, _ in usable])
-        heading_rad = np.array([a.heading_rad for _, a in usable])
-        return [usable[i][0] for i in self.select_indices(t_s, heading_rad)]
+        return [c for c, a in with_attitude if (a.reference, a.epoch) == (newest.reference, newest.epoch)]
 
     def pool_start(self, t_s: np.ndarray, newest: int | np.ndarray = -1) -> np.ndarray:
         """Of frames at times ``t_s`` (ascending): the index of the oldest within the span of the
