@@ -11,6 +11,9 @@ import numpy as np
 from rig.errors import SunrigError
 from rig.geometry import angle_between, normalize, world_from_heading
 
+# Below this norm a vector (a token's, or the tokens' mean) has no direction to normalise.
+MIN_DIRECTION_NORM = 1e-6
+
 
 class EstimationError(SunrigError):
     """A window cannot give an estimate (no heading, mixed heading references, tokens cancel out,
@@ -44,7 +47,7 @@ def mean_direction(v_world: np.ndarray) -> tuple[np.ndarray, float]:
         )
     mean = v.mean(axis=0)
     norm = np.linalg.norm(mean)
-    if not np.isfinite(norm) or norm < 1e-6:
+    if not np.isfinite(norm) or norm < MIN_DIRECTION_NORM:
         raise EstimationError(
             f"the {len(v)} token estimates cancel out (mean norm {norm:.2e}); no direction for this window"
         )

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from estimator.calibration import EstimationError
+from estimator.calibration import MIN_DIRECTION_NORM, EstimationError
 from rig.geometry import angle_between, normalize
 
 DEFAULT_BANDWIDTH_RAD = math.radians(15.0)
@@ -19,8 +19,6 @@ DEFAULT_OUTLIER_RAD = math.radians(60.0)
 # 1.4826 * MAD estimates a normal standard deviation; 3 of them bound the inliers.
 _MAD_TO_SIGMA = 1.4826
 _MAD_K = 3.0
-# Below this a token vector has no direction to normalise (mean_direction's bound too).
-_MIN_NORM = 1e-6
 
 
 def remove_outliers(units: np.ndarray, outlier_rad: float = DEFAULT_OUTLIER_RAD,
@@ -71,7 +69,8 @@ def meanshift_aggregate(units: np.ndarray, bandwidth_rad: float = DEFAULT_BANDWI
     counts and skips, as it does the other aggregators' bad windows)."""
     v = np.asarray(units, dtype=np.float64)
     with np.errstate(invalid="ignore", over="ignore"):  # the non-finite rows are left out anyway
-        usable: np.ndarray = np.isfinite(v).all(axis=1) & (np.linalg.norm(np.nan_to_num(v), axis=1) >= _MIN_NORM)
+        norms = np.linalg.norm(np.nan_to_num(v), axis=1)
+        usable: np.ndarray = np.isfinite(v).all(axis=1) & (norms >= MIN_DIRECTION_NORM)
     if not usable.any():
         raise EstimationError(
             f"none of the {len(v)} token estimates has a direction (all zero or not finite); "
