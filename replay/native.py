@@ -1117,27 +1117,27 @@ def read_frames(path: str | os.PathLike[str]) -> Iterator[Frame]:
     yield from open_log(path)
 
 
-def frame_count(path: str | os.PathLike[str]) -> int | None:
-    """How many frames a finished log holds, from its summary's statistics (no chunk is read);
-    None when it has no summary (a log cut off mid-write) or no image channel."""
+def frames_and_span(path: str | os.PathLike[str]) -> tuple[int, float] | None:
+    """How many frames a finished log holds and the seconds from its first message to its last,
+    from its summary's statistics (no chunk is read); None when it has no summary (a log cut off
+    mid-write) or no image channel."""
     f, size = _open_log_file(Path(path))
     with f:
         summary = _summary(f, size)
     if summary is None or summary.statistics is None:
         return None
+    stats = summary.statistics
     ids = [cid for cid, c in summary.channels.items() if c.topic == TOPIC_IMAGE]
-    return sum(summary.statistics.channel_message_counts.get(cid, 0) for cid in ids) if ids else None
-
-
-def time_span_s(path: str | os.PathLike[str]) -> float | None:
-    """Seconds from a finished log's first message to its last, from its summary's statistics (no
-    chunk is read); None when it has no summary."""
-    f, size = _open_log_file(Path(path))
-    with f:
-        summary = _summary(f, size)
-    if summary is None or summary.statistics is None:
+    if not ids:
         return None
-    return (summary.statistics.message_end_time - summary.statistics.message_start_time) / 1e9
+    frames = sum(stats.channel_message_counts.get(cid, 0) for cid in ids)
+    return frames, (stats.message_end_time - stats.message_start_time) / 1e9
+
+
+def frame_count(path: str | os.PathLike[str]) -> int | None:
+    """How many frames a finished log holds (:func:`frames_and_span`), or None."""
+    figures = frames_and_span(path)
+    return None if figures is None else figures[0]
 
 
 def read_estimates(path: str | os.PathLike[str]) -> Iterator[dict]:

@@ -65,22 +65,22 @@ def _kept(paths: list[Path], frames: int, fps: float) -> set[Path]:
     """The drives kept from an earlier run. Each must be the drive asked for: the name fixes the
     seed, and the frame count and rate are checked (a set asked for with 20 frames at 1 fps must not
     be 10-frame drives, nor 10 fps ones)."""
-    from replay.native import frame_count, time_span_s
+    from replay.native import frames_and_span
 
     kept = {path for path in paths if path.exists()}
     for path in sorted(kept):
-        found = frame_count(path)
-        if found is None:  # drives are written whole (_write_one): this one was damaged since
+        figures = frames_and_span(path)
+        if figures is None:  # drives are written whole (_write_one): this one was damaged since
             raise ValidationError(f"{path} is kept from an earlier run but is not a whole log (cut short or "
                                   "damaged): delete it, and this command makes it again")
+        found, span = figures
         if found != frames:
             raise ValidationError(
                 f"{path} is kept from an earlier run but holds {found} frames, not the {frames} asked for: "
                 "pass another folder, or delete the folder's drives to make them again"
             )
-        span = time_span_s(path)
         want = (frames - 1) / fps  # the frames are 1 / fps apart, the first at 0
-        if frames > 1 and span is not None and abs(span - want) > 1e-3:
+        if frames > 1 and abs(span - want) > 1e-3:
             raise ValidationError(
                 f"{path} is kept from an earlier run but its frames are {span / (frames - 1):g} s apart, not the "
                 f"{1 / fps:g} s of --fps {fps:g}: pass another folder, or delete the folder's drives to make them again"
