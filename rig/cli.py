@@ -26,6 +26,7 @@ from rig.progress import Progress
 from rig.stopping import StopSignals
 
 if TYPE_CHECKING:
+    from rig.recorder import RecorderPublisher
     from rig.types import Frame
 
 EXIT_USER_ERROR = 2
@@ -464,18 +465,13 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
                            record_frames=out["record_frames"], nmea_stdout=nmea_stdout, live=True, stop=stop)
     # From here every output is open: a stop at any point after closes them (a SIGTERM while the
     # pipeline was being built once left a 0-byte recording, never finished nor discarded).
+    ran = False
     try:
         recorder = next((p for p in pubs if isinstance(p, RecorderPublisher)), None)
         pipe = RigPipeline(source, estimator, policy, pubs, config=rig_cfg, on_status=status,
                            on_frame=recorder.record_frame if recorder is not None else None)
         stats = pipe.run()  # ends by itself when every output's reader has gone (`| head`)
-    except KeyboardInterrupt:
-        # Stopped before the pipeline ran (it takes a stop itself and returns): the outputs are
-        # closed as at any end, and a recording that got nothing is not left behind.
-        _close_all(pubs, stop)
-        if recorder is not None and recorder.discard_if_empty():
-            print(f"sunrig: nothing was recorded, so {recorder.path} is not kept", file=sys.stderr)
-        raise
+        ran = True
     finally:
         try:
             _close_all(pubs, stop)
@@ -484,6 +480,8 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
                 print(f"sunrig: quit before the recording {recorder.path} was finished; its complete chunks "
                       "still replay", file=sys.stderr)
             raise
+        if not ran:  # stopped (or failed) before the pipeline ran: no empty recording left behind
+            _discard_empty_recording(recorder)
     if not quiet:
         if live_line:
             sys.stderr.write("\n")
@@ -493,11 +491,8 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
         details = _source_summary(source_stats()) if callable(source_stats) else ""
         if details:
             print(f"sunrig: source: {details}", file=sys.stderr)
-    if recorder is not None and recorder.finished:
-        if recorder.discard_if_empty():
-            print(f"sunrig: nothing was recorded, so {recorder.path} is not kept", file=sys.stderr)
-        elif not quiet:
-            print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
+    if recorder is not None and recorder.finished and not _discard_empty_recording(recorder) and not quiet:
+        print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
     if recorder is not None and not recorder.finished:
         why = (f"a write to its disk did not return in {recorder.join_timeout_s:g} s: a disk that stopped answering?"
                if recorder.stuck else "closing it failed, as said above")
@@ -505,6 +500,14 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
               f"still replay (sunrig replay {recorder.path})", file=sys.stderr)
         return EXIT_USER_ERROR
     return _report_output_losses(stats.publishers)
+
+
+def _discard_empty_recording(recorder: RecorderPublisher | None) -> bool:
+    """Remove a finished recording that got nothing, saying so; True when it was removed."""
+    if recorder is None or not recorder.discard_if_empty():
+        return False
+    print(f"sunrig: nothing was recorded, so {recorder.path} is not kept", file=sys.stderr)
+    return True
 
 
 def _report_output_losses(publishers: dict[str, dict]) -> int:
