@@ -291,10 +291,6 @@ class VisualOdometry:
         restart = self._intrinsics is not None and intrinsics != self._intrinsics
         gap = self._last_t_s is not None and t_mono_s - self._last_t_s > cfg.max_gap_s
         self._last_t_s = t_mono_s
-        if intrinsics != self._intrinsics:
-            self._set_camera(intrinsics)
-            self._forget_images()
-        gray = self._gray(image_bgr)
         if restart or gap:
             # Another camera mode, or a gap in the frames: nothing tracks across it and the turn
             # meanwhile is unknown, so this frame is the zero of a new epoch.
@@ -302,6 +298,9 @@ class VisualOdometry:
             self.epoch += 1
             self._last_heading = 0.0
             self._forget_images()
+        if intrinsics != self._intrinsics:  # the first frame's, or a restart's (forgotten above)
+            self._set_camera(intrinsics)
+        gray = self._gray(image_bgr)
         if self._prev_gray is None:
             self._new_keyframe(gray, self._last_heading)
             return self._sample(t_mono_s, self._last_heading)
