@@ -14,7 +14,11 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, TypeGuard
 
+import numpy as np
+
 from rig.errors import ContractMismatch
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)  # the crops are normalised in float32
 
 CONTRACT_VERSION = 1
 METADATA_CONTRACT_KEY = "sunrig.contract"
@@ -294,9 +298,6 @@ def _input_norm_problems(norm: dict[str, Any]) -> list[str]:
                 f"input_norm: scale {norm['scale']!r}, mean {mean!r} and std {std!r} give pixel values beyond float32"
             )
     return problems
-
-
-_FLOAT32_MAX = 3.4028234663852886e38
 
 
 def _is_int(v: Any) -> TypeGuard[int]:
