@@ -9,7 +9,7 @@ import pytest
 from estimator.estimator import SunEstimator
 from replay.sources import DEMO_LOG, open_frames
 from rig.errors import ValidationError
-from rig.exposure import DEFAULT_EXPOSURE_GATE, SAMPLE_STRIDE_PX, ExposureGate, luminance_stats
+from rig.exposure import DEFAULT_EXPOSURE_GATE, SAMPLE_PIXELS, ExposureGate, luminance_stats
 from rig.offline import OfflineStats, estimate_stream
 from rig.pipeline import RigConfig, RigPipeline
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
@@ -21,11 +21,12 @@ TEXTURED = RNG.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
 
 
 def _bands(lo, hi):
-    """Grey bands one sample stride high alternating ``lo`` and ``hi``: the gate's sample (every
-    stride-th row) sees luma lo, hi, lo, ... (grey's luma is its level: the weights sum to 1), so
-    mean (lo + hi) / 2 and standard deviation (hi - lo) / 2, whatever the stride."""
-    image = np.empty((10 * SAMPLE_STRIDE_PX, 128, 3), np.uint8)
-    image[:] = np.where(np.arange(10 * SAMPLE_STRIDE_PX) // SAMPLE_STRIDE_PX % 2, hi, lo)[:, None, None]
+    """Grey bands 4 rows high alternating ``lo`` and ``hi``, small enough (64 x 128) that the gate
+    looks at every pixel: luma lo, hi, lo, ... (grey's luma is its level: the weights sum to 1),
+    so mean (lo + hi) / 2 and standard deviation (hi - lo) / 2 exactly."""
+    image = np.empty((64, 128, 3), np.uint8)
+    assert image.shape[0] * image.shape[1] <= SAMPLE_PIXELS
+    image[:] = np.where(np.arange(64) // 4 % 2, hi, lo)[:, None, None]
     return image
 
 
@@ -66,6 +67,22 @@ def test_a_frame_at_a_threshold_passes_one_past_it_does_not(lo, hi, reason):
     image = _bands(lo, hi)
     assert luminance_stats(image) == ((lo + hi) / 2, (hi - lo) / 2)
     assert DEFAULT_EXPOSURE_GATE.rejects(image) == reason
+
+
+@pytest.mark.parametrize("shape", [(375, 1242), (375, 6), (6, 1242), (2000, 3000)])
+def test_stripes_of_any_period_and_frames_of_any_width_are_seen_as_they_are(shape):
+    # A frame's every other 4 px dark (a grille, a fence close to the lens), vertical or
+    # horizontal: a gate sampling every 8th pixel of every 8th row hit one phase of them and
+    # called the frame flat; a frame 6 px wide it judged on one column.
+    h, w = shape
+    for stripes in (np.arange(w)[None, :] // 4 % 2, np.arange(h)[:, None] // 4 % 2):
+        image = np.broadcast_to(np.where(stripes, 200, 20).astype(np.uint8)[..., None], (h, w, 3))
+        mean, std = luminance_stats(image)
+        exact = image[..., 0].astype(np.float64)
+        assert mean == pytest.approx(exact.mean(), abs=3.0) and std == pytest.approx(exact.std(), abs=3.0)
+        assert DEFAULT_EXPOSURE_GATE.rejects(image) is None
+    # The verdict on a frame does not change from one look to the next (a fixed sample).
+    assert luminance_stats(TEXTURED) == luminance_stats(TEXTURED.copy())
 
 
 def test_the_widest_gate_is_valid_and_passes_every_frame():
