@@ -27,7 +27,7 @@ import math
 import os
 import struct
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -45,7 +45,7 @@ from mcap.exceptions import EndOfFile, McapError, RecordLengthLimitExceeded
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import breakup_chunk, read_magic
+from mcap.stream_reader import StreamReader, breakup_chunk, read_magic
 from mcap.writer import LIBRARY_IDENTIFIER as MCAP_LIBRARY
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
@@ -475,7 +475,9 @@ class LogWriter:
 
     ``target`` is a path or a binary stream with ``write``/``tell``/``flush`` (left open on close).
     ``chunk_size`` is the uncompressed bytes per chunk: the most a kill can lose. ``exclusive``:
-    a path that exists raises ``FileExistsError`` instead of being replaced.
+    a path that exists raises ``FileExistsError`` instead of being replaced. ``metadata``: more
+    entries for the ``sunrig`` metadata record, facts about how the log was made (a synthetic
+    drive's ``render_scale``); the format's own keys cannot be replaced.
     """
 
     def __init__(
@@ -485,7 +487,22 @@ class LogWriter:
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         compression: str = "zstd",
         exclusive: bool = False,
+        metadata: Mapping[str, str] | None = None,
     ) -> None:
+        own = {
+            "format_version": FORMAT_VERSION,
+            "sunrig_version": _sunrig_version(),
+            "log_time": "monotonic clock (time.monotonic) in ns at mid-exposure",
+            "image_encoding": "jpeg",
+        }
+        extra = dict(metadata or {})
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in extra.items()):
+            raise ValidationError(f"LogWriter.metadata: expected str keys and values, got {extra!r}")
+        if clash := sorted(own.keys() & extra.keys()):
+            raise ValidationError(
+                f"LogWriter.metadata: {', '.join(clash)} belong to the log format and cannot be replaced; "
+                "name the entry otherwise"
+            )
         if not isinstance(chunk_size, int) or chunk_size <= 0:
             raise ValidationError(
                 f"LogWriter.chunk_size: expected a positive integer, got {chunk_size!r}"
@@ -527,15 +544,7 @@ class LogWriter:
         )
         self._mcap.start(profile=PROFILE, library=f"sunrig/{_sunrig_version()} {MCAP_LIBRARY}")
         # Metadata sits before the first chunk, so even a truncated log says what wrote it.
-        self._mcap.add_metadata(
-            METADATA_NAME,
-            {
-                "format_version": FORMAT_VERSION,
-                "sunrig_version": _sunrig_version(),
-                "log_time": "monotonic clock (time.monotonic) in ns at mid-exposure",
-                "image_encoding": "jpeg",
-            },
-        )
+        self._mcap.add_metadata(METADATA_NAME, {**own, **extra})
         self._chunk_size = chunk_size
         self._chunk_bytes = 0
         self._channel_ids: dict[str, int] = {}
@@ -1117,27 +1126,53 @@ def read_frames(path: str | os.PathLike[str]) -> Iterator[Frame]:
     yield from open_log(path)
 
 
-def frames_and_span(path: str | os.PathLike[str]) -> tuple[int, float] | None:
-    """How many frames a finished log holds and the seconds from its first message to its last,
-    from its summary's statistics (no chunk is read); None when it has no summary (a log cut off
-    mid-write) or no image channel."""
+@dataclass(frozen=True)
+class LogFigures:
+    """What a finished log's summary says of it: its frame count, the seconds from its first
+    message to its last, and its ``sunrig`` metadata record (empty when it has none)."""
+
+    frames: int
+    span_s: float
+    metadata: dict[str, str]
+
+
+def _indexed_metadata(f: IO[bytes], size: int, summary: Any) -> dict[str, str]:
+    """The ``sunrig`` metadata record a summary indexes; empty when there is none or it does not
+    parse (metadata has no CRC: what a damaged one said is unknown, not an error of the log)."""
+    for index in summary.metadata_indexes:
+        if index.name != METADATA_NAME:
+            continue
+        try:
+            f.seek(index.offset)
+            reader = StreamReader(cast(IO[bytes], _BoundedReads(f, size)), skip_magic=True, record_size_limit=size)
+            record = next(iter(reader.records), None)
+        except _SUMMARY_ERRORS:
+            return {}
+        return dict(record.metadata) if isinstance(record, Metadata) else {}
+    return {}
+
+
+def log_figures(path: str | os.PathLike[str]) -> LogFigures | None:
+    """A finished log's :class:`LogFigures`, from its summary and the metadata it indexes (no chunk
+    is read); None when it has no summary (a log cut off mid-write) or no image channel."""
     f, size = _open_log_file(Path(path))
     with f:
         summary = _summary(f, size)
-    if summary is None or summary.statistics is None:
-        return None
-    stats = summary.statistics
-    ids = [cid for cid, c in summary.channels.items() if c.topic == TOPIC_IMAGE]
-    if not ids:
-        return None
-    frames = sum(stats.channel_message_counts.get(cid, 0) for cid in ids)
-    return frames, (stats.message_end_time - stats.message_start_time) / 1e9
+        if summary is None or summary.statistics is None:
+            return None
+        stats = summary.statistics
+        ids = [cid for cid, c in summary.channels.items() if c.topic == TOPIC_IMAGE]
+        if not ids:
+            return None
+        frames = sum(stats.channel_message_counts.get(cid, 0) for cid in ids)
+        span_s = (stats.message_end_time - stats.message_start_time) / 1e9
+        return LogFigures(frames, span_s, _indexed_metadata(f, size, summary))
 
 
 def frame_count(path: str | os.PathLike[str]) -> int | None:
-    """How many frames a finished log holds (:func:`frames_and_span`), or None."""
-    figures = frames_and_span(path)
-    return None if figures is None else figures[0]
+    """How many frames a finished log holds (:func:`log_figures`), or None."""
+    figures = log_figures(path)
+    return None if figures is None else figures.frames
 
 
 def read_estimates(path: str | os.PathLike[str]) -> Iterator[dict]:

@@ -539,6 +539,30 @@ def test_a_resumed_set_keeps_its_drives_and_refuses_drives_of_another_length(tmp
     assert again[1].read_bytes() == whole  # the same drive: a seed always makes the same bytes
 
 
+def test_a_resumed_set_refuses_drives_of_another_render_scale_and_keeps_drives_that_never_recorded_one(tmp_path):
+    # It once kept drives rendered at 0.5 in a set asked for at 1.0: a folder of mixed render scales.
+    from replay.native import LogWriter, log_figures
+    from replay.synthetic import write_synthetic_logs
+    from rig.errors import ValidationError
+
+    first = write_synthetic_logs(tmp_path, drives=1, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    assert log_figures(first[0]).metadata["render_scale"] == "0.5"
+    with pytest.raises(ValidationError, match=r"drive_9_0000.mcap is kept .* rendered at --render-scale 0.5, "
+                                              r"not the 1 asked for: pass another folder, or delete"):
+        write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False,
+                             render_scale=1.0)
+    assert not (tmp_path / "drive_9_0001.mcap").exists()  # refused before anything was rendered
+    # A drive written before the scale was recorded cannot say it: kept, so older folders resume.
+    with LogWriter(first[0]) as writer:
+        for frame in synth_drive(drive_seed(9, 0), 2, intrinsics=SMALL):
+            writer.write_frame(frame)
+    os.utime(first[0], ns=(1, 1))  # a time no rewrite would leave
+    more = write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False,
+                                render_scale=1.0)
+    assert more[0].stat().st_mtime_ns == 1 and "render_scale" not in log_figures(more[0]).metadata
+    assert log_figures(more[1]).metadata["render_scale"] == "1.0"
+
+
 def test_an_output_that_is_a_file_is_refused_in_one_line(tmp_path):
     # `sunrig synth drive.mcap`: mkdir's FileExistsError was an internal error.
     from replay.synthetic import write_synthetic_logs

@@ -17,6 +17,7 @@ ambient), ``render`` (rasteriser, shading, shadows), ``camera`` (exposure, noise
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -42,6 +43,10 @@ __all__ = [
 ]
 
 
+# The key of a synthetic drive's render scale in its log's ``sunrig`` metadata (docs/log-format.md).
+RENDER_SCALE_KEY = "render_scale"
+
+
 def drive_seed(seed: int, index: int) -> int:
     """The seed of drive ``index`` of a set made with ``seed``: independent streams per drive."""
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint32)[0])
@@ -54,26 +59,35 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
     path, dseed, frames, intrinsics, render_scale, fps = job
     tmp = path.with_name(path.name + ".part")
     drive = Drive(dseed, frames, intrinsics=intrinsics, render_scale=render_scale, fps=fps)
-    with LogWriter(tmp) as writer:
+    # repr: the float back exactly, so a resumed run compares it with --render-scale as given.
+    with LogWriter(tmp, metadata={RENDER_SCALE_KEY: repr(float(render_scale))}) as writer:
         for frame in drive.frames():
             writer.write_frame(frame)
     os.replace(tmp, path)
     return path, frames
 
 
-def _kept(paths: list[Path], frames: int, fps: float) -> set[Path]:
+def _float_or_nan(text: str) -> float:
+    """``text`` as a float, NaN when it is none (equal to nothing, so a damaged value is a mismatch)."""
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
+def _kept(paths: list[Path], frames: int, fps: float, render_scale: float) -> set[Path]:
     """The drives kept from an earlier run. Each must be the drive asked for: the name fixes the
-    seed, and the frame count and rate are checked (a set asked for with 20 frames at 1 fps must not
-    be 10-frame drives, nor 10 fps ones)."""
-    from replay.native import frames_and_span
+    seed, and the frame count, rate and render scale are checked (a set asked for with 20 frames at
+    1 fps and scale 1 must not be 10-frame drives, nor 10 fps ones, nor ones rendered at 0.5)."""
+    from replay.native import log_figures
 
     kept = {path for path in paths if path.exists()}
     for path in sorted(kept):
-        figures = frames_and_span(path)
+        figures = log_figures(path)
         if figures is None:  # drives are written whole (_write_one): this one was damaged since
             raise ValidationError(f"{path} is kept from an earlier run but is not a whole log (cut short or "
                                   "damaged): delete it, and this command makes it again")
-        found, span = figures
+        found, span = figures.frames, figures.span_s
         if found != frames:
             raise ValidationError(
                 f"{path} is kept from an earlier run but holds {found} frames, not the {frames} asked for: "
@@ -85,6 +99,14 @@ def _kept(paths: list[Path], frames: int, fps: float) -> set[Path]:
                 f"{path} is kept from an earlier run but its frames are {span / (frames - 1):g} s apart, not the "
                 f"{1 / fps:g} s of --fps {fps:g}: pass another folder, or delete the folder's drives to make them again"
             )
+        scale = figures.metadata.get(RENDER_SCALE_KEY)
+        # No scale: a drive written before it was recorded. Kept unchecked, so that folders made
+        # then still resume instead of being refused whole (their drives cannot say their scale).
+        if scale is not None and _float_or_nan(scale) != render_scale:
+            raise ValidationError(
+                f"{path} is kept from an earlier run but was rendered at --render-scale {scale}, not the "
+                f"{render_scale:g} asked for: pass another folder, or delete the folder's drives to make them again"
+            )
     return kept
 
 
@@ -95,7 +117,7 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
 
     Drive i uses :func:`drive_seed` (seed, i), so any one log can be remade alone, and a drive
     whose log already exists is not rendered again: an interrupted run resumes (one whose
-    frame count differs is refused). ``jobs`` drives
+    frame count, rate or render scale differs is refused). ``jobs`` drives
     render in parallel processes. Returns the paths in order. Images go through the log
     writer's JPEG encoder.
     """
@@ -105,7 +127,7 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
         )
     out = make_output_folder(out_dir, what="folder", holds="OUT is the folder the drives are written to")
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
-    kept = _kept(paths, frames, fps)
+    kept = _kept(paths, frames, fps, render_scale)
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
             for i, p in enumerate(paths) if p not in kept]
     bar = Progress("synth", total=drives * frames, unit="frames", enabled=None if progress else False)
