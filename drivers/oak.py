@@ -49,6 +49,7 @@ from drivers.imu_heading import (
     ImuMode,
     cam_from_imu_default,
     choose_imu_mode,
+    imu_caps,
     imu_sensors,
     validate_rotation,
 )
@@ -180,6 +181,27 @@ class OakConfig:
     @property
     def declination_rad(self) -> float | None:
         return None if self.declination_deg is None else math.radians(self.declination_deg)
+
+
+def unused_declination_warning(declination_deg: float | None, mode: ImuMode, imu_name: str) -> str | None:
+    """What to tell a user whose declination the IMU mode cannot use, or None when it applies.
+
+    A declination turns a magnetic heading into a true one; the game rotation vector and gyro
+    integration give a heading relative to the session's start, so the tracker drops it. Said, not
+    silent: whoever passed it believes the estimates are referenced to true north.
+    """
+    if declination_deg is None or mode is ImuMode.ROTATION_VECTOR:
+        return None
+    caps = imu_caps(imu_name)
+    imu = imu_name or "IMU"
+    if caps is not None and caps.rotation_vector:  # the chip has it: this mode was asked for
+        fix = f"For a true heading set imu_mode rotation_vector (or auto) to use the {imu}'s magnetometer"
+    else:
+        fix = (f"The {imu} has no magnetometer: for a true heading use an OAK whose IMU has one "
+               "(BNO085/086, imu_mode rotation_vector)")
+    return (f"declination_deg {declination_deg:g} is not applied: the IMU gives a heading relative to its "
+            f"start in imu_mode {mode.value}, so estimates carry heading_ref relative, not true. {fix}, or use a "
+            "GNSS compass (--heading nmea:PORT); or drop --declination-deg")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -641,6 +663,10 @@ class OakCamera:
         if session.cam_from_imu_source.startswith("default"):
             self._warn_once("mount", "OAK %s: IMU-to-camera rotation is the %s: check it (docs/oak.md) or set "
                             "cam_from_imu", session.description, session.cam_from_imu_source)
+        unused = unused_declination_warning(cfg.declination_deg, session.imu_mode, session.imu_name)
+        if unused is not None:
+            # Keyed by mode: a reconnect in the same mode says nothing new, another device's may.
+            self._warn_once(f"declination_{session.imu_mode.value}", "OAK %s: %s", session.description, unused)
         # Each session re-zeroes a relative heading: its session number is the heading epoch, or
         # one past the last tracker's, which moves on by itself after a gap in gyro reports.
         with self._cond:

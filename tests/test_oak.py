@@ -9,6 +9,7 @@ Host-only pipelines (``dai.Pipeline(False)``) with a ``dai.node.ThreadedHostNode
 
 from __future__ import annotations
 
+import logging
 import math
 import subprocess
 import sys
@@ -168,7 +169,7 @@ class ScriptedSource(dai.node.ThreadedHostNode):
             traceback.print_exc()
 
 
-def host_sessions(*scripts, then=("idle",), imu_mode=ImuMode.ROTATION_VECTOR, mount=MOUNT):
+def host_sessions(*scripts, then=("idle",), imu_mode=ImuMode.ROTATION_VECTOR, mount=MOUNT, imu_name="BNO086"):
     """An ``open_session`` that builds one host-only pipeline per script, in order; past the last
     it raises OakError like a machine with nothing plugged in."""
     pending = list(scripts)
@@ -185,7 +186,7 @@ def host_sessions(*scripts, then=("idle",), imu_mode=ImuMode.ROTATION_VECTOR, mo
         opened.append(src)
         return OakSession(pipeline=p, video=src.video, imu=src.imu, intrinsics=INTR, imu_mode=imu_mode,
                           cam_from_imu=None if imu_mode is None else mount, cam_from_imu_source="test",
-                          imu_name="BNO086", description=f"host-{len(opened)}")
+                          imu_name=imu_name, description=f"host-{len(opened)}")
 
     open_session.opened = opened
     return open_session
@@ -383,6 +384,51 @@ def test_a_reconnect_starts_a_new_heading_epoch_only_for_relative_headings():
         assert len(frames) == 11 and [f.attitude.epoch for f in frames] == want, mode
         if mode is ImuMode.GAME_ROTATION_VECTOR:
             assert frames[0].attitude.reference is HeadingRef.RELATIVE
+
+
+@pytest.mark.parametrize(
+    ("mode", "declination_deg", "warned"),
+    [
+        (ImuMode.GAME_ROTATION_VECTOR, 5.0, True),
+        (ImuMode.GYRO, 5.0, True),
+        (ImuMode.ROTATION_VECTOR, 5.0, False),  # applied: the headings are true
+        (ImuMode.GAME_ROTATION_VECTOR, None, False),  # nothing asked for, nothing dropped
+        (ImuMode.GYRO, None, False),
+    ],
+)
+def test_a_declination_a_relative_imu_mode_cannot_use_is_said_once(mode, declination_deg, warned, caplog):
+    """docs/oak.md, Declination: it was dropped without a word in the relative modes, while whoever
+    passed --declination-deg believed the headings were true. Said once, not again at a reconnect."""
+    opener = host_sessions(script(3), script(3, first_seq=10), then=("stop", "idle"), imu_mode=mode)
+    cfg = OakConfig(**{**FAST, "declination_deg": declination_deg})
+    with caplog.at_level(logging.WARNING, logger="drivers.oak"), OakCamera(cfg, open_session=opener) as cam:
+        frames = collect(cam, 6)
+        stats = cam.stats()
+    assert len(frames) == 6 and stats["sessions"] == 2  # the second session did not say it again
+    said = [r.getMessage() for r in caplog.records if "declination" in r.getMessage()]
+    if not warned:
+        assert said == []
+        return
+    assert len(said) == 1, said
+    message = said[0]
+    assert stats["heading_ref"] == "relative"
+    for part in ("declination_deg 5 is not applied", f"imu_mode {mode.value}", "heading_ref relative",
+                 "imu_mode rotation_vector", "--heading nmea:PORT"):
+        assert part in message, (part, message)
+
+
+def test_the_unused_declination_advice_fits_the_imu():
+    from drivers.oak import unused_declination_warning  # here, not at the top: a module without it fails this test only
+
+    # A chip without a magnetometer cannot be switched to the rotation vector: another IMU or GNSS.
+    for name in ("BMI270", "LSM6DSV"):
+        mode = ImuMode.GYRO if name == "BMI270" else ImuMode.GAME_ROTATION_VECTOR
+        message = unused_declination_warning(-3.5, mode, name)
+        assert message is not None and f"The {name} has no magnetometer" in message and "BNO085/086" in message
+        assert "declination_deg -3.5 is not applied" in message and "--heading nmea:PORT" in message
+    assert "set imu_mode rotation_vector" in (unused_declination_warning(2.0, ImuMode.GYRO, "BNO086") or "")
+    assert unused_declination_warning(2.0, ImuMode.ROTATION_VECTOR, "BNO086") is None
+    assert unused_declination_warning(None, ImuMode.GYRO, "BMI270") is None
 
 
 def test_a_stalled_device_counts_as_lost():
