@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from estimator.estimator import AGGREGATORS, SunEstimator
+from replay.sources import corrupt_skipped
 from rig.geometry import az_el_from_enu
 from rig.offline import OfflineStats, estimate_stream
 from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_SPREAD_HIGH, FLAG_VALID, StatusRule
@@ -89,17 +90,22 @@ class EvalResult:
     windows_skipped_filling: int = 0
     windows_failed: int = 0
     windows_without_truth: int = 0
+    # Damaged records the log readers skipped (replay.sources.corrupt_skipped): a figure computed
+    # over a damaged log says so, and the frames it lost are in no other count. Per log as well.
+    records_skipped_corrupt: int = 0
+    records_skipped_corrupt_by_log: dict[str, int] = field(default_factory=dict)
     interrupted: bool = False  # Ctrl-C: the figures are of the windows evaluated until then
 
     # The counters above: pooled by addition and reported as they are, in this order.
     COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "windows_skipped_filling",
-              "windows_failed", "windows_without_truth")
+              "windows_failed", "windows_without_truth", "records_skipped_corrupt")
     # Those that estimate_stream counts per log (the others are counted here, per window).
     STREAM_COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "windows_failed")
 
     def extend(self, other: EvalResult) -> None:
         """Pool another evaluation of the same logs into this one (e.g. with other crop seeds):
-        its windows' errors and counts are added; the logs and the sample windows stay this one's."""
+        its windows' errors and counts (per log too) are added; the logs and the sample windows stay
+        this one's."""
         for per_agg in ("errors_deg", "flags", "elevation_deg"):
             for name, values in getattr(other, per_agg).items():
                 getattr(self, per_agg).setdefault(name, []).extend(values)
@@ -109,6 +115,8 @@ class EvalResult:
         self.interrupted |= other.interrupted  # pooled with a cut-short run: so is the pool
         for name in self.COUNTS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
+        for log, n in other.records_skipped_corrupt_by_log.items():  # the total is one of the COUNTS
+            self.records_skipped_corrupt_by_log[log] = self.records_skipped_corrupt_by_log.get(log, 0) + n
 
     def trim_to_whole_windows(self) -> None:
         """After an interruption: drop what a window cut short left in some lists but not others
@@ -135,9 +143,11 @@ class EvalResult:
 
     def by_log(self, aggregator: str) -> list[dict[str, float | int | str]]:
         """One aggregator's windows log by log (pooled evaluations of a log count together):
-        windows, mean, max and windows over :data:`TAIL_DEG`, the worst max first."""
+        windows, mean, max, windows over :data:`TAIL_DEG` and the damaged records its reader
+        skipped, the worst max first."""
         # Grouped in first-seen order, so ties stay in log order.
-        rows = [{"log": name, **s} for name, s in self._grouped(aggregator, self.window_logs, "logs", LOG_KEYS)]
+        rows = [{"log": name, **s, "records_skipped_corrupt": self.records_skipped_corrupt_by_log.get(name, 0)}
+                for name, s in self._grouped(aggregator, self.window_logs, "logs", LOG_KEYS)]
         return sorted(rows, key=lambda r: -float(r["max_deg"]))
 
     def by_newest_frame(self, aggregator: str) -> list[dict[str, float | int]]:
@@ -182,6 +192,11 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
             finally:  # an interrupted log's frames count too
                 for key in EvalResult.STREAM_COUNTS:
                     setattr(result, key, getattr(result, key) + getattr(stats, key))
+                # Asked of the reader once its pass has ended: the log is not read again for it.
+                damaged = corrupt_skipped(frames)
+                result.records_skipped_corrupt += damaged
+                by_log = result.records_skipped_corrupt_by_log
+                by_log[name] = by_log.get(name, 0) + damaged
             if progress:
                 progress(len(result.window_logs), n_logs)
     except KeyboardInterrupt:

@@ -277,6 +277,10 @@ class KittiDrive:
 
     Frames carry the rectified ``image_02``, its intrinsics, a TRUE heading with pitch and roll,
     UTC time, the OXTS fix and the sun from SPA as ``sun_enu_truth``.
+
+    ``corrupt_skipped`` counts the damaged records of the latest pass: OXTS records that do not
+    parse or are out of range (their frame comes without pose), and timestamps out of order and
+    images that do not decode (their frame is skipped).
     """
 
     def __init__(self, path: str | Path, utc_offset_h: float | None = None) -> None:
@@ -351,6 +355,10 @@ class KittiDrive:
         if np.any(ok):
             self.sun_enu[ok] = sun_truth_enu(self.utc_ns[ok], lat[ok], lon[ok], alt[ok])
         self._intrinsics_by_size: dict[tuple[int, int], Intrinsics] = {}
+        # Each pass starts from the damage found here and adds the images it cannot read: one
+        # pass's count, as a native log's stats are, so that passes pooled (an evaluation per crop
+        # seed) do not count the first pass's images again in the second.
+        self._skipped_when_opened = self.corrupt_skipped
 
     def _warn(self, message: str) -> None:
         self.corrupt_skipped += 1
@@ -393,6 +401,7 @@ class KittiDrive:
                      gnss=gnss, sun_enu_truth=truth)
 
     def __iter__(self) -> Iterator[Frame]:
+        self.corrupt_skipped = self._skipped_when_opened
         for i, path in enumerate(self.images):
             if not self.time_ok[i]:
                 continue

@@ -61,3 +61,24 @@ def open_frames(path: str | Path, *, utc_offset_h: float | None = None, ground_t
     from replay.groundtruth import with_ground_truth
 
     return with_ground_truth(source)
+
+
+def corrupt_skipped(source: Iterable[Frame]) -> int:
+    """How many damaged records the reader of ``source`` skipped in its latest pass (read it once
+    the pass has ended): 0 for a source that counts none (a device, a list of frames).
+
+    A record is what the reader decodes as one piece; a damaged one costs a frame, several, or only
+    part of one, so this is not a count of frames:
+
+    - a native log (``NativeLogSource.stats``): messages and chunks that did not decode. A chunk
+      holds many frames; a bad heading, fix or truth message leaves its frame without that field.
+    - a KITTI drive (``KittiDrive.corrupt_skipped``): images that did not decode and timestamps
+      out of order (each skips its frame), and OXTS records that did not parse or were out of
+      range (each leaves its frame without pose or truth).
+    """
+    count = getattr(source, "corrupt_skipped", None)  # a KITTI drive
+    if count is None:
+        # A native log, bare or inside its GroundTruthSource (which passes its attributes through).
+        # A camera driver's ``stats`` is a method, with no such field: 0.
+        count = getattr(getattr(source, "stats", None), "corrupt_skipped", None)
+    return int(count or 0)

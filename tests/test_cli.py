@@ -92,12 +92,12 @@ def test_debug_shows_the_traceback(bad_inputs):
     assert res.returncode != 0 and "Traceback" in res.stderr
 
 
-def _write_log(path, n=12):
+def _write_log(path, n=12, **writer):
     from replay.native import LogWriter
 
     intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
     rng = np.random.default_rng(4)
-    with LogWriter(path) as w:
+    with LogWriter(path, **writer) as w:
         for i in range(n):
             img = rng.integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
             att = Attitude(math.radians(10.0 * i), HeadingRef.TRUE) if i != 5 else None
@@ -138,6 +138,41 @@ def test_eval_of_logs_without_the_true_sun_says_so(tmp_path):
     res = run_cli("eval", str(log), "--json", str(tmp_path / "e.json"), "--aggregators", "mean")
     assert res.returncode == 2, res.stderr
     assert "no full window with ground truth in these logs (5 windows had no true sun)" in res.stderr
+
+
+@pytest.mark.torch
+def test_eval_json_counts_the_records_a_damaged_log_lost(tmp_path, capsys, caplog, tiny_model_dir):
+    # A chunk that fails its CRC, or an image that does not decode, is skipped with a warning on
+    # stderr; the JSON said nothing of it, so a figure read later from a damaged log looked like
+    # one from a whole log. Pooled over the logs, and per log among the worst.
+    from mcap.reader import make_reader
+
+    from tests.test_kitti import DRIVE, make_drive
+
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    whole = _write_log(fleet / "a.mcap")
+    damaged = _write_log(fleet / "b.mcap", chunk_size=1)  # a chunk a frame: the damage costs one frame
+    with open(damaged, "rb") as f:
+        victim = make_reader(f).get_summary().chunk_indexes[9]
+    data = bytearray(damaged.read_bytes())
+    mid = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2
+    data[mid : mid + 16] = bytes(b ^ 0x5A for b in data[mid : mid + 16])  # fails the chunk's CRC
+    damaged.write_bytes(bytes(data))
+    date = make_drive(tmp_path / "kitti", 12)
+    (date / DRIVE / "image_02" / "data" / "0000000003.png").write_bytes(b"not a png")
+    out = tmp_path / "e.json"
+    rc, captured = _main_in_process(["eval", str(fleet), str(date / DRIVE), "--utc-offset", "2", "--model",
+                                     str(tiny_model_dir), "--aggregators", "mean", "--quiet", "--json", str(out)],
+                                    capsys)
+    assert rc == 0, captured.err
+    said = " ".join(r.getMessage() for r in caplog.records)  # what stderr says: warned, and now counted too
+    assert "skipped a corrupt chunk" in said and "0000000003.png is missing or not an image" in said
+    summary = json.loads(out.read_text())
+    assert summary["frames"] == 12 + 11 + 11
+    assert summary["records_skipped_corrupt"] == 2
+    rows = {row["log"]: row["records_skipped_corrupt"] for row in summary["worst_logs"]["mean"]}
+    assert rows == {str(whole): 0, str(damaged): 1, str(date / DRIVE): 1}
 
 
 def _fleet_with_a_cut_recording(tmp_path):

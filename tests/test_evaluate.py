@@ -42,10 +42,11 @@ def test_pooled_results_add_windows_and_keep_this_ones_logs():
     a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]},
                    flags={"transformer": [ok, ok], "mean": [ok, ok]}, logs=["d0"],
                    window_logs=["d0", "d0"], frames=10, frames_bad_exposure=2, windows_skipped_filling=7,
-                   windows_failed=1)
+                   windows_failed=1, records_skipped_corrupt=1, records_skipped_corrupt_by_log={"d0": 1})
     b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, flags={"transformer": [hedge], "mean": [ok]},
                    logs=["d0"], window_logs=["d0"], frames=10,
-                   frames_without_heading=3, frames_bad_exposure=2, windows_skipped_filling=7, windows_without_truth=2)
+                   frames_without_heading=3, frames_bad_exposure=2, windows_skipped_filling=7, windows_without_truth=2,
+                   records_skipped_corrupt=1, records_skipped_corrupt_by_log={"d0": 1})
     a.extend(b)
     s = a.summary()
     # The status figures pool too: the 40-deg window was flagged, so the controller's worst is 2 deg.
@@ -53,14 +54,15 @@ def test_pooled_results_add_windows_and_keep_this_ones_logs():
                                           "windows_over_30_deg_not_valid": 1, "valid_max_deg": 2.0}
     assert s["status"]["mean"]["valid_windows"] == 3 and s["status"]["mean"]["valid_max_deg"] == 6.0
     assert s["worst_logs"]["transformer"] == [{"log": "d0", "n_windows": 3, "mean_deg": pytest.approx(43.0 / 3),
-                                               "max_deg": 40.0, "windows_over_30_deg": 1}]
+                                               "max_deg": 40.0, "windows_over_30_deg": 1,
+                                               "records_skipped_corrupt": 2}]
     assert s["aggregators"]["transformer"]["n_windows"] == 3
     assert s["aggregators"]["transformer"]["max_deg"] == 40.0
     assert s["aggregators"]["mean"]["mean_deg"] == pytest.approx(14.0 / 3)
     assert s["logs"] == ["d0"]
     counts = (s["frames"], s["frames_without_heading"], s["frames_bad_exposure"], s["windows_skipped_filling"],
-              s["windows_failed"], s["windows_without_truth"])
-    assert counts == (20, 3, 4, 14, 1, 2)
+              s["windows_failed"], s["windows_without_truth"], s["records_skipped_corrupt"])
+    assert counts == (20, 3, 4, 14, 1, 2, 2)
 
 
 def test_worst_logs_come_first_and_the_list_is_cut():
@@ -112,7 +114,9 @@ def test_eval_cli_json_shape_and_plots(tmp_path, tiny_model_dir):
         assert {"mean_deg", "median_deg", "max_deg", "under_5_deg", "under_10_deg", "under_20_deg"} <= set(s)
     assert summary["windows_skipped_filling"] == 14
     assert (summary["frames"], summary["frames_bad_exposure"], summary["frames_without_heading"]) == (24, 2, 0)
+    assert summary["records_skipped_corrupt"] == 0  # undamaged logs: said, as 0
     worst = summary["worst_logs"]["transformer"]
+    assert [row["records_skipped_corrupt"] for row in worst] == [0, 0]
     assert sorted(row["log"] for row in worst) == sorted(str(p) for p in logs)
     assert worst[0]["max_deg"] == aggs["transformer"]["max_deg"] and sum(r["n_windows"] for r in worst) == 8
     assert png.stat().st_size > 10_000 and (tmp_path / "eval-tokens.png").stat().st_size > 10_000
@@ -173,6 +177,48 @@ def test_windows_without_a_true_heading_are_counted_not_graded(tiny_model_dir):
     # Full windows from the 8th frame on: 3 per drive. Only the TRUE drive's are graded.
     assert result.windows_without_truth == 3 and result.window_logs == ["true"] * 3
     assert len(result.errors_deg["transformer"]) == 3 and len(result.truth_elevation_deg) == 3
+
+
+@pytest.mark.torch
+def test_the_records_a_damaged_log_lost_are_counted_per_log_and_once_per_pass(tmp_path, monkeypatch,
+                                                                               tiny_model_dir):
+    # The readers skip a damaged record with a warning on stderr; the evaluation must count it too,
+    # or a figure computed over a damaged log reads as one over a whole log. Evaluated twice (as
+    # with two crop seeds) and pooled, each pass counts its own damage, once.
+    import replay.native
+    from estimator.estimator import SunEstimator
+    from estimator.evaluate import evaluate
+    from estimator.runtime import OnnxModel
+    from replay.native import LogWriter
+    from replay.sources import open_frames
+    from rig.window import SpreadWindowPolicy
+    from tests.test_kitti import DRIVE, make_drive
+
+    def write(path, bad_seq=None):
+        with LogWriter(path) as w:
+            for f in noise_drive(12):
+                if f.seq == bad_seq:  # its image message does not decode: that frame is lost
+                    monkeypatch.setattr(replay.native, "encode_image", lambda *a, **k: b"not an image message")
+                w.write_frame(f)
+                monkeypatch.undo()
+        return path
+
+    damaged, whole = write(tmp_path / "damaged.mcap", bad_seq=9), write(tmp_path / "whole.mcap")
+    date = make_drive(tmp_path / "kitti", 12)
+    (date / DRIVE / "image_02" / "data" / "0000000003.png").write_bytes(b"not a png")
+    sources = [("damaged", open_frames(damaged)), ("kitti", open_frames(date, utc_offset_h=2.0)),
+               ("whole", open_frames(whole))]
+    estimator, policy = SunEstimator(OnnxModel.load(tiny_model_dir)), SpreadWindowPolicy(8, 4.0)
+    result = evaluate(sources, estimator, policy, aggregators=["mean"])
+    assert result.frames == 11 + 11 + 12
+    assert result.records_skipped_corrupt == 2
+    assert result.records_skipped_corrupt_by_log == {"damaged": 1, "kitti": 1, "whole": 0}
+    assert {r["log"]: r["records_skipped_corrupt"] for r in result.by_log("mean")} == {
+        "damaged": 1, "kitti": 1, "whole": 0}
+    result.extend(evaluate(sources, estimator, policy, aggregators=["mean"]))  # the same sources, read again
+    assert result.summary()["records_skipped_corrupt"] == 4
+    assert result.records_skipped_corrupt_by_log == {"damaged": 2, "kitti": 2, "whole": 0}
+
 
 def test_a_window_cut_short_is_trimmed_from_every_list():
     # Ctrl-C between two appends of one window: window_logs (appended last) says what is whole.
