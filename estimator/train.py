@@ -40,6 +40,7 @@ import json
 import logging
 import math
 import os
+import re
 import time
 import zipfile
 import zlib
@@ -87,6 +88,11 @@ METRICS = "train_metrics.jsonl"  # one line per 50 steps, appended across resume
 
 class TrainingDataError(SunrigError):
     """The logs given to training cannot train anything (no frames with a TRUE heading and true sun)."""
+
+
+class BatchMemoryError(SunrigError):
+    """A training step's batch does not fit in memory: fewer windows a step (``--batch``), or
+    fewer crops a frame (``--crops``), do."""
 
 
 # ------------------------------------------------------------------------------------------
@@ -418,6 +424,74 @@ class _Normaliser:
         return x * self.gain + self.offset
 
 
+# What torch's CPU allocator says when the OS refuses it memory ("can't allocate memory" on Linux
+# and macOS, "not enough memory" on Windows). It raises a bare RuntimeError, like any bug of ours,
+# so only this text tells a batch too large for the machine from a bug.
+_TORCH_ALLOC_FAILED = ("DefaultCPUAllocator: can't allocate memory", "DefaultCPUAllocator: not enough memory")
+
+
+def _allocation_failed(exc: BaseException) -> bool:
+    """Whether ``exc`` is a refused allocation: numpy's (a MemoryError) or torch's."""
+    return isinstance(exc, MemoryError) or (
+        isinstance(exc, RuntimeError) and any(said in str(exc) for said in _TORCH_ALLOC_FAILED))
+
+
+def _gib(n_bytes: float) -> str:
+    return f"{n_bytes / 2**30:.1f} GiB"
+
+
+def _asked(exc: BaseException) -> str:
+    """How much the refused allocation asked for, as its message says it (torch in bytes, numpy
+    in its own units), or "" if it does not."""
+    said = str(exc)
+    if m := re.search(r"allocate (\d+) bytes", said):
+        return _gib(int(m.group(1)))
+    m = re.search(r"allocate ([\d.]+ [KMGTPE]?i?B)", said)
+    return m.group(1) if m else ""
+
+
+def _memory_bytes() -> int | None:
+    """This machine's memory and swap together (``/proc/meminfo``), or None where the OS does not
+    say: more than that, no process can hold. (A container's limit may be lower; that only makes
+    the check below let through a batch that then fails at its first step.)"""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            kib = {key: int(rest.split()[0]) for key, rest in (line.split(":", 1) for line in fh)
+                   if key in ("MemTotal", "SwapTotal")}
+    except (OSError, ValueError, IndexError):
+        return None
+    return 1024 * (kib["MemTotal"] + kib.get("SwapTotal", 0)) if "MemTotal" in kib else None
+
+
+def _batch_input_bytes(windows: int, tokens: int, crop_size: int) -> int:
+    """A floor on a step's memory: its crops as the sampler's uint8 array and as the float32 input
+    the backbone is called on, both alive then. The step needs more (activations, gradients), by
+    an amount that depends on the preset; this part alone is exact."""
+    return windows * tokens * crop_size * crop_size * 3 * (1 + 4)
+
+
+def _check_batch_fits(windows: int, frames: int, crops_per_frame: int, crop_size: int) -> None:
+    """Refuse, before minutes of loading data, a batch whose crops alone exceed the machine's
+    memory and swap: it could never run here. A batch under that may still fail at its first step
+    (the step's activations are not counted), which :func:`train` says the same way."""
+    memory = _memory_bytes()
+    tokens = frames * crops_per_frame
+    need = _batch_input_bytes(windows, tokens, crop_size)
+    if memory is not None and need > memory:
+        raise BatchMemoryError(
+            f"train: a step of {windows} windows x {tokens} crops ({windows * tokens} crops of {crop_size} px) "
+            f"needs at least {_gib(need)} for its crops alone, more than the {_gib(memory)} of memory and swap "
+            f"this machine has; {_smaller_batch_advice(windows, crops_per_frame)}")
+
+
+def _smaller_batch_advice(windows: int, crops_per_frame: int) -> str:
+    recipe = TrainConfig.batch_windows
+    # Fewer crops than the paper's would change the recipe, so --crops is named only above it.
+    fewer_crops = (f" or fewer --crops than {crops_per_frame}" if crops_per_frame > PAPER_CROPS_PER_FRAME
+                   else "")
+    return f"pass a smaller --batch{f' (the recipe is {recipe})' if windows > recipe else ''}{fewer_crops}"
+
+
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     # Serialised in memory first: torch.save reports a full disk as a bare RuntimeError ("unexpected
     # pos"), an internal error at the CLI; Python's own write says ENOSPC, with what to do.
@@ -536,6 +610,9 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     out_dir = Path(out_dir)
     ckpt_path = out_dir / CHECKPOINT
     state = _resumable_state(out_dir, cfg)
+    _check_batch_fits(cfg.batch_windows, cfg.frames_per_window,
+                      int(state["config"]["crops_per_frame"]) if state is not None  # saved resolved, never 0
+                      else cfg.crops_per_frame or PAPER_CROPS_PER_FRAME, net_cfg.crop_size)
     # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
     init_start = _checked_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
     init_weights = init_start[0] if init_start is not None else None
@@ -630,6 +707,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     normalise = _Normaliser(contract_stub.input_norm)
     budget_s = cfg.minutes * 60.0
     tail_margin_rad = math.radians(cfg.tail_margin_deg)
+    t_step = cfg.frames_per_window * cfg.crops_per_frame  # crops of a window
     # The schedule's length: steps if given, else estimated from the measured step time once 20
     # steps are timed (until then a length so long the rate is flat, and no total to report).
     unknown_total = 10**9
@@ -642,6 +720,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     start = time.monotonic() - elapsed_s
     start_step = step  # where this session began: a resumed run's earlier steps are not its rate
     last_ckpt = time.monotonic()
+    saved_step = None if state is None else state["step"]  # of the checkpoint in out_dir, if any
     ema_loss: float | None = None  # exponential moving averages, from the first step on
     ema_err: float | None = None
     warned_busy = False
@@ -670,35 +749,50 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             for g in opt.param_groups:
                 g["lr"] = schedule.lr_at(step, est_total, cfg)
 
-            batch = sampler.sample(cfg.batch_windows)
-            b, t = batch.mask.shape
-            x = normalise(batch.crops.reshape(b * t, *batch.crops.shape[2:]))
-            mask = torch.from_numpy(batch.mask)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                if bf16:
-                    x = x.contiguous(memory_format=torch.channels_last)
-                emb = backbone(x).view(b, t, -1)
-                v_head = aggregator(emb, torch.from_numpy(batch.angles), mask)
-            v_head = v_head.float()
-            v_world = nets.world_from_heading_torch(v_head, torch.from_numpy(batch.yaw).float())
-            truth = torch.from_numpy(batch.truth).float()
-            token_loss = nets.sun_loss(v_world, truth[:, None, :].expand_as(v_world), mask)
-            maskf = mask.float().unsqueeze(-1)
-            mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
-            window_loss = nets.sun_loss(mean, truth)
-            full = batch.mask.all(axis=1)  # the windows with every token: what the rig runs once filled
-            if cfg.tail_weight:
-                # Full windows only: the accuracy targets are on those, and a subset window of a
-                # token or two is often far off for want of views, which this term should not chase.
-                window_loss = window_loss + cfg.tail_weight * nets.tail_loss(mean, truth, tail_margin_rad,
-                                                                             torch.from_numpy(full))
-            loss = token_loss + window_loss
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, 1.0)
-            opt.step()
-            if average is not None:
-                average.update()
+            try:
+                batch = sampler.sample(cfg.batch_windows)
+                b, t = batch.mask.shape
+                x = normalise(batch.crops.reshape(b * t, *batch.crops.shape[2:]))
+                mask = torch.from_numpy(batch.mask)
+                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                    if bf16:
+                        x = x.contiguous(memory_format=torch.channels_last)
+                    emb = backbone(x).view(b, t, -1)
+                    v_head = aggregator(emb, torch.from_numpy(batch.angles), mask)
+                v_head = v_head.float()
+                v_world = nets.world_from_heading_torch(v_head, torch.from_numpy(batch.yaw).float())
+                truth = torch.from_numpy(batch.truth).float()
+                token_loss = nets.sun_loss(v_world, truth[:, None, :].expand_as(v_world), mask)
+                maskf = mask.float().unsqueeze(-1)
+                mean = (v_world * maskf).sum(1) / maskf.sum(1).clamp_min(1.0)
+                window_loss = nets.sun_loss(mean, truth)
+                full = batch.mask.all(axis=1)  # the windows with every token: what the rig runs once filled
+                if cfg.tail_weight:
+                    # Full windows only: the accuracy targets are on those, and a subset window of a
+                    # token or two is often far off for want of views, which this term should not chase.
+                    window_loss = window_loss + cfg.tail_weight * nets.tail_loss(mean, truth, tail_margin_rad,
+                                                                                 torch.from_numpy(full))
+                loss = token_loss + window_loss
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, 1.0)
+                opt.step()
+                if average is not None:
+                    average.update()
+            except (RuntimeError, MemoryError) as exc:
+                if not _allocation_failed(exc):
+                    raise
+                # No checkpoint of this step: it may have failed halfway through the update. The
+                # last one is kept as it is, for the same command to resume once memory is free.
+                asked = _asked(exc)
+                kept = ("" if saved_step is None else
+                        f" with a new --out (a run keeps its batch), or free memory and run the same command to "
+                        f"resume: its checkpoint at step {saved_step} in {out_dir} is kept")
+                raise BatchMemoryError(
+                    f"train: step {step + 1} cannot allocate memory for its batch of {cfg.batch_windows} windows x "
+                    f"{t_step} crops ({cfg.batch_windows * t_step} crops of {net_cfg.crop_size} px"
+                    f"{f'; it asked for {asked} more' if asked else ''}); "
+                    f"{_smaller_batch_advice(cfg.batch_windows, cfg.crops_per_frame)}{kept}") from exc
             step += 1
 
             with torch.no_grad():
@@ -722,7 +816,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                           "loss": ema_loss, "err_deg": ema_err})
             if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:
                 _save_checkpoint(ckpt_path, state_dict())
-                last_ckpt = time.monotonic()
+                saved_step, last_ckpt = step, time.monotonic()
                 if not warned_busy and not cfg.max_steps:  # a step budget is not shortened by load
                     threads = torch.get_num_threads()
                     extra = other_cpu_load(threads)

@@ -963,3 +963,84 @@ def test_export_only_refuses_a_folder_of_another_run_or_of_logs(tmp_path):
         _refuse_export_over_others(logs, run)
     for fine in (run, model, tmp_path / "new"):  # its own folder, a model alone (docs/model.md), a new one
         _refuse_export_over_others(fine, run)
+
+
+# What torch 2.13 raises, word for word, when the CPU allocator is refused (provoked once by hand
+# with torch.empty(10**13) on a machine without that much memory).
+TORCH_ALLOC_FAILED = ("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: "
+                      "you tried to allocate 39321600000 bytes. Error code 12 (Cannot allocate memory)")
+
+
+def _refuse_memory(monkeypatch, exc):
+    """Make every step's input allocation fail as ``exc``: where the real 39 GB allocation of
+    `--batch 100000` failed, without asking for it."""
+    from estimator import train as train_module
+
+    def refused(self, crops_bgr):
+        raise exc
+
+    monkeypatch.setattr(train_module._Normaliser, "__call__", refused)
+
+
+@pytest.mark.parametrize("exc", [RuntimeError(TORCH_ALLOC_FAILED),
+                                 MemoryError("Unable to allocate 36.6 GiB for an array with shape (100000, 32, 32, 32, "
+                                             "3) and data type float32")], ids=["torch", "numpy"])
+def test_a_step_that_cannot_allocate_its_batch_is_one_line_saying_to_lower_batch(logs, tmp_path, monkeypatch,
+                                                                                capsys, exc):
+    # It was an internal error (exit 1) naming neither the batch nor what to do about it.
+    from rig.cli import main
+
+    _refuse_memory(monkeypatch, exc)
+    out = tmp_path / "m"
+    code = main(["train", *map(str, logs), "--out", str(out), "--preset", "tiny", "--batch", "3", "--steps", "1",
+                 "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "internal error" not in err[0] and "step 1 cannot allocate memory" in err[0], err[0]
+    assert "3 windows x 32 crops (96 crops of 32 px" in err[0] and "36.6 GiB" in err[0], err[0]
+    assert "pass a smaller --batch" in err[0] and "--crops" not in err[0], err[0]  # 4 crops a frame: the paper's
+    assert not (out / CHECKPOINT).exists()
+    monkeypatch.undo()
+    # As the error says: a smaller batch in the same --out trains.
+    assert main(["train", *map(str, logs), "--out", str(out), "--preset", "tiny", "--batch", "2", "--steps", "1",
+                 "--quiet"]) == 0
+
+
+def test_a_run_that_runs_out_of_memory_keeps_its_checkpoint_and_other_errors_stay_bugs(logs, tmp_path, monkeypatch):
+    from estimator.train import BatchMemoryError
+
+    out = tmp_path / "m"
+    cfg = TrainConfig(preset="tiny", max_steps=2, batch_windows=2, crops_per_frame=6, warmup_steps=1)
+    train(logs, out, cfg)
+    saved = (out / CHECKPOINT).read_bytes()
+    _refuse_memory(monkeypatch, RuntimeError(TORCH_ALLOC_FAILED))
+    with pytest.raises(BatchMemoryError) as info:
+        train(logs, out, replace(cfg, max_steps=4))
+    message = str(info.value)
+    assert "step 3 cannot allocate memory for its batch of 2 windows x 48 crops" in message, message
+    assert "fewer --crops than 6" in message and "with a new --out" in message, message
+    assert f"its checkpoint at step 2 in {out} is kept" in message, message
+    assert (out / CHECKPOINT).read_bytes() == saved
+    # Only an allocation that failed: any other RuntimeError is a bug, and says so as it did.
+    _refuse_memory(monkeypatch, RuntimeError("mat1 and mat2 shapes cannot be multiplied (96x48 and 64x48)"))
+    with pytest.raises(RuntimeError, match="mat1 and mat2") as info:
+        train(logs, out, replace(cfg, max_steps=4))
+    assert not isinstance(info.value, BatchMemoryError)
+
+
+def test_a_batch_whose_crops_alone_exceed_the_machines_memory_is_refused_before_loading(logs, tmp_path, monkeypatch):
+    from estimator import train as train_module
+
+    monkeypatch.setattr(train_module, "_memory_bytes", lambda: 2**30)  # a 1 GiB machine, swap included
+    monkeypatch.setattr(train_module, "load_drives", None)  # refused before any data loads
+    # 10 000 windows of 32 crops of 32 px are 0.9 GiB as bytes and 3.7 GiB as floats.
+    with pytest.raises(train_module.BatchMemoryError, match=r"10000 windows x 32 crops \(320000 crops of 32 px\) "
+                       r"needs at least 4.6 GiB .* more than the 1.0 GiB of memory and swap this machine has; "
+                       r"pass a smaller --batch \(the recipe is 6\)$"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, batch_windows=10000))
+    assert not (tmp_path / "m").exists()
+    monkeypatch.undo()
+    monkeypatch.setattr(train_module, "_memory_bytes", lambda: None)  # where the OS does not say: not checked
+    monkeypatch.setattr(train_module, "load_drives", lambda *a, **k: pytest.fail("reached") or [])
+    with pytest.raises(pytest.fail.Exception, match="reached"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, batch_windows=10000))
