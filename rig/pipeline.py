@@ -164,7 +164,7 @@ class RigPipeline:
         self._failure: tuple[str, BaseException] | None = None
         self._failure_lock = threading.Lock()
         self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
-        self._warned_sparse = False  # said once that windows cannot fill (_warn_if_sparse)
+        self._warned_sparse = False  # said that windows cannot fill (_warn_if_sparse), until they do again
         # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
         # what its publish() raised on, and whether its reader is gone.
         self._names: list[str] = []
@@ -310,7 +310,7 @@ class RigPipeline:
 
     def _warn_if_sparse(self, candidates: list[FrameFeatures], window: list[FrameFeatures],
                         newest: FrameFeatures) -> None:
-        """Once: a partial window although the ring reaches back past the window's span with
+        """Once a stretch: a partial window although the ring reaches back past the window's span with
         frames of the newest one's heading zero. Fewer frames than a window holds come in a span
         (a slow camera, or frames dropped for a slow estimator), so no window is ever full and
         every estimate goes out flagged partial, for as long as that lasts."""
@@ -362,8 +362,14 @@ class RigPipeline:
             feats, arrived = item
             candidates = [f for f in self.ring.snapshot() if f.frame.t_mono_s <= feats.frame.t_mono_s]
             window = self.policy.select(candidates)
-            if len(window) < self.policy.n_frames and not self._warned_sparse:
-                self._warn_if_sparse(candidates, window, feats)
+            if len(window) < self.policy.n_frames:
+                if not self._warned_sparse:
+                    self._warn_if_sparse(candidates, window, feats)
+            elif self._warned_sparse:
+                # Once per change, as the exposure messages: a later stretch of partial windows
+                # (the camera slowing again, a new load) is said again, not hidden by an early one.
+                self._warned_sparse = False
+                log.info("from seq %d windows are full again", feats.frame.seq)
             try:
                 est = self.estimator.estimate(window)
             except EstimationError as exc:

@@ -111,6 +111,26 @@ def test_a_camera_too_slow_to_fill_a_window_is_said_once(model, caplog):
     assert not [r for r in caplog.records if "partial window" in r.getMessage()]
 
 
+def test_every_stretch_of_windows_that_cannot_fill_is_said(model, caplog):
+    # A camera that slows down (1.4 Hz), recovers (10 Hz) and slows again: the second stretch of
+    # partial windows was once hidden by the first warning, said once a run.
+    def stretches():
+        t, seq = 0.0, 0
+        for n, dt in ((20, 0.7), (60, 0.1), (20, 0.7)):
+            for frame in frames(n, dt=dt):
+                yield dataclasses.replace(frame, t_mono_s=t, seq=seq)
+                t, seq = t + dt, seq + 1
+
+    with caplog.at_level(logging.INFO, logger="rig.pipeline"):
+        _, stats = run_pipeline(stretches(), SunEstimator(model), [Collect()], queue_size=200)
+    said = [("partial" if "partial window" in r.getMessage() else "full", r.getMessage()) for r in caplog.records
+            if "partial window" in r.getMessage() or "full again" in r.getMessage()]
+    assert stats.estimates + stats.windows_skipped == 100  # unpaced: windows the aggregator was behind on skip
+    assert [kind for kind, _ in said] == ["partial", "full", "partial"]
+    # Full again within the 10 Hz stretch (seq 20-79), once 8 of its frames are in.
+    assert 27 <= int(said[1][1].split()[2]) < 80
+
+
 def test_a_stopped_run_accounts_for_what_was_still_queued(model):
     # An endless, unpaced source stopped by the timeout, as Ctrl-C stops a live rig: frames still
     # queued for the backbone, and a window waiting for the aggregator, once went uncounted.
