@@ -578,6 +578,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     if deadline is not None:
         deadline.daemon = True
         deadline.start()
+    writer = None
     try:
         with _recording_refusals("--out", "--overwrite"):
             # Made now, after the sources: a wrong camera or port leaves no file.
@@ -617,6 +618,13 @@ def cmd_record(args: argparse.Namespace) -> int:
                 if exc.errno not in _DISK_FULL:
                     raise
                 disk_full = disk_full or exc
+    except Exception:
+        # The source failed before its first frame (a calibration of another resolution, found on
+        # that frame): its error says what to do, and an empty log left behind would refuse the
+        # corrected command as a recording that exists.
+        if writer is not None and discard_if_empty(writer):
+            print(f"sunrig: nothing was recorded, so {writer.path} is not kept", file=sys.stderr)
+        raise
     finally:
         if deadline is not None:
             deadline.cancel()

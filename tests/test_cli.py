@@ -1146,6 +1146,31 @@ def test_a_recording_that_got_no_frame_is_not_kept(tmp_path, capsys, monkeypatch
                                                                                 "(docs/drivers.md)")
 
 
+def test_a_recording_whose_camera_fails_on_its_first_frame_is_not_kept(tmp_path, capsys):
+    # A calibration made at another resolution is found on the first frame: the log was kept empty,
+    # and the corrected command was then refused because --out existed.
+    import cv2
+
+    from tests.test_opencv_camera import clip_image, write_calibration
+
+    clip = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for k in range(5):
+        writer.write(clip_image(k))
+    writer.release()
+    write_calibration(tmp_path / "cam.yaml", np.array([[100.0, 0, 64], [0, 100.0, 36], [0, 0, 1]]), 128, 72)
+    out = tmp_path / "drive.mcap"
+    argv = ["record", "--camera", f"opencv:{clip}", "--heading", "none", "--out", str(out)]
+    rc, captured = _main_in_process([*argv, "--calibration", str(tmp_path / "cam.yaml")], capsys)
+    assert rc == 2 and not out.exists()
+    said = captured.err.strip().splitlines()
+    assert said[0] == f"sunrig: nothing was recorded, so {out} is not kept"
+    assert said[1].startswith("sunrig: error: ") and "calibrat" in said[1]
+    # The corrected command records.
+    rc, captured = _main_in_process([*argv, "--hfov-deg", "60"], capsys)
+    assert rc == 0 and out.exists(), captured.err
+
+
 def test_a_run_that_recorded_nothing_keeps_no_file(tmp_path, capsys, silent_camera):
     out = tmp_path / "run.mcap"
     rc, captured = _main_in_process(["run", "--camera", "opencv:0", "--hfov-deg", "60", "--heading", "none",
