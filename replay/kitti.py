@@ -52,6 +52,7 @@ import numpy as np
 
 from replay.groundtruth import sun_truth_enu
 from rig.errors import LogError, ValidationError
+from rig.solar import ELEVATION_RANGE_M
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics
 
 logger = logging.getLogger(__name__)
@@ -70,6 +71,8 @@ OXTS_FIELDS = (
     "navstat", "numsats", "posmode", "velmode", "orimode",
 )
 _USED = ("lat", "lon", "alt", "roll", "pitch", "yaw")
+_POSE_RANGE = ((-90.0, 90.0), (-180.0, 180.0), ELEVATION_RANGE_M, (-math.pi, math.pi), (-math.pi, math.pi),
+               (-2.0 * math.pi, 2.0 * math.pi))
 
 _warned_default_offset = False
 
@@ -162,6 +165,18 @@ def parse_oxts(text: str, name: str = "oxts") -> np.ndarray:
     if not np.all(np.isfinite(values[:6])):
         raise LogError(f"{name}: position or attitude is not finite: {values[:6].tolist()}")
     return values
+
+
+def oxts_in_range(pose: np.ndarray) -> np.ndarray:
+    """Which of lat, lon, alt, roll, pitch, yaw (rows of 6) are in range, as bools of the same shape.
+
+    A place on Earth, an altitude the ephemeris takes (:data:`rig.solar.ELEVATION_RANGE_M`; 1e9 m
+    ended the whole drive there), roll and pitch within a half turn, yaw within a turn either way
+    (the devkit gives -pi..pi: a yaw of 1e300 would wrap to some heading and be graded as one).
+    NaN is out of range.
+    """
+    lo, hi = np.array(_POSE_RANGE).T
+    return (pose >= lo) & (pose <= hi)
 
 
 def parse_calib(text: str) -> dict[str, np.ndarray]:
@@ -338,11 +353,12 @@ class KittiDrive:
         self.oxts_utc_ns = oxts_ns - offset_ns
         self.t_mono_s = (image_ns - image_ns[0]) / 1e9  # from an exact integer difference
         with np.errstate(invalid="ignore"):  # NaN rows (bad records) compare False, as they should
-            self.pose_ok = (np.all(np.isfinite(oxts), axis=1) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
-                            & (np.abs(roll) <= np.pi) & (np.abs(pitch) <= np.pi))
+            in_range = oxts_in_range(oxts)
+        self.pose_ok = np.all(in_range, axis=1)
         for i in np.flatnonzero(~self.pose_ok & np.all(np.isfinite(oxts), axis=1)).tolist():
-            self._warn(f"{name}/oxts/data/{oxts_files[i].name}: lat/lon/roll/pitch out of range "
-                       f"{oxts[i, :5].tolist()}; frame {i} has no heading, position or truth")
+            bad = ", ".join(f"{_USED[k]} {oxts[i, k]:g}" for k in np.flatnonzero(~in_range[i]).tolist())
+            self._warn(f"{name}/oxts/data/{oxts_files[i].name}: out of range: {bad}; "
+                       f"frame {i} has no heading, position or truth")
         # The timestamps must increase: a step back would break the monotonic clock downstream.
         # The frames kept are the longest run of increasing times, so that one stamp far ahead
         # costs its own frame, not every frame after it (which a running maximum dropped).

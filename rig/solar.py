@@ -42,6 +42,9 @@ DEFAULT_PRESSURE_HPA = 1013.25
 DEFAULT_TEMPERATURE_C = 12.0
 DEFAULT_REFRACTION_DEG = 0.5667
 SUN_RADIUS_DEG = 0.26667
+# The observer elevations taken (from the SPA code's -6500 km up to 10,000 km); a reader checks its
+# records against them first, so that one damaged altitude costs its record, not the whole call.
+ELEVATION_RANGE_M = (-6_500_000.0, 1e7)
 _JD_UNIX_EPOCH = 2440587.5  # Julian day of 1970-01-01T00:00Z
 _J2000 = 2451545.0
 _JD_MIN, _JD_MAX = 990574.5, 3912880.5  # -2000-01-01T00:00 and 6001-01-01T00:00, proleptic Gregorian
@@ -506,7 +509,7 @@ def spa_steps(utc, lat_deg, lon_deg, elevation_m=0.0, pressure_hpa=DEFAULT_PRESS
     """
     lat = _check_range("latitude", lat_deg, -90.0, 90.0, "deg")
     lon = _check_range("longitude", lon_deg, -180.0, 360.0, "deg")
-    elev = _check_range("elevation", elevation_m, -6_500_000.0, 1e7, "m")
+    elev = _check_range("elevation", elevation_m, *ELEVATION_RANGE_M, "m")
     pressure = _check_range("pressure", pressure_hpa, 1e-6, 5000.0, "hPa")
     temp = _check_range("temperature", temperature_c, -273.0, 6000.0, "C")
     refraction = _check_range("refraction", refraction_deg, -5.0, 5.0, "deg")

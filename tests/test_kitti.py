@@ -466,6 +466,24 @@ def test_oxts_records_out_of_range_or_not_finite_cost_only_their_frame(tmp_path)
     assert drive.corrupt_skipped == 3
 
 
+@pytest.mark.parametrize("pose", ["49.015 8.4343 1e9 0.01 0.005 0.3",  # altitude past what the ephemeris takes
+                                  "49.015 8.4343 -7e6 0.01 0.005 0.3",  # deeper than the Earth's centre
+                                  "49.015 8.4343 116.4 0.01 0.005 1e300"])  # yaw wrapped to some angle
+def test_an_out_of_range_altitude_or_yaw_costs_only_its_frame(tmp_path, caplog, pose):
+    # An altitude of 1e9 m ended the whole drive (and an eval over several) in the ephemeris's
+    # "elevation: expected within ..." with no file named, where a bad latitude cost its frame.
+    date = make_drive(tmp_path, 6)
+    _write_oxts(date, 2, pose)
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        drive = open_kitti(date, utc_offset_h=2.0)
+        frames = list(drive)
+    assert [f.attitude is None and f.gnss is None and f.sun_enu_truth is None for f in frames] == [
+        False, False, True, False, False, False]
+    assert drive.corrupt_skipped == 1
+    assert any("0000000002.txt" in r.getMessage() and "frame 2 has no heading" in r.getMessage()
+               for r in caplog.records)
+
+
 def test_utc_offset_beyond_any_time_zone_is_refused():
     # Time zones run from -12 to +14 h: anything past 14 is a typo (minutes? a date?), and each hour
     # moves the sun ~15 deg.
