@@ -273,7 +273,10 @@ def _dumps(obj: dict) -> bytes:
 
 
 def _loads(data: bytes) -> dict:
-    obj = json.loads(data)
+    try:
+        obj = json.loads(data)
+    except RecursionError:  # a payload nested thousands deep ([[[[...]]]]): damaged or crafted
+        raise ValueError("JSON nested too deep to decode") from None
     if not isinstance(obj, dict):
         raise ValueError(f"expected a JSON object, got {type(obj).__name__}")
     return obj

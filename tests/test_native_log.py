@@ -8,6 +8,7 @@ round-trips exactly, except degrees <-> radians (EXACT_F64) and seconds <-> inte
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -570,6 +571,45 @@ def test_corrupt_heading_drops_only_that_message(tmp_path, monkeypatch, bad):
     assert got[2].attitude is None and got[2].gnss == frames[2].gnss
     assert got[3].attitude is not None
     assert src.stats.corrupt_skipped == 1
+
+
+_DEEP_JSON = b"[" * 100_000 + b"]" * 100_000  # valid JSON, nested past the decoder's recursion limit
+
+
+@pytest.mark.parametrize(("encoder", "field"), [("encode_attitude", "attitude"), ("encode_utc", "utc_ns"),
+                                                ("encode_sun_truth", "sun_enu_truth")])
+def test_a_json_message_nested_too_deep_is_skipped_as_corrupt(tmp_path, monkeypatch, caplog, encoder, field):
+    # A crafted payload [[[[...]]]] made the JSON decoder raise RecursionError, which no reader
+    # caught: replay, eval and record ended in an internal error instead of skipping one message.
+    frames = make_frames(5)
+    path = tmp_path / "deep.mcap"
+    with LogWriter(path) as w:
+        for f in frames:
+            if f.seq == 12:
+                monkeypatch.setattr(native, encoder, lambda *a: _DEEP_JSON)
+            w.write_frame(f)
+            monkeypatch.undo()
+    src = open_log(path)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        got = list(src)
+    assert [g.seq for g in got] == [f.seq for f in frames]
+    assert getattr(got[2], field) is None and getattr(got[3], field) is not None
+    assert src.stats.corrupt_skipped == 1
+    assert any("corrupt message at seq 12" in r.getMessage() for r in caplog.records)
+
+
+def test_an_estimate_nested_too_deep_is_skipped(tmp_path, monkeypatch):
+    est = SunEstimate(t_mono_s=1235.0, seq=20, sun_enu=[0.0, 0.6, 0.8], heading_rad=0.3,
+                      heading_ref=HeadingRef.TRUE, spread_rad=0.05, n_frames=8, n_tokens=4, aggregator="mean")
+    path = tmp_path / "deep-estimate.mcap"
+    with LogWriter(path) as w:
+        w.write_frame(make_frames(1)[0])
+        w.write_estimate(est)
+        monkeypatch.setattr(native, "encode_estimate", lambda *a: _DEEP_JSON)
+        w.write_estimate(dataclasses.replace(est, seq=21))
+        monkeypatch.undo()
+        w.write_estimate(dataclasses.replace(est, seq=22))
+    assert [d["seq"] for d in read_estimates(path)] == [20, 22]
 
 
 @pytest.mark.parametrize(
