@@ -27,6 +27,7 @@ from typing import IO, Any, Generic, Protocol, TypeVar, runtime_checkable
 import serial
 
 from rig.errors import PublishError
+from rig.files import StreamFile
 from rig.portio import PORT_ERRORS, Backoff, begin_stop, join_worker
 from rig.protocol import DEFAULT_STATUS_RULE, FLAG_VALID, StatusRule, encode_binary, encode_nmea, flag_names
 from rig.ring import DropOldestQueue
@@ -465,8 +466,9 @@ class JsonRow(Protocol):
 class JsonlPublisher:
     """One ``json.dumps(est.to_json_dict())`` per line, flushed per line.
 
-    ``target``: a path (created or truncated, closed by :meth:`close`), ``"-"`` for stdout, or an
-    open text stream (flushed, left open: its owner closes it). This one writes in the caller's
+    ``target``: a path (checked now, replaced or made at the first estimate, closed by
+    :meth:`close`: a run that writes none leaves it as it was; rig.files.StreamFile), ``"-"``
+    for stdout, or an open text stream (flushed, left open: its owner closes it). This one writes in the caller's
     thread: it is for files and pipes, where a write does not stall. With a ``status_rule``, each
     line also says what the serial output would: ``valid`` and the ``status`` flag names.
     """
@@ -475,11 +477,11 @@ class JsonlPublisher:
         self._rule = status_rule
         self._owned = False
         if target == "-":
-            self._stream: IO[str] = sys.stdout
+            self._stream: IO[str] | StreamFile = sys.stdout
             self._name = "<stdout>"
         elif isinstance(target, str | Path):
             try:
-                self._stream = open(target, "w", encoding="utf-8")  # closed in close()
+                self._stream = StreamFile(target)  # closed in close()
             except OSError as exc:
                 raise PublishError(
                     f"cannot write JSONL to {target}: {exc.strerror}; check the folder exists and is writable"

@@ -70,6 +70,41 @@ def test_replay_of_a_log_none_of_whose_frames_can_be_read_fails(tmp_path, monkey
         "replay another log, or re-record this one")
 
 
+def _unreadable_log(path, monkeypatch):
+    """A native log of 12 frames none of whose images can be read."""
+    import replay.native
+
+    with monkeypatch.context() as m:
+        m.setattr(replay.native, "encode_image", lambda *a, **k: b"not an image message")
+        return _write_log(path)
+
+
+@pytest.mark.parametrize("command", ["replay", "run", "gnss"])
+def test_a_command_that_writes_no_estimate_leaves_its_jsonl_as_it_was(tmp_path, capsys, monkeypatch, command):
+    # The JSONL output was opened with truncation before the first frame was read: a replay of a log
+    # none of whose frames could be read ended rc 2 with yesterday's file at 0 bytes, and a new path
+    # left behind as a 0-byte file. run and gnss open theirs the same way.
+    if command == "gnss":
+        bad = tmp_path / "capture.txt"
+        bad.write_text("hello\n")  # no NMEA sentence
+        argv = ["gnss", str(bad)]
+    else:
+        bad = _unreadable_log(tmp_path / "bad.mcap", monkeypatch)
+        argv = (["replay", str(bad), "--aggregator", "mean"] if command == "replay" else
+                ["run", "--camera", f"file:{bad}", "--heading", "log", "--fast"])
+    keep, new = tmp_path / "keep.jsonl", tmp_path / "new.jsonl"
+    keep.write_text("prev\n")
+    for out in (keep, new):
+        rc, captured = _main_in_process([*argv, "--jsonl", str(out), "--quiet"], capsys)
+        if command != "run":  # (a live run that read nothing ends as a camera that sent nothing)
+            _assert_one_line_error(rc, captured, names=bad.name)
+    assert keep.read_text() == "prev\n" and not new.exists()
+    if command == "replay":  # the first estimate replaces what was there
+        rc, captured = _main_in_process(["replay", "--aggregator", "mean", "--jsonl", str(keep), "--quiet"], capsys)
+        assert rc == 0, captured.err
+        assert "prev" not in keep.read_text() and len(keep.read_text().splitlines()) > 1
+
+
 def test_replay_of_a_log_with_no_heading_fails_saying_so(tmp_path):
     # Every frame read, none with a heading: it replayed "0 estimates" and exited 0.
     from replay.native import LogWriter
@@ -330,7 +365,7 @@ def test_a_model_computing_nan_fails_replay_and_eval_and_the_live_rig_skips_its_
     res = run_cli("run", "--camera", f"file:{log}", "--heading", "log", "--model", str(model), "--aggregator",
                   aggregator, "--jsonl", str(tmp_path / "live.jsonl"))
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
-    assert (tmp_path / "live.jsonl").read_text() == ""
+    assert not (tmp_path / "live.jsonl").exists()  # made at the first estimate: there was none
 
 
 @pytest.mark.torch
@@ -1028,7 +1063,7 @@ def test_a_stop_while_the_pipeline_is_built_closes_the_outputs_and_keeps_no_empt
     rec, jsonl = tmp_path / "rec.mcap", tmp_path / "est.jsonl"
     rc, captured = _main_in_process(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--record", str(rec),
                                      "--record-frames", "--jsonl", str(jsonl)], capsys)
-    assert rc == 130 and not rec.exists() and jsonl.read_text() == ""
+    assert rc == 130 and not rec.exists() and not jsonl.exists()  # (made at the first estimate)
     assert f"nothing was recorded, so {rec} is not kept" in captured.err
 
 
@@ -1073,8 +1108,8 @@ def test_every_input_of_every_command_refuses_a_bad_file_in_one_line(tmp_path, c
     argv = _command(_INPUT_SLOTS[slot], bad=bad, out=out)
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names=bad.name)
-    if slot != "gnss SOURCE":  # a stream: its output opens before a port's first sentence can come
-        assert not os.listdir(tmp_path / "out"), "an output was left by a command that failed"
+    # A stream's output (gnss) too: made at its first line, not when opened.
+    assert not os.listdir(tmp_path / "out"), "an output was left by a command that failed"
 
 
 _OUTPUT_SLOTS = {

@@ -774,6 +774,39 @@ def test_jsonl_unwritable_path_says_what_to_do(tmp_path):
         JsonlPublisher(tmp_path / "no" / "such" / "dir" / "est.jsonl")
 
 
+def test_jsonl_file_is_touched_only_by_its_first_estimate(tmp_path):
+    # Opened with truncation, a run that failed before its first estimate (a log none of whose
+    # frames could be read) emptied the file a run before had written, and left a new path as a
+    # 0-byte file. A stream is not written whole or not at all, but nothing is touched for nothing.
+    keep = tmp_path / "keep.jsonl"
+    keep.write_text("prev\n")
+    JsonlPublisher(keep).close()
+    new = tmp_path / "new.jsonl"
+    JsonlPublisher(new).close()
+    assert keep.read_text() == "prev\n" and not new.exists() and sorted(os.listdir(tmp_path)) == ["keep.jsonl"]
+    for path in (keep, new):  # the first estimate replaces what was there
+        with JsonlPublisher(path) as pub:
+            pub.publish(make_estimate(90, 45, seq=3))
+            assert json.loads(path.read_text())["seq"] == 3  # flushed, before close
+    # A path that cannot be written is still refused when opened, not at the first estimate.
+    keep.chmod(0o444)
+    if not os.access(keep, os.W_OK):  # (root may write anyway)
+        with pytest.raises(PublishError, match="cannot write JSONL"):
+            JsonlPublisher(keep)
+    (tmp_path / "a-file").write_text("x")
+    with pytest.raises(PublishError, match="cannot write JSONL .*Not a directory"):
+        JsonlPublisher(tmp_path / "a-file" / "est.jsonl")
+    assert not os.path.exists(tmp_path / "a-file" / "est.jsonl")
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/null"), reason="needs /dev/null")
+def test_jsonl_to_a_device_writes_in_place(tmp_path):
+    # Not a regular file: opened at once and written there, as rig.files.write_replacing does.
+    with JsonlPublisher("/dev/null") as pub:
+        pub.publish(make_estimate(90, 45))
+    assert pub.stats()["written"] == 1 and Path("/dev/null").is_char_device()
+
+
 def test_publishers_share_the_protocol(tmp_path: Path):
     with SerialPublisher("loop://") as serial_pub, JsonlPublisher(tmp_path / "x.jsonl") as jsonl_pub:
         assert isinstance(serial_pub, Publisher) and isinstance(jsonl_pub, Publisher)
