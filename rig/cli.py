@@ -786,6 +786,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if result.interrupted:
         return args.stop.exit_code()  # as for any Ctrl-C, but with the work so far written
     if not lines:  # an error, so said even with --quiet (which silences progress, not errors)
+        if not result.frames:  # every image corrupt, or none recorded: no span or log length would help
+            which = (f"{sources[0][0]}: no frame of it could be read" if len(sources) == 1 else
+                     f"no frame of the {len(sources)} logs could be read")
+            again = "another log, or re-record this one" if len(sources) == 1 else "other logs, or re-record these"
+            print(f"sunrig: error: eval graded nothing: {which} (the warnings above say why); evaluate {again}",
+                  file=sys.stderr)
+            return EXIT_USER_ERROR
         if result.windows_failed:  # first: the warnings above say what the model did with the windows
             print(f"sunrig: error: eval graded nothing: {result.windows_failed} windows failed and none was "
                   "estimated (the warnings above say why); check the model (--model)", file=sys.stderr)

@@ -1252,6 +1252,20 @@ def test_eval_that_grades_nothing_says_which_frames_were_unusable(tmp_path, caps
     assert captured.err.startswith(f"sunrig: error: eval graded nothing: {why}"), captured.err
 
 
+def test_eval_of_logs_none_of_whose_frames_can_be_read_says_so_as_replay_does(tmp_path, capsys, monkeypatch):
+    # It said "no log has 8 frames within --window-span-s 4 s (0 frames in all); give longer logs, or
+    # raise --window-span-s": neither helps a log whose every image is damaged.
+    bad = _unreadable_log(tmp_path / "bad.mcap", monkeypatch)
+    rc, captured = _main_in_process(["eval", str(bad), "--aggregators", "mean", "--quiet"], capsys)
+    _assert_one_line_error(rc, captured, names=f"eval graded nothing: {bad}: no frame of it could be read (the "
+                                               "warnings above say why); evaluate another log, or re-record this one")
+    assert "window-span-s" not in captured.err and json.loads(captured.out)["frames"] == 0  # (the JSON says so too)
+    other = _unreadable_log(tmp_path / "other.mcap", monkeypatch)
+    rc, captured = _main_in_process(["eval", str(bad), str(other), "--aggregators", "mean", "--quiet"], capsys)
+    _assert_one_line_error(rc, captured, names="eval graded nothing: no frame of the 2 logs could be read (the "
+                                               "warnings above say why); evaluate other logs, or re-record these")
+
+
 def test_replay_says_which_frames_it_skipped_and_why(tmp_path, capsys):
     from replay.native import LogWriter
 
