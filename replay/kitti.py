@@ -24,7 +24,9 @@ Choices, all stated in ``docs/ground-truth.md``:
   2011-09-26 .. 2011-10-03): we read the timestamps as the recording PC's local clock. That is a
   belief, not a documented fact (KITTI does not say), so leaving the offset to the default logs a
   warning once; pass ``--utc-offset 0`` if you hold them to be UTC. Each hour moves the sun by
-  ~15 deg in azimuth. ``t_mono_s`` is seconds since the drive's first image timestamp.
+  ~15 deg in azimuth. ``t_mono_s`` is seconds since the drive's first image timestamp. A time
+  that int64 ns cannot hold (outside the years 1678..2262), as written or as UTC, is a damaged
+  record, not a date numpy wraps round to another.
 - **Attitude**: OXTS (``dataformat.txt``): yaw 0 = east, counter-clockwise positive; pitch
   positive = front down; roll positive = left side up (a forward-left-up body frame). In sunrig's
   conventions: heading = 90 deg - yaw (clockwise from true north, so the reference is TRUE);
@@ -52,7 +54,7 @@ import numpy as np
 
 from replay.groundtruth import sun_truth_enu
 from rig.errors import LogError, ValidationError
-from rig.solar import ELEVATION_RANGE_M
+from rig.solar import ELEVATION_RANGE_M, NS_YEARS, UTC_NS_MAX, UTC_NS_MIN
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics
 
 logger = logging.getLogger(__name__)
@@ -81,24 +83,50 @@ _warned_default_offset = False
 # Pure parsers: text in, arrays out
 
 
-def parse_timestamps_ns(text: str, name: str = "timestamps.txt") -> np.ndarray:
-    """Timestamp lines ``YYYY-MM-DD HH:MM:SS.fffffffff`` -> int64 ns since 1970-01-01 of that wall
-    clock (no time zone applied). Exact: numpy parses the digits as integers, no float on the way.
+def parse_timestamps(text: str, name: str = "timestamps.txt") -> list[tuple[int, int]]:
+    """Timestamp lines ``YYYY-MM-DD HH:MM:SS.fffffffff`` -> (line number, ns since 1970-01-01 of that
+    wall clock) as Python integers, exact for any year written (no time zone applied, no float on
+    the way). Whether a time fits in int64 ns is the caller's to check (:func:`in_ns_range`).
 
     Raises :class:`LogError` naming the first bad line. Blank lines (a trailing newline) are skipped.
     """
-    lines = [ln.strip() for ln in text.splitlines()]
-    rows = []
-    for i, ln in enumerate(lines, 1):
+    rows, fractions = [], []
+    for i, ln in enumerate((ln.strip() for ln in text.splitlines()), 1):
         if not ln:
             continue
         if not _TIMESTAMP_RE.match(ln):
             raise LogError(f"{name} line {i}: expected 'YYYY-MM-DD HH:MM:SS.fffffffff', got {ln[:40]!r}")
-        rows.append(ln.replace(" ", "T"))
+        whole, _, fraction = ln.partition(".")
+        rows.append((i, whole.replace(" ", "T")))
+        fractions.append(int(fraction.ljust(9, "0")))
     try:
-        return np.array(rows, dtype="datetime64[ns]").view(np.int64)
+        # Whole seconds: datetime64[s] holds every four-digit year, where [ns] wraps past 1678..2262.
+        seconds = np.array([r for _, r in rows], dtype="datetime64[s]").view(np.int64).tolist()
     except ValueError as exc:  # a well-formed but impossible date, e.g. month 13
         raise LogError(f"{name}: not a valid date/time: {exc}") from None
+    return [(i, sec * 1_000_000_000 + frac) for (i, _), sec, frac in zip(rows, seconds, fractions, strict=True)]
+
+
+def in_ns_range(t_ns: int) -> bool:
+    """Whether a time (int ns since the epoch) fits in int64 ns, as the ephemeris takes it."""
+    return UTC_NS_MIN <= t_ns <= UTC_NS_MAX
+
+
+def show_ns(t_ns: int) -> str:
+    """A time of any year (int ns since the epoch) as ISO text to the second, for a message."""
+    return str(np.datetime64(t_ns // 1_000_000_000, "s"))
+
+
+def parse_timestamps_ns(text: str, name: str = "timestamps.txt") -> np.ndarray:
+    """:func:`parse_timestamps` as int64 ns, refusing (:class:`LogError` naming the line) a time that
+    int64 ns cannot hold (the years 1678..2262) rather than a date wrapped around to another."""
+    out = []
+    for i, t in parse_timestamps(text, name):
+        if not in_ns_range(t):
+            raise LogError(f"{name} line {i}: {show_ns(t)} is outside the years {NS_YEARS} that ns since 1970 hold; "
+                           "is the file damaged?")
+        out.append(t)
+    return np.array(out, dtype=np.int64)
 
 
 UTC_OFFSET_LIMIT_H = 14  # the widest of the world's time zones (Kiribati, +14)
@@ -286,6 +314,19 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
 # The source
 
 
+def _times_in_ns(stamps: list[tuple[int, int]], offset_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(wall clock, UTC) as int64 ns and whether both fit, for :func:`parse_timestamps` output;
+    0 where they do not (checked in Python integers, which do not wrap)."""
+    held = np.array([in_ns_range(t) and in_ns_range(t - offset_ns) for _, t in stamps], dtype=bool)
+    local = np.array([t if ok else 0 for (_, t), ok in zip(stamps, held, strict=True)], dtype=np.int64)
+    utc = np.array([t - offset_ns if ok else 0 for (_, t), ok in zip(stamps, held, strict=True)], dtype=np.int64)
+    return local, utc, held
+
+
+def _show_times(t_ns: int, offset_ns: int) -> str:
+    return show_ns(t_ns) + (f" (UTC {show_ns(t_ns - offset_ns)})" if offset_ns else "")
+
+
 class KittiDrive:
     """A KITTI raw drive as a frame source: iterate it for Frames (re-iterable; images are read
     lazily, everything else when it is opened, so a bad drive fails before any work).
@@ -294,8 +335,9 @@ class KittiDrive:
     UTC time, the OXTS fix and the sun from SPA as ``sun_enu_truth``.
 
     ``corrupt_skipped`` counts the damaged records of the latest pass: OXTS records that do not
-    parse or are out of range (their frame comes without pose), and timestamps out of order and
-    images that do not decode (their frame is skipped).
+    parse or are out of range and OXTS timestamps outside the years int64 ns hold (their frame
+    comes without pose), and image timestamps out of order or outside those years and images that
+    do not decode (their frame is skipped).
     """
 
     def __init__(self, path: str | Path, utc_offset_h: float | None = None) -> None:
@@ -319,12 +361,12 @@ class KittiDrive:
         cam_dir, oxts_dir = self.path / CAMERA, self.path / "oxts"
         self.images = sorted((cam_dir / "data").glob("*.png"))
         oxts_files = sorted((oxts_dir / "data").glob("*.txt"))
-        image_ns = parse_timestamps_ns(_read_text(cam_dir / "timestamps.txt", "image timestamps"),
-                                       f"{name}/{CAMERA}/timestamps.txt")
-        oxts_ns = parse_timestamps_ns(_read_text(oxts_dir / "timestamps.txt", "OXTS timestamps"),
-                                      f"{name}/oxts/timestamps.txt")
-        counts = {"images": len(self.images), "image timestamps": len(image_ns),
-                  "OXTS records": len(oxts_files), "OXTS timestamps": len(oxts_ns)}
+        image_stamps = parse_timestamps(_read_text(cam_dir / "timestamps.txt", "image timestamps"),
+                                        f"{name}/{CAMERA}/timestamps.txt")
+        oxts_stamps = parse_timestamps(_read_text(oxts_dir / "timestamps.txt", "OXTS timestamps"),
+                                       f"{name}/oxts/timestamps.txt")
+        counts = {"images": len(self.images), "image timestamps": len(image_stamps),
+                  "OXTS records": len(oxts_files), "OXTS timestamps": len(oxts_stamps)}
         if len(set(counts.values())) != 1 or not self.images:
             raise LogError(f"{name}: " + ", ".join(f"{v} {k}" for k, v in counts.items())
                            + "; a sync drive has one of each per frame (re-extract the drive)")
@@ -349,25 +391,40 @@ class KittiDrive:
         lat, lon, alt, roll, pitch, yaw = oxts.T
         self.heading_rad, self.pitch_rad, self.roll_rad = attitude_from_oxts(roll, pitch, yaw)
         self.lat_deg, self.lon_deg, self.alt_m = lat, lon, alt
-        self.utc_ns = image_ns - offset_ns
-        self.oxts_utc_ns = oxts_ns - offset_ns
-        self.t_mono_s = (image_ns - image_ns[0]) / 1e9  # from an exact integer difference
+        # A time that int64 ns cannot hold, as written or as UTC, is a damaged record: numpy would
+        # wrap it around to another date (2300 to 1715) and the sun be computed for that one.
+        image_ns, self.utc_ns, image_time_held = _times_in_ns(image_stamps, offset_ns)
+        _, self.oxts_utc_ns, oxts_time_held = _times_in_ns(oxts_stamps, offset_ns)
+        for i in np.flatnonzero(~image_time_held).tolist():
+            self._warn(f"{name}/{CAMERA}/timestamps.txt line {image_stamps[i][0]}: frame {i}'s time "
+                       f"{_show_times(image_stamps[i][1], offset_ns)} is outside the years {NS_YEARS} that ns "
+                       "since 1970 hold; frame skipped")
+        for i in np.flatnonzero(~oxts_time_held).tolist():
+            self._warn(f"{name}/oxts/timestamps.txt line {oxts_stamps[i][0]}: OXTS time "
+                       f"{_show_times(oxts_stamps[i][1], offset_ns)} is outside the years {NS_YEARS} that ns "
+                       f"since 1970 hold; frame {i} has no heading, position or truth")
+        # Seconds from the first frame with a time, by an exact difference of Python integers
+        # (1678 to 2262 is more ns than int64 holds).
+        t0 = int(image_ns[np.argmax(image_time_held)])
+        self.t_mono_s = np.array([(t - t0) / 1e9 if ok else np.nan
+                                  for t, ok in zip(image_ns.tolist(), image_time_held.tolist(), strict=True)])
         with np.errstate(invalid="ignore"):  # NaN rows (bad records) compare False, as they should
             in_range = oxts_in_range(oxts)
-        self.pose_ok = np.all(in_range, axis=1)
-        for i in np.flatnonzero(~self.pose_ok & np.all(np.isfinite(oxts), axis=1)).tolist():
+        for i in np.flatnonzero(~np.all(in_range, axis=1) & np.all(np.isfinite(oxts), axis=1)).tolist():
             bad = ", ".join(f"{_USED[k]} {oxts[i, k]:g}" for k in np.flatnonzero(~in_range[i]).tolist())
             self._warn(f"{name}/oxts/data/{oxts_files[i].name}: out of range: {bad}; "
                        f"frame {i} has no heading, position or truth")
+        self.pose_ok = np.all(in_range, axis=1) & oxts_time_held
         # The timestamps must increase: a step back would break the monotonic clock downstream.
         # The frames kept are the longest run of increasing times, so that one stamp far ahead
         # costs its own frame, not every frame after it (which a running maximum dropped).
+        held = np.flatnonzero(image_time_held)
         self.time_ok = np.zeros(n, dtype=bool)
-        self.time_ok[longest_increasing(image_ns)] = True
-        for i in np.flatnonzero(~self.time_ok).tolist():
+        self.time_ok[held[longest_increasing(image_ns[held])]] = True
+        for i in np.flatnonzero(~self.time_ok & image_time_held).tolist():
             self._warn(f"{name}: frame {i}'s timestamp is out of order with the frames around it; frame skipped")
         self.sun_enu = np.full((n, 3), np.nan)
-        ok = self.pose_ok
+        ok = self.pose_ok & self.time_ok
         if np.any(ok):
             self.sun_enu[ok] = sun_truth_enu(self.utc_ns[ok], lat[ok], lon[ok], alt[ok])
         self._intrinsics_by_size: dict[tuple[int, int], Intrinsics] = {}

@@ -45,6 +45,11 @@ SUN_RADIUS_DEG = 0.26667
 # The observer elevations taken (from the SPA code's -6500 km up to 10,000 km); a reader checks its
 # records against them first, so that one damaged altitude costs its record, not the whole call.
 ELEVATION_RANGE_M = (-6_500_000.0, 1e7)
+# The times integer ns since the epoch hold in int64, as datetime64[ns] does (whose lowest value is
+# NaT, not a time): 1677-09-21 to 2262-04-11, "the years 1678..2262" of the messages. A reader
+# checks its times against them, since numpy wraps a date past them around without a word.
+UTC_NS_MIN, UTC_NS_MAX = -(2**63) + 1, 2**63 - 1
+NS_YEARS = "1678..2262"
 _JD_UNIX_EPOCH = 2440587.5  # Julian day of 1970-01-01T00:00Z
 _J2000 = 2451545.0
 _JD_MIN, _JD_MAX = 990574.5, 3912880.5  # -2000-01-01T00:00 and 6001-01-01T00:00, proleptic Gregorian
@@ -389,7 +394,7 @@ def _day_and_fraction(utc) -> tuple[np.ndarray, np.ndarray]:
         try:  # Python ints too large for int64 arrive as an object array and fail here
             ticks = np.array(arr, dtype=np.int64) if arr.dtype == object else arr.astype(np.int64, casting="safe")
         except (OverflowError, TypeError):
-            raise ValidationError("time: integer ns since the epoch must fit in int64 (years 1678..2262); "
+            raise ValidationError(f"time: integer ns since the epoch must fit in int64 (years {NS_YEARS}); "
                                   "pass numpy datetime64[s] for other years") from None
         per_day = _UNITS_PER_DAY["ns"]
     else:

@@ -484,6 +484,91 @@ def test_an_out_of_range_altitude_or_yaw_costs_only_its_frame(tmp_path, caplog, 
                for r in caplog.records)
 
 
+@pytest.mark.parametrize("stamp", ["2300-01-01 00:00:00.000000000", "9999-12-31 23:59:59.999999999",
+                                   "1600-01-01 00:00:00.000000000", "1677-09-21 00:12:43.145224192"])
+def test_a_timestamp_past_what_ns_hold_is_a_one_line_log_error(stamp):
+    # Parsed to datetime64[ns], 2300 wrapped to 1715, 9999 to 1816 and 1600 to 2184 without a word:
+    # the sun was then computed for another date. (The last is NaT's own value, one ns too early.)
+    with pytest.raises(LogError, match=r"^x/timestamps.txt line 2: .* outside the years 1678\.\.2262"):
+        parse_timestamps_ns(f"2011-09-26 13:02:25.000000000\n{stamp}\n", "x/timestamps.txt")
+    # the limits themselves are times
+    assert parse_timestamps_ns("1677-09-21 00:12:43.145224193\n2262-04-11 23:47:16.854775807\n").tolist() == [
+        -(2**63) + 1, 2**63 - 1]
+
+
+def _stamp(date: Path, stream: str, index: int, stamp: str) -> None:
+    path = date / DRIVE / stream / "timestamps.txt"
+    lines = path.read_text().splitlines()
+    lines[index] = stamp
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_image_timestamps_past_what_ns_hold_cost_only_their_frames(tmp_path, caplog):
+    # 2300 wrapped to 1715 (frame 0, then first in time) and 1600 to 2184 (the last frame, then
+    # after the others): both replayed, graded against the sun of a wrong date, with exit 0.
+    date = make_drive(tmp_path, 6)
+    _stamp(date, "image_02", 0, "2300-01-01 00:00:00.000000000")
+    _stamp(date, "image_02", 5, "1600-01-01 00:00:00.000000000")
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        drive = open_kitti(date, utc_offset_h=2.0)
+        frames = list(drive)
+    assert [f.seq for f in frames] == [1, 2, 3, 4]
+    assert all(str(np.datetime64(f.utc_ns, "ns")).startswith("2011-09-26T11:02:25") for f in frames)
+    assert all(f.sun_enu_truth is not None for f in frames)
+    assert frames[0].t_mono_s == 0.0 and frames[1].t_mono_s == pytest.approx(0.1)
+    assert drive.corrupt_skipped == 2
+    said = [r.getMessage() for r in caplog.records]
+    assert any("frame 0" in m and "2300-01-01" in m and "1678..2262" in m and "frame skipped" in m for m in said)
+    assert any("frame 5" in m and "1600-01-01" in m for m in said)
+
+
+def test_a_drive_stamped_wholly_past_what_ns_hold_yields_no_frame_of_a_wrong_date(tmp_path):
+    date = make_drive(tmp_path, 4)
+    (date / DRIVE / "image_02" / "timestamps.txt").write_text(
+        "".join(f"9999-01-01 00:00:0{i}.000000000\n" for i in range(4)))
+    drive = open_kitti(date, utc_offset_h=2.0)
+    assert list(drive) == [] and drive.corrupt_skipped == 4
+
+
+def test_a_utc_past_what_ns_hold_after_the_offset_costs_its_frame(tmp_path):
+    # 23:00 local on the last day ns hold is within them, but at UTC-2 its UTC (01:00 the next day)
+    # is not: int64 arithmetic wrapped it to 1677. East of Greenwich the same stamps are times.
+    date = make_drive(tmp_path, 3)
+    stamps = "".join(f"2262-04-11 23:00:0{i}.000000000\n" for i in range(3))
+    for stream in ("image_02", "oxts"):
+        (date / DRIVE / stream / "timestamps.txt").write_text(stamps)
+    west = open_kitti(date, utc_offset_h=-2.0)
+    assert list(west) == [] and west.corrupt_skipped == 3 + 3  # each frame's image and OXTS stamps
+    east = list(open_kitti(date, utc_offset_h=2.0))
+    assert [str(np.datetime64(f.utc_ns, "ns"))[:19] for f in east] == [f"2262-04-11T21:00:0{i}" for i in range(3)]
+
+
+def test_frames_centuries_apart_within_what_ns_hold_keep_their_order(tmp_path):
+    # 1678 to 2262 is more ns than int64 holds: the seconds since the first frame must not wrap.
+    date = make_drive(tmp_path, 3)
+    (date / DRIVE / "image_02" / "timestamps.txt").write_text(
+        "1678-01-01 12:00:00.000000000\n2262-01-01 12:00:00.000000000\n2262-01-01 12:00:00.100000000\n")
+    frames = list(open_kitti(date, utc_offset_h=2.0))
+    assert [f.seq for f in frames] == [0, 1, 2]
+    assert frames[1].t_mono_s == (_timestamp_ns("2262-01-01 12:00:00.0") - _timestamp_ns("1678-01-01 12:00:00.0")) / 1e9
+    assert frames[2].t_mono_s > frames[1].t_mono_s > 0
+
+
+def test_an_oxts_timestamp_past_what_ns_hold_costs_that_frame_its_pose(tmp_path, caplog):
+    # The fix's time wrapped the same way (a GnssFix of 1715); the image's own time still holds.
+    date = make_drive(tmp_path, 4)
+    _stamp(date, "oxts", 2, "2300-01-01 00:00:00.000000000")
+    with caplog.at_level(logging.WARNING, logger="replay.kitti"):
+        drive = open_kitti(date, utc_offset_h=2.0)
+        frames = list(drive)
+    assert [f.seq for f in frames] == [0, 1, 2, 3]
+    assert [f.attitude is None and f.gnss is None and f.sun_enu_truth is None for f in frames] == [
+        False, False, True, False]
+    assert drive.corrupt_skipped == 1
+    assert any("oxts/timestamps.txt" in r.getMessage() and "frame 2 has no heading" in r.getMessage()
+               for r in caplog.records)
+
+
 def test_utc_offset_beyond_any_time_zone_is_refused():
     # Time zones run from -12 to +14 h: anything past 14 is a typo (minutes? a date?), and each hour
     # moves the sun ~15 deg.
