@@ -52,6 +52,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from rig.errors import EmptyLogError, LogError, ValidationError
+from rig.solar import UTC_NS_MAX
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
 
 try:  # mcap depends on zstandard; kept optional here only so the error tuple can name it
@@ -385,8 +386,12 @@ def decode_gnss(data: bytes) -> GnssFix:
     if not msg.HasField("timestamp"):
         raise ValueError("location fix without its UTC timestamp")
     alt = None if math.isnan(msg.altitude) else msg.altitude
+    utc_ns = _ns_from_timestamp(msg.timestamp)
+    if not 0 <= utc_ns <= UTC_NS_MAX:
+        raise ValueError(f"location fix: expected a time from 1970 to 2262 (what ns since 1970 hold), got "
+                         f"{msg.timestamp.seconds} s")
     return GnssFix(
-        utc_ns=_ns_from_timestamp(msg.timestamp),
+        utc_ns=utc_ns,
         lat_deg=msg.latitude,
         lon_deg=msg.longitude,
         alt_m=alt,
@@ -400,17 +405,16 @@ def encode_utc(utc_ns: int, seq: int) -> bytes:
     return _dumps({"utc": {"sec": sec, "nsec": nsec}, "utc_iso": utc_iso(int(utc_ns)), "seq": seq})
 
 
-_UTC_SEC_END = 253_402_300_800  # 10000-01-01T00:00:00Z, past datetime's last year
-
-
 def decode_utc(data: bytes) -> int:
     utc = _loads(data)["utc"]
     sec, nsec = utc["sec"], utc["nsec"]
     if not (isinstance(sec, int) and isinstance(nsec, int) and 0 <= nsec < 1_000_000_000):
         raise ValueError(f"utc: expected integer sec and nsec in [0, 1e9), got {utc!r}")
-    if not 0 <= sec < _UTC_SEC_END:  # a date no clock meant, which no datetime can show either
-        raise ValueError(f"utc: expected a time from 1970 to 9999, got sec {sec}")
-    return sec * 1_000_000_000 + nsec
+    utc_ns = sec * 1_000_000_000 + nsec
+    # A date no clock meant: past int64 ns (2262) the ephemeris cannot take it, numpy wraps it.
+    if not 0 <= utc_ns <= UTC_NS_MAX:
+        raise ValueError(f"utc: expected a time from 1970 to 2262 (what ns since 1970 hold), got sec {sec}")
+    return utc_ns
 
 
 def encode_sun_truth(sun_enu: np.ndarray, seq: int) -> bytes:

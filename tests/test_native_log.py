@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from mcap.decoder import DecoderFactory as McapDecoderFactory
 from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
@@ -48,6 +49,7 @@ from replay.native import (
     read_estimates,
     read_frames,
 )
+from replay.sources import open_frames
 from rig.errors import EmptyLogError, LogError, ValidationError
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate
 from tests.tolerances import EXACT_F64, JPEG_MEAN_ABS
@@ -634,6 +636,47 @@ def test_an_out_of_range_utc_or_truth_drops_only_that_message(tmp_path, monkeypa
     got = list(src)
     assert [g.seq for g in got] == [f.seq for f in frames]
     assert getattr(got[2], field) is None and got[2].attitude is not None
+    assert src.stats.corrupt_skipped == 1
+
+
+def _gnss_at(seconds: int):
+    real = native.encode_gnss  # the writer's, before the test puts this one in its place
+
+    def encode(fix: GnssFix) -> bytes:
+        msg = LocationFix.FromString(real(fix))
+        msg.timestamp.seconds = seconds
+        return msg.SerializeToString()
+    return encode
+
+
+@pytest.mark.parametrize(
+    ("encoder", "bad", "field"),
+    [
+        ("encode_utc", b'{"utc": {"sec": 10413792000, "nsec": 0}, "seq": 13}', "utc_ns"),  # 2300-01-01
+        ("encode_utc", b'{"utc": {"sec": 9223372036, "nsec": 854775808}, "seq": 13}', "utc_ns"),  # 1 ns past int64
+        ("encode_gnss", _gnss_at(10413792000), "gnss"),
+        ("encode_gnss", _gnss_at(-10413792000), "gnss"),  # 1640
+    ],
+)
+def test_a_time_past_what_ns_hold_drops_only_that_message(tmp_path, monkeypatch, encoder, bad, field):
+    # A UTC of 2300 (the reader took 1970..9999) reached the ephemeris, which takes int64 ns
+    # (1678..2262): replay of a frame with a TRUE heading and no truth of its own ended in an
+    # internal OverflowError. Seq 13 has a TRUE heading; the truth is the reader's to compute.
+    frames = [dataclasses.replace(f, sun_enu_truth=None) for f in make_frames(5)]
+    assert frames[3].seq == 13 and frames[3].attitude.reference == HeadingRef.TRUE
+    path = tmp_path / "badtime.mcap"
+    real = getattr(native, encoder)
+    with LogWriter(path) as w:
+        for f in frames:
+            if f.seq == 13:
+                monkeypatch.setattr(native, encoder, bad if callable(bad) else (lambda *a: bad))
+            w.write_frame(f)
+            monkeypatch.setattr(native, encoder, real)
+    src = open_frames(path)  # as replay, eval and train read it: with the truth from fix and UTC
+    got = list(src)
+    assert [g.seq for g in got] == [f.seq for f in frames]
+    assert getattr(got[3], field) is None and got[3].attitude is not None
+    assert got[3].sun_enu_truth is not None  # from the fix and UTC left whole
     assert src.stats.corrupt_skipped == 1
 
 
