@@ -54,6 +54,7 @@ log = logging.getLogger(__name__)
 _URL_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "http://", "https://", "udp://", "tcp://", "srt://")
 _OPEN_TIMEOUT_MS = 5000
 _READ_TIMEOUT_MS = 5000
+_CV_INT_MAX = 2**31 - 1  # cv2.VideoCapture(index) takes a C int
 
 
 # --- pure parts ----------------------------------------------------------------------------------
@@ -78,12 +79,13 @@ def parse_target(text: str | int) -> CameraTarget:
     """A device index (``0``) or path (``/dev/video0``), a stream URL (``rtsp://...``), a GStreamer
     pipeline (contains ``!``) or a video file path."""
     if isinstance(text, int):
-        return CameraTarget("device", text)
+        return CameraTarget("device", _device_index(text))
     text = text.strip()
     if not text:
         raise CameraError("empty camera: pass a device index (opencv:0), a video file or an rtsp:// URL")
-    if text.isdigit():
-        return CameraTarget("device", int(text))
+    if text.isascii() and text.isdigit():
+        # A 5000-digit index is more than int() converts: it is too large either way.
+        return CameraTarget("device", _device_index(int(text) if len(text) <= 20 else text))
     if text.startswith("/dev/"):
         # A device by path, such as the stable /dev/v4l/by-id/... names of a rig with several
         # cameras: live, like an index, not a recording to replay.
@@ -93,6 +95,15 @@ def parse_target(text: str | int) -> CameraTarget:
     if "!" in text:
         return CameraTarget("gstreamer", text)
     return CameraTarget("file", text)
+
+
+def _device_index(index: int | str) -> int:
+    """A device index as OpenCV takes it: a C int (a str stands for one too long to convert)."""
+    if isinstance(index, str) or not -_CV_INT_MAX - 1 <= index <= _CV_INT_MAX:
+        shown = str(index) if len(str(index)) <= 20 else f"{str(index)[:12]}... ({len(str(index))} digits)"
+        raise CameraError(f"camera index {shown}: expected at most {_CV_INT_MAX} (OpenCV takes a C int); "
+                          "pass the index of the device, e.g. opencv:0 for /dev/video0")
+    return index
 
 
 @dataclass(frozen=True)

@@ -1314,3 +1314,16 @@ def test_every_device_a_command_opens_when_absent_is_one_line_and_leaves_no_outp
     rc, captured = _main_in_process(_command(line, tmp=tmp_path, out=tmp_path / "out" / "result"), capsys)
     _assert_one_line_error(rc, captured, names=names)
     assert not os.listdir(tmp_path / "out")
+
+@pytest.mark.parametrize("command", ["run", "record"])
+def test_a_camera_index_beyond_a_c_int_is_one_line(tmp_path, capsys, command):
+    # OpenCV takes a C int: "internal error: error: OpenCV ... Overload resolution failed" and six
+    # lines of candidate signatures.
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / "result"
+    argv = [command, "--camera", "opencv:2147483648", "--hfov-deg", "60", "--heading", "none"]
+    argv += ["--jsonl", str(out)] if command == "run" else ["--out", f"{out}.mcap"]
+    rc, captured = _main_in_process(argv, capsys)
+    _assert_one_line_error(rc, captured, names="camera index 2147483648: expected at most 2147483647")
+    assert len(captured.err.strip().splitlines()) == 1 and not os.listdir(tmp_path / "out")
+

@@ -83,6 +83,19 @@ def test_parse_target(text, kind, value):
     assert parse_target(text) == CameraTarget(kind, value)
 
 
+@pytest.mark.parametrize("text", ["2147483648", "9" * 400, "9" * 5000, 2**31],
+                         ids=["2147483648", "400-digits", "5000-digits", "int-2**31"])
+def test_a_device_index_beyond_a_c_int_is_one_clear_error(text):
+    # OpenCV takes the index as a C int: 2147483648 reached cv2.VideoCapture, whose "Overload
+    # resolution failed" and six lines after it were an internal error of run and record.
+    with pytest.raises(CameraError, match=r"^camera index [0-9.]+( \(\d+ digits\))?: expected at most 2147483647"
+                       ) as info:
+        parse_target(text)
+    message = str(info.value)
+    assert "\n" not in message and "pass the index of the device" in message and len(message) < 200
+    assert parse_target("2147483647") == CameraTarget("device", 2**31 - 1)
+
+
 def test_parse_target_refuses_nothing():
     with pytest.raises(CameraError, match="device index"):
         parse_target("  ")
