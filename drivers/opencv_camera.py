@@ -46,7 +46,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from rig.errors import CameraError, SunrigError
+from rig.errors import CameraError, SunrigError, ValidationError
 from rig.types import Frame, Intrinsics
 
 log = logging.getLogger(__name__)
@@ -115,6 +115,25 @@ class Calibration:
     height: int
     distortion: np.ndarray  # (n,), zeros or empty when none
 
+    def __post_init__(self) -> None:
+        k = np.asarray(self.k, dtype=np.float64)
+        if k.shape != (3, 3):
+            raise ValidationError(f"camera matrix: expected 3x3 values, got shape {k.shape}")
+        d = np.asarray(self.distortion, dtype=np.float64).ravel()
+        if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0 and np.all(np.isfinite(d))):
+            raise ValidationError(f"expected a finite camera matrix with positive fx, fy, got {k.tolist()}")
+        try:
+            # The same bounds as every frame's (a size of 0, a principal point outside), checked
+            # now: as the file loads, not when the first frame comes, or never for the wrong size.
+            at_size = Intrinsics(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=self.width,
+                                 height=self.height)
+        except ValidationError as exc:
+            raise ValidationError(f"the camera matrix and image size are no camera: {exc}") from None
+        object.__setattr__(self, "k", k)
+        object.__setattr__(self, "distortion", d)
+        object.__setattr__(self, "width", at_size.width)
+        object.__setattr__(self, "height", at_size.height)
+
     @property
     def distorted(self) -> bool:
         return bool(np.any(self.distortion != 0.0))
@@ -145,15 +164,16 @@ def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration
     width, height = first(_W_KEYS), first(_H_KEYS)
     size = values.get("image_size")
     if (width is None or height is None) and size is not None and np.size(size) == 2:
-        width, height = (int(v) for v in np.asarray(size).ravel())
+        width, height = np.asarray(size).ravel().tolist()
     if width is None or height is None:
         raise CameraError(f"{name}: no image size (expected image_width and image_height); "
                           "add them, since the camera matrix is only valid at its own resolution")
     d = first(_D_KEYS)
     d = np.zeros(0) if d is None else np.asarray(d, dtype=np.float64).ravel()
-    if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0 and np.all(np.isfinite(d))):
-        raise CameraError(f"{name}: expected a finite camera matrix with positive fx, fy, got {k.tolist()}")
-    return Calibration(k=k, width=int(width), height=int(height), distortion=d)
+    try:
+        return Calibration(k=k, width=width, height=height, distortion=d)
+    except ValidationError as exc:
+        raise CameraError(f"{name}: {exc}; recalibrate, or pass --hfov-deg instead") from None
 
 
 # OpenCV's parse error names its own source file and function before the reason, e.g.
@@ -199,7 +219,9 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
                     reason = _parse_reason(str(exc)) if isinstance(exc, cv2.error) else str(exc)
                     raise CameraError(f"calibration file {p}: {key} is not a matrix OpenCV or ROS writes "
                                       f"({reason}); {remedy}") from None
-            elif node.isInt() or node.isReal():
+            elif node.isInt():
+                values[key] = int(node.real())  # as the file has it: "width 0", not "0.0"
+            elif node.isReal():
                 values[key] = node.real()
         return calibration_from_mapping(values, f"calibration file {p}")
     finally:

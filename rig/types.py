@@ -19,6 +19,13 @@ from rig.geometry import angle_between, az_el_from_enu, wrap_2pi, wrap_pi, wrapp
 
 _UNIT_TOL = 1e-3
 
+# What a camera is, bounded where it enters (a calibration file, a KITTI calibration, a recorded
+# log, a device): beyond these a number is damaged, not a lens.
+#
+# OpenCV keeps an image's rows and columns in C ints, so no source yields a larger side (and a
+# 400-digit one overflowed the float arithmetic of the field of view).
+MAX_IMAGE_SIDE_PX = 2**31 - 1
+
 
 class HeadingRef(enum.StrEnum):
     """What a heading of 0 points at."""
@@ -65,16 +72,22 @@ class Intrinsics:
     height: int
 
     def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            try:
+                whole = int(v) == v
+            except (TypeError, ValueError, OverflowError):  # None, "64", nan, inf
+                whole = False
+            if not whole or v <= 0:
+                raise ValidationError(f"Intrinsics.{name}: expected a positive integer, got {v!r}")
+            if v > MAX_IMAGE_SIDE_PX:
+                raise ValidationError(f"Intrinsics.{name}: expected at most {MAX_IMAGE_SIDE_PX} pixels, got {v!r}")
+            object.__setattr__(self, name, int(v))
         for name in ("fx", "fy"):
             v = _finite(name, getattr(self, name))
             if v <= 0:
                 raise ValidationError(f"Intrinsics.{name}: expected > 0 pixels, got {v}")
             object.__setattr__(self, name, v)
-        for name in ("width", "height"):
-            v = getattr(self, name)
-            if int(v) != v or v <= 0:
-                raise ValidationError(f"Intrinsics.{name}: expected a positive integer, got {v!r}")
-            object.__setattr__(self, name, int(v))
         for name, limit in (("cx", self.width), ("cy", self.height)):
             v = _finite(name, getattr(self, name))
             if not 0.0 <= v <= limit:

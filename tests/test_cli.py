@@ -1315,6 +1315,43 @@ def test_every_device_a_command_opens_when_absent_is_one_line_and_leaves_no_outp
     _assert_one_line_error(rc, captured, names=names)
     assert not os.listdir(tmp_path / "out")
 
+def _clip(path: Path) -> Path:
+    """A real 64 x 48 MJPG video of 5 frames."""
+    import cv2
+
+    from tests.test_opencv_camera import clip_image
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for k in range(5):
+        writer.write(clip_image(k))
+    writer.release()
+    return path
+
+
+@pytest.mark.parametrize(("k", "size", "needle"), [
+    # The camera reader divided by it: a traceback without --debug ("camera reader ... failed").
+    ([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]], (0, 0), "width: expected a positive integer, got 0"),
+    # Loaded, then failed once capture started.
+    ([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]], (-64, -48), "width: expected a positive integer, got -64"),
+], ids=["width-0", "negative-size"])
+@pytest.mark.parametrize("command", ["run", "record"])
+def test_a_calibration_that_is_no_camera_is_refused_at_start_up_in_one_line(tmp_path, capsys, command, k, size,
+                                                                             needle):
+    from tests.test_opencv_camera import write_calibration
+
+    clip = _clip(tmp_path / "clip.avi")
+    cal = tmp_path / "cal.yaml"
+    write_calibration(cal, np.array(k, dtype=np.float64), *size)
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / "result"
+    argv = [command, "--camera", f"opencv:{clip}", "--calibration", str(cal), "--heading", "visual"]
+    argv += ["--aggregator", "mean", "--jsonl", str(out)] if command == "run" else ["--out", f"{out}.mcap"]
+    rc, captured = _main_in_process(argv, capsys)
+    _assert_one_line_error(rc, captured, names=f"calibration file {cal}: ")
+    assert len(captured.err.strip().splitlines()) == 1 and needle in captured.err, captured.err
+    assert not os.listdir(tmp_path / "out")
+
+
 @pytest.mark.parametrize("command", ["run", "record"])
 def test_a_camera_index_beyond_a_c_int_is_one_line(tmp_path, capsys, command):
     # OpenCV takes a C int: "internal error: error: OpenCV ... Overload resolution failed" and six

@@ -691,7 +691,15 @@ def _distorted_calibration(intr: Intrinsics, t_ns: int) -> bytes:
     return msg.SerializeToString()
 
 
-@pytest.mark.parametrize("bad_calibration", [_cut_calibration, _distorted_calibration], ids=["cut", "distorted"])
+def _size_beyond_opencv(intr: Intrinsics, t_ns: int) -> bytes:
+    """A width of 2**31 px, more than OpenCV's C int holds (the field is a uint32)."""
+    msg = CameraCalibration.FromString(encode_calibration(intr, t_ns))
+    msg.width = 2**31
+    return msg.SerializeToString()
+
+
+@pytest.mark.parametrize("bad_calibration", [_cut_calibration, _distorted_calibration, _size_beyond_opencv],
+                         ids=["cut", "distorted", "width-2**31"])
 def test_a_refused_calibration_drops_frames_until_the_next_one(tmp_path, monkeypatch, bad_calibration):
     # The camera's calibration changes at seq 100 and that message is refused: frames 100 and 101
     # would otherwise be read with the calibration before it (same image size, wrong fx), so they

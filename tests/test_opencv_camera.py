@@ -270,6 +270,32 @@ def test_calibration_file_errors(tmp_path):
         load_calibration(partial)
 
 
+_K = [[60.0, 0, 32.0], [0, 60.0, 24.0], [0, 0, 1]]
+
+
+@pytest.mark.parametrize(("k", "size", "needle"), [
+    # Loaded, then the camera reader divided by it: a traceback without --debug, and the run ended.
+    (_K, (0, 0), "width: expected a positive integer, got 0"),
+    (_K, (W, 0), "height: expected a positive integer, got 0"),
+    # Loaded, and failed only once capture started.
+    (_K, (-W, -H), "width: expected a positive integer, got -64"),
+    # Truncated to 64 without a word.
+    (_K, (W + 0.5, H), "width: expected a positive integer, got 64.5"),
+    ([[60.0, 0, 650.0], [0, 60.0, 24.0], [0, 0, 1]], (W, H), "cx: expected within [0, 64] pixels, got 650"),
+    (_K, (3.2e9, 2.4e9), "width: expected at most 2147483647 pixels"),
+])
+def test_a_calibration_that_is_no_camera_is_refused_as_it_loads(tmp_path, video, k, size, needle):
+    path = tmp_path / "cam.yaml"
+    write_calibration(path, k, *size)
+    with pytest.raises(CameraError) as info:
+        load_calibration(path)
+    message = str(info.value)
+    assert message.startswith(f"calibration file {path}: the camera matrix and image size are no camera: ")
+    assert needle in message and message.endswith("; recalibrate, or pass --hfov-deg instead") and "\n" not in message
+    with pytest.raises(CameraError, match="are no camera"):  # before the video opens, not at its first frame
+        OpenCvCamera(str(video), calibration=path)
+
+
 # --- a real video file through cv2.VideoCapture --------------------------------------------------
 
 

@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 
 from rig.errors import ValidationError
-from rig.types import Attitude, Frame, FrameFeatures, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
+from rig.types import (
+    Attitude,
+    Frame,
+    FrameFeatures,
+    GnssFix,
+    HeadingRef,
+    Intrinsics,
+    SunEstimate,
+    utc_iso,
+)
 
 INTR = Intrinsics(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
 
@@ -116,6 +125,27 @@ def test_utc_iso_epoch():
 )
 def test_intrinsics_refuse_zero_focal_lengths_and_sizes(kwargs, message):
     base = dict(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
+    with pytest.raises(ValidationError) as info:
+        Intrinsics(**{**base, **kwargs})
+    assert message in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        # OpenCV keeps rows and columns in C ints; a larger size overflowed float arithmetic.
+        ({"width": 2**31}, "Intrinsics.width: expected at most 2147483647 pixels, got 2147483648"),
+        ({"height": 10**400}, "Intrinsics.height: expected at most 2147483647 pixels"),
+        # These raised ValueError, OverflowError or TypeError from int(), not a ValidationError.
+        ({"width": "64"}, "Intrinsics.width: expected a positive integer, got '64'"),
+        ({"width": float("nan")}, "Intrinsics.width: expected a positive integer, got nan"),
+        ({"height": float("inf")}, "Intrinsics.height: expected a positive integer, got inf"),
+        ({"height": None}, "Intrinsics.height: expected a positive integer, got None"),
+        ({"width": -64}, "Intrinsics.width: expected a positive integer, got -64"),
+    ],
+)
+def test_intrinsics_refuse_sizes_no_camera_has(kwargs, message):
+    base = dict(fx=50.0, fy=50.0, cx=0.0, cy=0.0, width=64, height=48)
     with pytest.raises(ValidationError) as info:
         Intrinsics(**{**base, **kwargs})
     assert message in str(info.value)
