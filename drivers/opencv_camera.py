@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 
 from rig.errors import CameraError, SunrigError, ValidationError
-from rig.types import Frame, Intrinsics
+from rig.types import MIN_FOV_DEG, Frame, Intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ class Calibration:
         if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0 and np.all(np.isfinite(d))):
             raise ValidationError(f"expected a finite camera matrix with positive fx, fy, got {k.tolist()}")
         try:
-            # The same bounds as every frame's (a size of 0, a principal point outside), checked
+            # The same bounds as every frame's (a focal length no camera has, a size of 0), checked
             # now: as the file loads, not when the first frame comes, or never for the wrong size.
             at_size = Intrinsics(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=self.width,
                                  height=self.height)
@@ -269,6 +269,9 @@ def fit_intrinsics(width: int, height: int, *, calibration: Calibration | None =
                           "or its horizontal field of view (--hfov-deg DEG)")
     if not (math.isfinite(hfov_rad) and 0.0 < hfov_rad < math.pi):
         raise CameraError(f"horizontal field of view: expected between 0 and 180 deg, got {math.degrees(hfov_rad)}")
+    if hfov_rad < math.radians(MIN_FOV_DEG):  # the focal length would be no camera's (rig/types.py)
+        raise CameraError(f"horizontal field of view: expected at least {MIN_FOV_DEG:g} deg, as any camera has, "
+                          f"got {math.degrees(hfov_rad):g}; pass the field of view in degrees")
     return Intrinsics.from_hfov(width, height, hfov_rad)
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from rig.errors import SunrigError
+from rig.types import MIN_FOV_DEG
 
 
 class ConfigError(SunrigError):
@@ -98,6 +99,14 @@ RANGES: dict[tuple[str, str], tuple[float, float, bool]] = {
 }
 
 
+# Options whose 0 is "unset" and whose other values start higher: a field of view narrower than any
+# camera's (rig/types.py MIN_FOV_DEG) is a typo or a damaged number, and at 1e-300 deg a focal
+# length whose crops overflowed.
+NARROWEST: dict[tuple[str, str], tuple[float, str]] = {
+    ("source", "hfov_deg"): (MIN_FOV_DEG, "deg, as any camera has"),
+}
+
+
 def describe_range(lo: float, hi: float, lo_included: bool) -> str:
     """``>= 0``, ``> 0`` or ``in [0, 179]``: how an error says what was expected."""
     def shown(x: float) -> str:  # INT_MAX in full, not 2.14748e+09
@@ -143,6 +152,10 @@ def check_option(section: str, key: str, value: Any) -> Any:
         if expected is int and value > INT_MAX:  # the cap is named only to one who passed it
             bounds = (bounds[0], INT_MAX, bounds[2])
         raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {shown_value(value)}")
+    narrowest = NARROWEST.get((section, key))
+    if narrowest is not None and 0 < value < narrowest[0]:
+        raise ConfigError(f"[{section}] {key}: expected 0 (unset) or at least {narrowest[0]:g} {narrowest[1]}, "
+                          f"got {shown_value(value)}")
     return value
 
 

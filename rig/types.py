@@ -19,12 +19,22 @@ from rig.geometry import angle_between, az_el_from_enu, wrap_2pi, wrap_pi, wrapp
 
 _UNIT_TOL = 1e-3
 
-# What a camera is, bounded where it enters (a calibration file, a KITTI calibration, a recorded
-# log, a device): beyond these a number is damaged, not a lens.
+# What a camera is, bounded where it enters (a calibration file, --hfov-deg, a KITTI calibration,
+# a recorded log, a device): beyond these a number is damaged, not a lens.
 #
 # OpenCV keeps an image's rows and columns in C ints, so no source yields a larger side (and a
 # 400-digit one overflowed the float arithmetic of the field of view).
 MAX_IMAGE_SIDE_PX = 2**31 - 1
+# The narrowest field of view, across the image's longer side. The narrowest imagers built,
+# adaptive-optics cameras behind 8-10 m telescopes, see about 10 arcsec across; 1e-4 deg (0.36 arcsec)
+# is far below them. A longer focal length (1e308 px in a damaged calibration) is no camera, and
+# its crops' sides, fx * tan(angle), overflowed to inf. With sides up to MAX_IMAGE_SIDE_PX it keeps
+# fx and fy below 1.3e15 px. Over the longer side, so the one row of a line-scan camera is no fault.
+MIN_FOV_DEG = 1e-4
+# The shortest focal length: at a millionth of a pixel every pixel but the central one sits within
+# 0.0001 deg of 90 deg off axis, which no rectified pinhole image does (179 deg, the widest
+# --hfov-deg, on a one-pixel-wide image is 0.004 px); far shorter ones overflowed (u - cx) / fx.
+MIN_FOCAL_PX = 1e-6
 
 
 class HeadingRef(enum.StrEnum):
@@ -83,10 +93,19 @@ class Intrinsics:
             if v > MAX_IMAGE_SIDE_PX:
                 raise ValidationError(f"Intrinsics.{name}: expected at most {MAX_IMAGE_SIDE_PX} pixels, got {v!r}")
             object.__setattr__(self, name, int(v))
+        side = max(self.width, self.height)
+        longest = (side / 2.0) / math.tan(math.radians(MIN_FOV_DEG) / 2.0)  # as from_hfov makes it
         for name in ("fx", "fy"):
             v = _finite(name, getattr(self, name))
             if v <= 0:
                 raise ValidationError(f"Intrinsics.{name}: expected > 0 pixels, got {v}")
+            if v < MIN_FOCAL_PX:
+                raise ValidationError(f"Intrinsics.{name}: expected at least {MIN_FOCAL_PX:g} pixels, got {v}")
+            if v > longest:
+                raise ValidationError(
+                    f"Intrinsics.{name}: expected at most {longest:.6g} pixels (a field of view of at least "
+                    f"{MIN_FOV_DEG:g} deg across the image's {side} px), got {v}"
+                )
             object.__setattr__(self, name, v)
         for name, limit in (("cx", self.width), ("cy", self.height)):
             v = _finite(name, getattr(self, name))

@@ -1329,11 +1329,14 @@ def _clip(path: Path) -> Path:
 
 
 @pytest.mark.parametrize(("k", "size", "needle"), [
+    # Ran until the encode stage died ("OverflowError: cannot convert float infinity to integer",
+    # the crop side fx * tan(angle)); record kept a log that replay, eval and quantize failed on.
+    ([[1e308, 0, 32], [0, 1e308, 24], [0, 0, 1]], (64, 48), "fx: expected at most"),
     # The camera reader divided by it: a traceback without --debug ("camera reader ... failed").
     ([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]], (0, 0), "width: expected a positive integer, got 0"),
     # Loaded, then failed once capture started.
     ([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]], (-64, -48), "width: expected a positive integer, got -64"),
-], ids=["width-0", "negative-size"])
+], ids=["fx-1e308", "width-0", "negative-size"])
 @pytest.mark.parametrize("command", ["run", "record"])
 def test_a_calibration_that_is_no_camera_is_refused_at_start_up_in_one_line(tmp_path, capsys, command, k, size,
                                                                              needle):
@@ -1353,6 +1356,21 @@ def test_a_calibration_that_is_no_camera_is_refused_at_start_up_in_one_line(tmp_
 
 
 @pytest.mark.parametrize("command", ["run", "record"])
+def test_a_field_of_view_narrower_than_any_camera_is_refused_before_anything_opens(tmp_path, capsys, command):
+    # --hfov-deg 1e-300 made fx 1e302 px: numpy overflow warnings on stderr from every window.
+    clip = _clip(tmp_path / "clip.avi")
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / "result"
+    argv = [command, "--camera", f"opencv:{clip}", "--hfov-deg", "1e-300", "--heading", "visual"]
+    argv += ["--aggregator", "mean", "--jsonl", str(out)] if command == "run" else ["--out", f"{out}.mcap"]
+    rc, captured = _main_in_process(argv, capsys)
+    assert rc == 2 and "Traceback" not in captured.err, captured.err
+    (line,) = captured.err.strip().splitlines()  # argparse's, as for every other bad number
+    assert line.startswith(f"sunrig {command}: error: argument --hfov-deg: expected 0 (unset) or at least 0.0001 deg")
+    assert not os.listdir(tmp_path / "out")
+
+
+@pytest.mark.parametrize("command", ["run", "record"])
 def test_a_camera_index_beyond_a_c_int_is_one_line(tmp_path, capsys, command):
     # OpenCV takes a C int: "internal error: error: OpenCV ... Overload resolution failed" and six
     # lines of candidate signatures.
@@ -1364,3 +1382,34 @@ def test_a_camera_index_beyond_a_c_int_is_one_line(tmp_path, capsys, command):
     _assert_one_line_error(rc, captured, names="camera index 2147483648: expected at most 2147483647")
     assert len(captured.err.strip().splitlines()) == 1 and not os.listdir(tmp_path / "out")
 
+def test_a_recording_or_drive_whose_focal_length_is_no_camera_is_no_internal_error(tmp_path, capsys, monkeypatch):
+    # A log recorded with fx = 1e308 (before calibrations were checked as they load), and a KITTI
+    # drive whose P_rect_02 says so: replay and eval ended in an internal OverflowError.
+    from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+
+    import replay.native
+    from tests.test_kitti import _CALIB, DRIVE, make_drive
+
+    encode = replay.native.encode_calibration
+
+    def no_camera(intr, t_ns):
+        msg = CameraCalibration.FromString(encode(intr, t_ns))
+        msg.K[0] = msg.K[4] = 1e308
+        return msg.SerializeToString()
+
+    with monkeypatch.context() as m:
+        m.setattr(replay.native, "encode_calibration", no_camera)
+        log = _write_log(tmp_path / "drive.mcap")
+    date = make_drive(tmp_path / "kitti", 3)
+    calib = date / "calib_cam_to_cam.txt"
+    calib.write_text(_CALIB.replace("P_rect_02: 7.215377e+02", "P_rect_02: 1e308"))
+    for argv, names in (
+        (["replay", str(log), "--aggregator", "mean", "--jsonl", str(tmp_path / "o.jsonl")],
+         f"{log}: no frame of it could be read"),
+        (["eval", str(log), "--aggregators", "mean", "--quiet", "--json", str(tmp_path / "e.json")], str(log)),
+        (["replay", str(date / DRIVE), "--utc-offset", "2", "--aggregator", "mean", "--jsonl",
+          str(tmp_path / "o.jsonl")], f"{calib}: P_rect_02: Intrinsics.fx: expected at most"),
+    ):
+        rc, captured = _main_in_process(argv, capsys)
+        _assert_one_line_error(rc, captured, names=names)
+        assert not (tmp_path / "o.jsonl").exists()

@@ -95,6 +95,9 @@ def test_file_then_flags(tmp_path):
         ("[source]\ndeclination_deg = inf\n", "[source] declination_deg: expected a finite number in [-180, 180]"),
         ("[rig]\nring_max_age_s = inf\n", "[rig] ring_max_age_s: expected a finite number > 0, got inf"),
         ("[source]\nhfov_deg = 179.5\n", "[source] hfov_deg: expected a finite number in [0, 179], got 179.5"),
+        # Narrower than any camera: fx of 1e302 px, whose crops overflowed (numpy warnings, or round(inf)).
+        ("[source]\nhfov_deg = 1e-300\n",
+         "[source] hfov_deg: expected 0 (unset) or at least 0.0001 deg, as any camera has, got 1e-300"),
         # A top-level value that is no option of any section is an unknown section, not misplaced.
         ("bogus = 1\n", "unknown section [bogus]"),
         ("camera = 'oak'\n", "camera is outside any section; put it under [source]"),

@@ -331,6 +331,23 @@ def test_a_damaged_projection_is_named_with_its_file():
         intrinsics_from_calib(parse_calib(text), name="calib_cam_to_cam.txt")
 
 
+@pytest.mark.parametrize(("old", "new", "needle"), [
+    ("P_rect_02: 7.215377e+02", "P_rect_02: 1e308", "fx: expected at most"),
+    ("0.000000e+00 7.215377e+02 1.728540e+02", "0.000000e+00 1e308 1.728540e+02", "fy: expected at most"),
+])
+def test_a_focal_length_no_camera_has_fails_its_drive_naming_the_file(tmp_path, old, new, needle):
+    # fx = 1e308 was taken: the crops' side, fx * tan(angle), was inf, and replay and eval of the
+    # drive ended in an internal OverflowError that named no file.
+    date = make_drive(tmp_path, 3)
+    calib = date / "calib_cam_to_cam.txt"
+    calib.write_text(_CALIB.replace(old, new))
+    with pytest.raises(LogError) as err:
+        open_kitti(date, utc_offset_h=2.0)
+    message = str(err.value)
+    assert message.startswith(f"{calib}: P_rect_02: Intrinsics.{needle}") and "\n" not in message
+    assert message.endswith("Compare it with the date's calib_cam_to_cam.txt from KITTI")
+
+
 def _write_oxts(date, index, pose):
     """Frame ``index``'s OXTS record: ``pose`` (lat lon alt roll pitch yaw) and 24 zeros after it."""
     rest = " ".join(["0"] * 24)

@@ -691,6 +691,14 @@ def _distorted_calibration(intr: Intrinsics, t_ns: int) -> bytes:
     return msg.SerializeToString()
 
 
+def _focal_length_of_no_camera(intr: Intrinsics, t_ns: int) -> bytes:
+    """fx = fy = 1e308, as a recording made with such a calibration file holds it: its crops' side
+    was inf px, and replay, eval and quantize of the log ended in an internal OverflowError."""
+    msg = CameraCalibration.FromString(encode_calibration(intr, t_ns))
+    msg.K[0] = msg.K[4] = msg.P[0] = msg.P[5] = 1e308
+    return msg.SerializeToString()
+
+
 def _size_beyond_opencv(intr: Intrinsics, t_ns: int) -> bytes:
     """A width of 2**31 px, more than OpenCV's C int holds (the field is a uint32)."""
     msg = CameraCalibration.FromString(encode_calibration(intr, t_ns))
@@ -698,8 +706,9 @@ def _size_beyond_opencv(intr: Intrinsics, t_ns: int) -> bytes:
     return msg.SerializeToString()
 
 
-@pytest.mark.parametrize("bad_calibration", [_cut_calibration, _distorted_calibration, _size_beyond_opencv],
-                         ids=["cut", "distorted", "width-2**31"])
+@pytest.mark.parametrize("bad_calibration", [_cut_calibration, _distorted_calibration, _focal_length_of_no_camera,
+                                             _size_beyond_opencv],
+                         ids=["cut", "distorted", "focal-1e308", "width-2**31"])
 def test_a_refused_calibration_drops_frames_until_the_next_one(tmp_path, monkeypatch, bad_calibration):
     # The camera's calibration changes at seq 100 and that message is refused: frames 100 and 101
     # would otherwise be read with the calibration before it (same image size, wrong fx), so they

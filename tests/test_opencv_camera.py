@@ -24,7 +24,7 @@ from drivers.opencv_camera import (
     load_calibration,
     parse_target,
 )
-from rig.types import Intrinsics
+from rig.types import MIN_FOV_DEG, Intrinsics
 from tests.tolerances import EXACT_F64
 
 HANG_GUARD_S = 5.0  # every wait here ends by this, so a bug fails instead of hanging
@@ -161,6 +161,20 @@ def test_a_field_of_view_outside_0_to_180_deg_is_refused(hfov_deg):
         fit_intrinsics(64, 48, hfov_rad=math.radians(hfov_deg))
 
 
+@pytest.mark.parametrize("hfov_deg", [1e-300, 5e-5])
+def test_a_field_of_view_narrower_than_any_camera_is_refused_before_the_camera_opens(video, hfov_deg):
+    # --hfov-deg 1e-300 made fx 1e302 px: numpy warned of overflow in the crops' view angles, and a
+    # calibration of the same focal length ended the run in round(inf).
+    with pytest.raises(CameraError, match=r"^horizontal field of view: expected at least 0.0001 deg"):
+        fit_intrinsics(W, H, hfov_rad=math.radians(hfov_deg))
+    with pytest.raises(CameraError, match=r"^horizontal field of view: expected at least 0.0001 deg"):
+        OpenCvCamera(str(video), hfov_deg=hfov_deg)
+    # The bound itself is a camera, on the widest image OpenCV makes too.
+    for width in (W, 2**31 - 1):
+        assert math.degrees(fit_intrinsics(width, H, hfov_rad=math.radians(MIN_FOV_DEG)).hfov_rad) == pytest.approx(
+            MIN_FOV_DEG)
+
+
 def test_no_intrinsics_is_one_clear_error(video):
     with pytest.raises(CameraError, match="--calibration FILE.*--hfov-deg"):
         fit_intrinsics(64, 48)
@@ -274,6 +288,10 @@ _K = [[60.0, 0, 32.0], [0, 60.0, 24.0], [0, 0, 1]]
 
 
 @pytest.mark.parametrize(("k", "size", "needle"), [
+    # Loaded, then the live rig's encode stage died in round(inf) (the crop side fx * tan(angle)),
+    # and a recording made with it failed replay, eval and quantize as an internal error.
+    ([[1e308, 0, 32.0], [0, 1e308, 24.0], [0, 0, 1]], (W, H), "fx: expected at most 3.66693e+07 pixels"),
+    ([[60.0, 0, 32.0], [0, 1e308, 24.0], [0, 0, 1]], (W, H), "fy: expected at most"),
     # Loaded, then the camera reader divided by it: a traceback without --debug, and the run ended.
     (_K, (0, 0), "width: expected a positive integer, got 0"),
     (_K, (W, 0), "height: expected a positive integer, got 0"),

@@ -7,6 +7,7 @@ import pytest
 
 from rig.errors import ValidationError
 from rig.types import (
+    MIN_FOV_DEG,
     Attitude,
     Frame,
     FrameFeatures,
@@ -133,6 +134,12 @@ def test_intrinsics_refuse_zero_focal_lengths_and_sizes(kwargs, message):
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
+        # A calibration's fx of 1e308 made a crop side of inf px: the live rig's encode stage died
+        # in round(), and replay, eval and quantize of its recording in an internal OverflowError.
+        ({"fx": 1e308}, "Intrinsics.fx: expected at most 3.66693e+07 pixels (a field of view of at least 0.0001 deg "
+                        "across the image's 64 px), got 1e+308"),
+        ({"fy": 1e308}, "Intrinsics.fy: expected at most 3.66693e+07 pixels"),
+        ({"fx": 1e-300}, "Intrinsics.fx: expected at least 1e-06 pixels"),
         # OpenCV keeps rows and columns in C ints; a larger size overflowed float arithmetic.
         ({"width": 2**31}, "Intrinsics.width: expected at most 2147483647 pixels, got 2147483648"),
         ({"height": 10**400}, "Intrinsics.height: expected at most 2147483647 pixels"),
@@ -144,11 +151,24 @@ def test_intrinsics_refuse_zero_focal_lengths_and_sizes(kwargs, message):
         ({"width": -64}, "Intrinsics.width: expected a positive integer, got -64"),
     ],
 )
-def test_intrinsics_refuse_sizes_no_camera_has(kwargs, message):
+def test_intrinsics_refuse_what_no_camera_has(kwargs, message):
     base = dict(fx=50.0, fy=50.0, cx=0.0, cy=0.0, width=64, height=48)
     with pytest.raises(ValidationError) as info:
         Intrinsics(**{**base, **kwargs})
     assert message in str(info.value)
+
+
+def test_the_narrowest_field_of_view_is_still_a_camera():
+    # At MIN_FOV_DEG exactly (what --hfov-deg takes at its lowest), over any width: no crop side
+    # or view angle overflows there.
+    for width, height in ((64, 48), (1, 1), (2**31 - 1, 2**31 - 1)):
+        k = Intrinsics.from_hfov(width, height, math.radians(MIN_FOV_DEG))
+        assert math.degrees(k.hfov_rad) == pytest.approx(MIN_FOV_DEG)
+        assert math.isfinite(2.0 * k.fx * math.tan(math.radians(179.0) / 2.0))
+    # The bound is over the longer side: a line-scan camera's one row spans less, and is a camera.
+    line = Intrinsics(fx=5e6, fy=5e6, cx=8192.0, cy=0.5, width=16384, height=1)
+    assert math.degrees(line.vfov_rad) < MIN_FOV_DEG < math.degrees(line.hfov_rad)
+    assert Intrinsics(fx=1e-6, fy=1e-6, cx=0.5, cy=0.5, width=1, height=1).fx == 1e-6
 
 
 def test_each_field_of_view_uses_its_own_focal_length():
