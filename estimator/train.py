@@ -90,6 +90,11 @@ class TrainingDataError(SunrigError):
     """The logs given to training cannot train anything (no frames with a TRUE heading and true sun)."""
 
 
+class CheckpointError(SunrigError):
+    """A run's ``checkpoint.pt`` cannot be used: damaged (cut short, emptied, overwritten) or not
+    a training run's. The message names the file and how to go on without it."""
+
+
 class BatchMemoryError(SunrigError):
     """A training step's batch does not fit in memory: fewer windows a step (``--batch``), or
     fewer crops a frame (``--crops``), do."""
@@ -500,6 +505,55 @@ def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     write_replacing(path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
 
 
+# What each use of a checkpoint reads from it: an export the weights and how they were trained,
+# a resume train()'s whole state besides.
+_CHECKPOINT_KEYS_EXPORT = ("config", "backbone", "aggregator", "step", "elapsed_s")
+_CHECKPOINT_KEYS_RESUME = (*_CHECKPOINT_KEYS_EXPORT, "optimizer", "rng", "torch_rng")
+
+
+def load_checkpoint(path: Path, resume: bool) -> dict[str, Any]:
+    """A run's checkpoint, checked whole before it is used (``resume``: to go on training, else
+    to export): it loads, holds what that use reads, and its weights fit the networks its config
+    names. Anything else is a :class:`CheckpointError` naming the file as damaged, raised before
+    minutes of loading data rather than midway."""
+    remedy = ("restore it from a copy to resume the run, or pass a new --out to train from the start" if resume
+              else "restore it from a copy to export it, or train again with a new --out")
+
+    def damaged(why: str) -> CheckpointError:
+        return CheckpointError(f"{path} is damaged ({why}); {remedy}")
+
+    if path.stat().st_size == 0:  # torch says only "Ran out of input"
+        raise damaged("it is empty")
+    try:
+        state = torch.load(path, weights_only=False)
+    except (OSError, MemoryError):
+        raise  # the disk's or the machine's trouble, not the file's: the CLI words those itself
+    except Exception as exc:
+        # A file cut short or overwritten makes torch's zip reader or the unpickler raise nearly
+        # anything: RuntimeError, EOFError, UnpicklingError, UnicodeDecodeError, AssertionError and
+        # TypeError all came from flipping bytes of a real checkpoint. Each is the file's fault.
+        # (torch's own advice runs on for three more sentences: the first says what failed.)
+        raise damaged(f"{type(exc).__name__}: {str(exc).split('. ')[0]}") from exc
+    keys = _CHECKPOINT_KEYS_RESUME if resume else _CHECKPOINT_KEYS_EXPORT
+    missing = [key for key in keys if key not in state] if isinstance(state, dict) else list(keys)
+    if missing:
+        raise damaged(f"not a training run's state: no {', '.join(map(repr, missing))}")
+    try:
+        # Every module a resume or an export loads, loaded now: a state dict that fits no network
+        # of the recorded preset would otherwise fail at the first step or the export.
+        net_cfg = net_config(TrainConfig(**state["config"]))
+        for weights in (state, state.get("weight_average")):
+            if weights:
+                modules_from(net_cfg, weights)
+        if not (isinstance(state["step"], int) and isinstance(state["elapsed_s"], int | float)):
+            raise TypeError(f"step {state['step']!r} and time {state['elapsed_s']!r} are not numbers")
+    except (TypeError, KeyError, ValueError, RuntimeError, AttributeError) as exc:
+        said = " ".join(str(exc).split())  # load_state_dict's list of keys runs over many lines
+        raise damaged(f"its weights do not fit the networks its settings name: {type(exc).__name__}: "
+                      f"{said if len(said) <= 160 else said[:157] + '...'}") from exc
+    return state
+
+
 def _trim_metrics(path: Path, step: int) -> int:
     """Keep the metric lines up to ``step``, the checkpoint a run resumes from; returns how many
     were dropped. Lines after it describe steps a kill threw away (they are trained again), and a
@@ -879,7 +933,7 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
             raise ValidationError(f"--out {out_dir} already holds files ({shown}) and no training run; pass a new "
                                   "or empty folder: a model or logs there would be overwritten")
         return None
-    state = torch.load(ckpt_path, weights_only=False)
+    state = load_checkpoint(ckpt_path, resume=True)
     was = state["config"]
     ran = {key: was.get(key, _RAN_BEFORE_RECORDED.get(key)) for key in _RUN_IDENTITY}
     changed = [key for key in _RUN_IDENTITY if ran[key] is not None and ran[key] != getattr(cfg, key)]
@@ -1080,7 +1134,7 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
     if not path.is_file():
         raise ValidationError(f"no {CHECKPOINT} in {checkpoint_dir}; pass the --out folder of a training run")
     _refuse_export_over_others(Path(out_dir), Path(checkpoint_dir))
-    state = torch.load(path, weights_only=False)
+    state = load_checkpoint(path, resume=False)
     cfg = TrainConfig(**state["config"])  # train() saves the crop count resolved, never 0
     counts = state.setdefault("data_counts", {})
     if data_note:

@@ -1044,3 +1044,39 @@ def test_a_batch_whose_crops_alone_exceed_the_machines_memory_is_refused_before_
     monkeypatch.setattr(train_module, "load_drives", lambda *a, **k: pytest.fail("reached") or [])
     with pytest.raises(pytest.fail.Exception, match="reached"):
         train(logs, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, batch_windows=10000))
+
+
+def _damage(path, how):
+    """``path`` as a damaged checkpoint: cut short, emptied, or a torch file that is not a run's."""
+    if how == "truncated":  # a copy cut short: torch's zip reader fails ("PytorchStreamReader failed ...")
+        torch.save({"config": {"preset": "tiny"}, "backbone": {"w": torch.zeros(10_000)}}, path)
+        path.write_bytes(path.read_bytes()[:1000])
+    elif how == "empty":  # EOFError: Ran out of input
+        path.write_bytes(b"")
+    elif how == "foreign":  # a valid torch file without the run's state: KeyError 'config'
+        torch.save({"weights": torch.zeros(3)}, path)
+    else:  # a run's keys, but weights that fit no network of its preset (RuntimeError from load_state_dict)
+        torch.save({"config": {"preset": "tiny"}, "backbone": {"w": torch.zeros(3)}, "aggregator": {},
+                    "step": 2, "elapsed_s": 1.0, "optimizer": {}, "rng": {}, "torch_rng": torch.zeros(1)}, path)
+
+
+@pytest.mark.parametrize("how", ["truncated", "empty", "foreign", "mismatched"])
+def test_a_damaged_checkpoint_is_one_line_naming_it_on_resume_and_export(logs, tmp_path, capsys, monkeypatch, how):
+    # It was an internal error (RuntimeError, EOFError or KeyError from torch.load or the state's keys).
+    from estimator import train as train_module
+    from rig.cli import main
+
+    out = tmp_path / "m"
+    out.mkdir()
+    _damage(out / CHECKPOINT, how)
+    monkeypatch.setattr(train_module, "load_drives", None)  # refused before any data loads
+    for argv, then in (([*map(str, logs), "--out", str(out), "--preset", "tiny", "--steps", "3"],
+                        "restore it from a copy to resume the run, or pass a new --out to train from the start"),
+                       (["--out", str(out), "--export-only", str(tmp_path / "exported")],
+                        "restore it from a copy to export it, or train again with a new --out")):
+        code = main(["train", *argv, "--quiet"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert "internal error" not in err[0] and f"{out / CHECKPOINT} is damaged (" in err[0], err[0]
+        assert err[0].endswith(then), err[0]
+    assert not (tmp_path / "exported").exists()
