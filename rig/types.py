@@ -18,6 +18,7 @@ from rig.errors import ValidationError
 from rig.geometry import angle_between, az_el_from_enu, wrap_2pi, wrap_pi, wrapped_deg
 
 _UNIT_TOL = 1e-3
+_UNIT_ROUNDING = 1e-12  # a norm this close to 1 is a unit vector's, rounded
 
 # What a camera is, bounded where it enters (a calibration file, --hfov-deg, a KITTI calibration,
 # a recorded log, a device): beyond these a number is damaged, not a lens.
@@ -65,9 +66,29 @@ def _vector3(name: str, value, unit: bool) -> np.ndarray:
         raise ValidationError(
             f"{name}: expected a unit vector (norm 1 +- {_UNIT_TOL}), got norm {np.linalg.norm(arr):.6f}"
         )
-    arr = arr.copy()
+    # Within the tolerance, made unit: the wire promises 1 +- 0.0009 after its 3-decimal rounding,
+    # which a vector 0.9991 long that passed the check above would not keep. One unit to rounding
+    # is kept bit for bit (a log's round trip gives back the vector it was given).
+    norm = float(np.linalg.norm(arr))
+    arr = arr / norm if unit and abs(norm - 1.0) > _UNIT_ROUNDING else arr.copy()
     arr.setflags(write=False)
     return arr
+
+
+# UTC instants are int64 ns since the epoch (numpy's datetime64[ns], the binary frame's field).
+_INT64 = (-(2**63), 2**63 - 1)
+
+
+def _seq(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+        raise ValidationError(f"{name}: expected a non-negative integer, got {value!r}")
+    return int(value)
+
+
+def _utc_ns(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or not _INT64[0] <= value <= _INT64[1]:
+        raise ValidationError(f"{name}: expected integer ns since the epoch (int64), got {value!r}")
+    return int(value)
 
 
 @dataclass(frozen=True)
@@ -175,9 +196,7 @@ class GnssFix:
     alt_m: float | None = None
 
     def __post_init__(self) -> None:
-        if not isinstance(self.utc_ns, int | np.integer):
-            raise ValidationError(f"GnssFix.utc_ns: expected integer ns since the epoch, got {self.utc_ns!r}")
-        object.__setattr__(self, "utc_ns", int(self.utc_ns))
+        object.__setattr__(self, "utc_ns", _utc_ns("GnssFix.utc_ns", self.utc_ns))
         lat = _finite("lat_deg", self.lat_deg)
         lon = _finite("lon_deg", self.lon_deg)
         if not -90.0 <= lat <= 90.0:
@@ -209,9 +228,7 @@ class Frame:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t_mono_s", _finite("t_mono_s", self.t_mono_s))
-        if not isinstance(self.seq, int | np.integer) or self.seq < 0:
-            raise ValidationError(f"Frame.seq: expected a non-negative integer, got {self.seq!r}")
-        object.__setattr__(self, "seq", int(self.seq))
+        object.__setattr__(self, "seq", _seq("Frame.seq", self.seq))
         img = self.image_bgr
         if not isinstance(img, np.ndarray):
             raise ValidationError(f"Frame.image_bgr: expected a numpy array, got {type(img).__name__}")
@@ -237,9 +254,7 @@ class Frame:
         if self.gnss is not None and not isinstance(self.gnss, GnssFix):
             raise ValidationError(f"Frame.gnss: expected GnssFix or None, got {type(self.gnss).__name__}")
         if self.utc_ns is not None:
-            if not isinstance(self.utc_ns, int | np.integer):
-                raise ValidationError(f"Frame.utc_ns: expected integer ns since the epoch, got {self.utc_ns!r}")
-            object.__setattr__(self, "utc_ns", int(self.utc_ns))
+            object.__setattr__(self, "utc_ns", _utc_ns("Frame.utc_ns", self.utc_ns))
         if self.sun_enu_truth is not None:
             object.__setattr__(self, "sun_enu_truth", _vector3("Frame.sun_enu_truth", self.sun_enu_truth, unit=True))
 
@@ -324,12 +339,19 @@ class SunEstimate:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t_mono_s", _finite("t_mono_s", self.t_mono_s))
+        # Checked here, not only in Frame: an estimate also comes from a log's estimate channel or
+        # a library caller, and the encoders format seq and utc_ns as integers of fixed width.
+        object.__setattr__(self, "seq", _seq("SunEstimate.seq", self.seq))
+        if self.utc_ns is not None:
+            object.__setattr__(self, "utc_ns", _utc_ns("SunEstimate.utc_ns", self.utc_ns))
         object.__setattr__(self, "sun_enu", _vector3("SunEstimate.sun_enu", self.sun_enu, unit=True))
         object.__setattr__(self, "heading_rad", float(wrap_2pi(_finite("heading_rad", self.heading_rad))))
         object.__setattr__(self, "heading_ref", HeadingRef(self.heading_ref))
         spread = _finite("spread_rad", self.spread_rad)
         if not 0.0 <= spread <= math.pi:
             raise ValidationError(f"SunEstimate.spread_rad: expected within [0, pi] rad, got {spread}")
+        for name in ("n_frames", "n_tokens"):
+            object.__setattr__(self, name, _seq(f"SunEstimate.{name}", getattr(self, name)))
         if self.n_frames < 1 or self.n_tokens < 1:
             raise ValidationError(
                 "SunEstimate: expected at least one frame and token, "

@@ -194,6 +194,13 @@ def test_gnss_longitude_below_minus_180_is_refused():
         ({"n_tokens": 0, "token_enu": None}, "expected at least one frame and token, got 1 frames, 0 tokens"),
         # token_enu is one world vector per token: the plots and the spread read it that way.
         ({"token_enu": np.zeros((3, 3))}, "SunEstimate.token_enu: expected shape (2, 3), got (3, 3)"),
+        # From a log's estimate channel or a library caller: the encoders format these as integers
+        # of fixed width and failed on them with a bare ValueError or struct.error.
+        ({"seq": 1.5}, "SunEstimate.seq: expected a non-negative integer, got 1.5"),
+        ({"seq": -1}, "SunEstimate.seq: expected a non-negative integer, got -1"),
+        ({"utc_ns": 1.7e18}, "SunEstimate.utc_ns: expected integer ns since the epoch (int64), got 1.7e+18"),
+        ({"utc_ns": 2**63}, "SunEstimate.utc_ns: expected integer ns since the epoch (int64), got 9223372036854775808"),
+        ({"n_frames": 2.0}, "SunEstimate.n_frames: expected a non-negative integer, got 2.0"),
     ],
 )
 def test_sun_estimate_rejects_with_expected_vs_actual(kwargs, message):
@@ -335,3 +342,16 @@ def test_a_value_that_is_no_number_is_a_validation_error():
 def test_utc_iso_keeps_the_second_of_the_last_microsecond():
     # 13:02:25.999999999 is still second 25: integer arithmetic, no float rounding up to :26.
     assert utc_iso(1_317_042_145_999_999_999) == "2011-09-26T13:02:25.999999Z"
+
+
+@pytest.mark.parametrize("norm", [0.9991, 1.0009])
+def test_a_vector_within_the_unit_tolerance_is_made_unit(norm):
+    # The wire promises 1 +- 0.0009 after rounding to 3 decimals: a 0.9991-long vector that passed
+    # the check went out as 0.000,0.999,0.000 (NMEA) and 0.9991 (binary).
+    from rig.protocol import decode_binary, decode_nmea, encode_binary, encode_nmea
+
+    est = _estimate(sun_enu=[0.0, norm, 0.0], truth_enu=[0.0, 0.0, norm])
+    assert np.linalg.norm(est.sun_enu) == pytest.approx(1.0, abs=1e-15)
+    assert np.linalg.norm(est.truth_enu) == pytest.approx(1.0, abs=1e-15)
+    assert decode_nmea(encode_nmea(est))["sun_enu"] == (0.0, 1.0, 0.0)
+    assert decode_binary(encode_binary(est))["sun_enu"] == pytest.approx((0.0, 1.0, 0.0), abs=1e-12)
