@@ -183,13 +183,23 @@ def shown_value(value: Any) -> str:
     return text if len(text) <= 40 else f"{text[:20]}... ({len(text)} characters)"
 
 
+MAX_CONFIG_BYTES = 2**20
+
+
 def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     """Defaults, updated by the TOML file at ``path`` when given."""
     cfg = copy.deepcopy(DEFAULTS)
     if path is None:
         return cfg
     try:
-        raw = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        with open(path, "rb") as fh:
+            # Read with a bound: a rig's config is a few hundred bytes, and --config /dev/zero (or a
+            # wrong file that never ends) grew by gigabytes until the machine killed the command.
+            data = fh.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"config file {path} is over {MAX_CONFIG_BYTES // 2**20} MiB, which no config is; "
+                              "pass the --config FILE.toml written for the rig (sunrig config --print makes one)")
+        raw = tomllib.loads(data.decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist; pass an existing --config FILE.toml") from None
     except IsADirectoryError:

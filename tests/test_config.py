@@ -127,6 +127,20 @@ def test_a_folder_or_non_utf8_file_is_named_with_what_to_do(tmp_path):
         load_config(latin)
 
 
+def test_a_file_that_never_ends_is_refused_without_reading_it_all(tmp_path):
+    # --config /dev/zero grew by gigabytes until the machine killed the command.
+    from rig.config import MAX_CONFIG_BYTES
+
+    with pytest.raises(ConfigError, match=r"/dev/zero is over 1 MiB, which no config is; pass the --config"):
+        load_config("/dev/zero")
+    big = tmp_path / "big.toml"
+    big.write_text("# " + "x" * MAX_CONFIG_BYTES + "\n")
+    with pytest.raises(ConfigError, match="is over 1 MiB"):
+        load_config(big)
+    (tmp_path / "rig.toml").write_text("[window]\nspan_s = 5.0\n")
+    assert load_config(tmp_path / "rig.toml")["window"]["span_s"] == 5.0
+
+
 def test_defaults_are_those_of_what_they_configure():
     # `sunrig run` builds RigConfig, the pairing and the window from this table, so a default
     # changed in one place but not the other would make the CLI and the library disagree. The
