@@ -798,6 +798,11 @@ def _open_log_file(path: Path) -> tuple[IO[bytes], int]:
         raise LogError(f"{name} does not exist; check the path and {_HINT}")
     if path.is_dir():
         raise LogError(f"{name} is a directory, not an MCAP log; pass the .mcap file itself")
+    if not path.is_file():
+        # A pipe (<(cat log.mcap)), a FIFO or a device: a log is read by seeking to its summary,
+        # which none of them can; a FIFO's open would also wait for a writer without a word.
+        raise LogError(f"{name} is not a regular file (a pipe, FIFO or device), and a log is read by seeking; "
+                       "save it to a file and pass that")
     try:
         f = open(path, "rb")  # noqa: SIM115 - returned to the caller, who closes it
     except OSError as exc:

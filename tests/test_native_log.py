@@ -852,12 +852,17 @@ def _png_bytes() -> bytes:
         ("stub.mcap", b"\x89MCA", "cut off inside the MCAP magic"),
         ("dir.mcap", "dir", "is a directory"),
         ("missing.mcap", "missing", "does not exist"),
+        # A FIFO's open waited for a writer without a word; a pipe (<(cat log.mcap)) said
+        # "cannot read /dev/fd/63: None"; /dev/zero was "empty, 0 bytes".
+        ("fifo.mcap", "fifo", "is not a regular file (a pipe, FIFO or device)"),
     ],
 )
 def test_not_a_log_raises_one_line_log_error(tmp_path, name, content, needle):
     path = tmp_path / name
     if content == "dir":
         path.mkdir()
+    elif content == "fifo":
+        os.mkfifo(path)
     elif content != "missing":
         path.write_bytes(_png_bytes() if content is None else content)
     for call in (
