@@ -95,6 +95,11 @@ class CheckpointError(SunrigError):
     a training run's. The message names the file and how to go on without it."""
 
 
+class TrainingDivergedError(SunrigError):
+    """Training diverged: a loss that is not finite, or weights that are not finite or beyond
+    float16 (which ``weights.npz`` keeps). A lower ``--lr`` does; nothing diverged is saved."""
+
+
 class BatchMemoryError(SunrigError):
     """A training step's batch does not fit in memory: fewer windows a step (``--batch``), or
     fewer crops a frame (``--crops``), do."""
@@ -497,6 +502,37 @@ def _smaller_batch_advice(windows: int, crops_per_frame: int) -> str:
     return f"pass a smaller --batch{f' (the recipe is {recipe})' if windows > recipe else ''}{fewer_crops}"
 
 
+# The largest weight weights.npz can hold: it keeps float16, where anything beyond is inf.
+_FLOAT16_MAX = float(np.finfo(np.float16).max)
+
+
+def _unfit_weights(parts: dict[str, dict[str, Any] | None]) -> list[str]:
+    """The floating tensors (``part/name``) of state dicts that hold a value not finite or beyond
+    float16's range. No trained network has such a weight (gradients are clipped at 1 and decayed),
+    so it means the run diverged: weights.npz would hold inf and the exported graphs answer nan
+    (a run at --lr 100 did both, and said "model written"). One pass over every weight: run at
+    checkpoints and exports, not every step."""
+    return [f"{part}/{key}" for part, tensors in parts.items() for key, t in (tensors or {}).items()
+            if t.is_floating_point() and not bool((t.abs() <= _FLOAT16_MAX).all())]  # nan compares False
+
+
+def _weights_of(state: dict[str, Any]) -> dict[str, dict[str, Any] | None]:
+    """A checkpoint's state dicts of weights: the networks' and, with --ema-decay, their average's."""
+    average = state.get("weight_average") or {}
+    return {"backbone": state["backbone"], "aggregator": state["aggregator"],
+            "average of backbone": average.get("backbone"), "average of aggregator": average.get("aggregator")}
+
+
+def _arrays(names: list[str]) -> str:
+    return f"{names[0]}{f' and {len(names) - 1} more arrays' if len(names) > 1 else ''}"
+
+
+def _lower_lr_advice(lr: float) -> str:
+    # The recipe's rate is named only below the one that diverged: a fine-tune's is lower still.
+    recipe = f" (the recipe's is {TrainConfig.lr:g})" if lr > TrainConfig.lr else ""
+    return f"a lower --lr than {lr:g}{recipe}"
+
+
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     # Serialised in memory first: torch.save reports a full disk as a bare RuntimeError ("unexpected
     # pos"), an internal error at the CLI; Python's own write says ENOSPC, with what to do.
@@ -551,6 +587,12 @@ def load_checkpoint(path: Path, resume: bool) -> dict[str, Any]:
         said = " ".join(str(exc).split())  # load_state_dict's list of keys runs over many lines
         raise damaged(f"its weights do not fit the networks its settings name: {type(exc).__name__}: "
                       f"{said if len(said) <= 160 else said[:157] + '...'}") from exc
+    bad = _unfit_weights(_weights_of(state))
+    if bad:  # written before training checked for divergence
+        raise TrainingDivergedError(
+            f"{path} holds weights that are not finite or beyond float16 ({_arrays(bad)}): its run "
+            f"diverged by step {state['step']}, and there is nothing to {'resume' if resume else 'export'}; "
+            f"train again in a new --out with {_lower_lr_advice(float(state['config'].get('lr', TrainConfig.lr)))}")
     return state
 
 
@@ -791,6 +833,21 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
             "weight_average": None if average is None else average.state_dict(),
         }
 
+    def diverged(when: str) -> TrainingDivergedError:
+        kept = ("; nothing was saved" if saved_step is None else
+                f" and a new --out (a run keeps its --lr); its checkpoint at step {saved_step} in {out_dir} is kept")
+        return TrainingDivergedError(f"train: training diverged {when}; run again with "
+                                     f"{_lower_lr_advice(cfg.lr)}{kept}")
+
+    def fit_state() -> dict[str, Any]:
+        """:func:`state_dict`, for a checkpoint or the export: refused if the weights diverged,
+        so that the checkpoint in ``out_dir`` stays the last good one."""
+        snapshot = state_dict()
+        bad = _unfit_weights(_weights_of(snapshot))
+        if bad:
+            raise diverged(f"by step {step}: weights not finite or beyond float16 ({_arrays(bad)})")
+        return snapshot
+
     try:
         while True:
             elapsed = time.monotonic() - start
@@ -827,6 +884,12 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                     window_loss = window_loss + cfg.tail_weight * nets.tail_loss(mean, truth, tail_margin_rad,
                                                                                  torch.from_numpy(full))
                 loss = token_loss + window_loss
+                # The scalar the progress line shows, read before the update rather than after:
+                # a nan or inf loss would turn every weight nan through its gradients. One number a
+                # step, already computed; a scan of the weights waits for the checkpoints.
+                loss_value = float(loss.detach())
+                if not math.isfinite(loss_value):
+                    raise diverged(f"at step {step + 1}: its loss became {loss_value}")
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, 1.0)
@@ -855,7 +918,6 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                 err_deg = float(window_err.mean())
                 # A subset window's error says little about its drive.
                 sampler.record(batch.drive[full], window_err[full])
-            loss_value = float(loss.detach())
             ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
             ema_err = err_deg if ema_err is None else 0.98 * ema_err + 0.02 * err_deg
             if step % 50 == 0:
@@ -869,7 +931,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                           "elapsed_s": time.monotonic() - start, "budget_s": None if cfg.max_steps else budget_s,
                           "loss": ema_loss, "err_deg": ema_err})
             if time.monotonic() - last_ckpt > cfg.checkpoint_every_s:
-                _save_checkpoint(ckpt_path, state_dict())
+                _save_checkpoint(ckpt_path, fit_state())
                 saved_step, last_ckpt = step, time.monotonic()
                 if not warned_busy and not cfg.max_steps:  # a step budget is not shortened by load
                     threads = torch.get_num_threads()
@@ -882,13 +944,17 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     except KeyboardInterrupt:
         # Ctrl-C (or a kill by SIGINT) keeps what was trained since the last checkpoint: up to
         # checkpoint_every_s of steps would otherwise be lost. The same command resumes.
-        _save_checkpoint(ckpt_path, state_dict())
+        try:
+            _save_checkpoint(ckpt_path, fit_state())
+        except TrainingDivergedError as exc:  # the stop asked for stays the exit; the last good checkpoint stays
+            log.warning("interrupted: %s", exc)
+            raise KeyboardInterrupt from exc
         log.warning("interrupted at step %d: saved %s; run the same command to resume", step, ckpt_path)
         raise
 
     # One snapshot for both, so the exported contract's minutes are the checkpoint's to the second
     # (a second snapshot after a slow save reads a later clock).
-    final = state_dict()
+    final = fit_state()
     _save_checkpoint(ckpt_path, final)
     if final["weight_average"] is not None:
         backbone, aggregator = modules_from(net_cfg, final["weight_average"])

@@ -1080,3 +1080,90 @@ def test_a_damaged_checkpoint_is_one_line_naming_it_on_resume_and_export(logs, t
         assert "internal error" not in err[0] and f"{out / CHECKPOINT} is damaged (" in err[0], err[0]
         assert err[0].endswith(then), err[0]
     assert not (tmp_path / "exported").exists()
+
+
+def _diverging_loss_at(monkeypatch, call):
+    """Make the window loss nan from its ``call``-th computation on (two a step: tokens, window)."""
+    from estimator import nets
+
+    real, calls = nets.sun_loss, []
+
+    def loss(*args, **kw):
+        calls.append(1)
+        value = real(*args, **kw)
+        return value * math.nan if len(calls) >= call else value
+
+    monkeypatch.setattr(nets, "sun_loss", loss)
+
+
+def test_a_loss_that_is_not_finite_stops_the_run_at_its_step_keeping_the_last_checkpoint(logs, tmp_path,
+                                                                                      monkeypatch):
+    from rig.errors import SunrigError
+
+    out = tmp_path / "m"
+    # A checkpoint after every step; the loss turns nan in step 3 (its 5th and 6th computations).
+    cfg = TrainConfig(preset="tiny", max_steps=5, batch_windows=1, lr=1e-4, checkpoint_every_s=0.0)
+    _diverging_loss_at(monkeypatch, 5)
+    with pytest.raises(SunrigError) as info:
+        train(logs, out, cfg)
+    message = str(info.value)
+    assert type(info.value).__name__ == "TrainingDivergedError", message
+    assert message.startswith("train: training diverged at step 3: its loss became nan"), message
+    assert "lower --lr than 0.0001 and a new --out" in message, message  # below the recipe's, which is not named
+    assert f"its checkpoint at step 2 in {out} is kept" in message, message
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    assert state["step"] == 2 and not (out / "backbone.onnx").exists() and not (out / "weights.npz").exists()
+    assert all(bool(torch.isfinite(t).all()) for t in state["backbone"].values() if t.is_floating_point())
+
+
+def test_a_run_that_diverges_is_one_line_saying_to_lower_lr_and_writes_no_model(logs, tmp_path, capsys):
+    # --lr 100 exited 0 with "model written" and weights beyond float16 (inf in weights.npz, nan in
+    # the graphs' answers); --lr 1e6 was an internal error (the hard-drive sampler's errors were nan).
+    from rig.cli import main
+
+    for lr, said in (("100", "diverged by step 5: "), ("1e6", "diverged at step 2: its loss became nan")):
+        out = tmp_path / f"m{lr}"
+        code = main(["train", *map(str, logs), "--out", str(out), "--preset", "tiny", "--steps", "5",
+                     "--batch", "1", "--lr", lr])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert "internal error" not in err[0] and "model written" not in err[0] and said in err[0], err[0]
+        assert f"lower --lr than {float(lr):g} (the recipe's is 0.0005)" in err[0], err[0]
+        assert "nothing was saved" in err[0], err[0]
+        assert not (out / CHECKPOINT).exists() and not (out / "weights.npz").exists()
+
+
+def _checkpoint_with_nan_weights(path):
+    from dataclasses import asdict
+
+    from estimator import nets
+
+    backbone, aggregator = nets.TINY.build(seed=0)
+    with torch.no_grad():
+        next(iter(aggregator.parameters())).fill_(math.nan)
+    opt = torch.optim.AdamW(list(backbone.parameters()) + list(aggregator.parameters()))
+    torch.save({"config": asdict(TrainConfig(preset="tiny", max_steps=5, batch_windows=1, lr=100.0,
+                                                crops_per_frame=4, crop_fov_deg=PAPER_CROP_FOV_DEG)),
+                "backbone": backbone.state_dict(), "aggregator": aggregator.state_dict(),
+                "optimizer": opt.state_dict(), "step": 4, "elapsed_s": 1.0,
+                "rng": np.random.default_rng(0).bit_generator.state, "torch_rng": torch.get_rng_state()}, path)
+
+
+def test_a_checkpoint_holding_nan_weights_is_neither_exported_nor_resumed(logs, tmp_path, capsys, monkeypatch):
+    # A run before the divergence check wrote such checkpoints; --export-only made a model of them.
+    from estimator import train as train_module
+    from rig.cli import main
+
+    out = tmp_path / "m"
+    out.mkdir()
+    _checkpoint_with_nan_weights(out / CHECKPOINT)
+    monkeypatch.setattr(train_module, "load_drives", None)  # refused before any data loads
+    for argv in (["--out", str(out), "--export-only", str(tmp_path / "exported")],
+                 [*map(str, logs), "--out", str(out), "--preset", "tiny", "--steps", "5", "--batch", "1",
+                  "--lr", "100"]):
+        code = main(["train", *argv, "--quiet"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert "internal error" not in err[0] and f"{out / CHECKPOINT} holds weights that are not finite" in err[0]
+        assert "its run diverged by step 4" in err[0] and "a lower --lr than 100" in err[0], err[0]
+    assert not (tmp_path / "exported").exists()
