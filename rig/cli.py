@@ -137,6 +137,16 @@ def _config_type(section: str, key: str):
     return parse
 
 
+def _path(text: str) -> str:
+    """An argparse type for every path (and port) a command takes: not empty. ``""`` is what an
+    unset shell variable gives (``--out "$OUT"``), and was taken as the current folder (quantize
+    --out, synth wrote there), as no output at all (eval --plot, run --record), or as a folder to
+    read (gnss)."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+    return text
+
+
 _positive_int = _int_in(1)
 _nonneg_int = _int_in(0)
 _positive_float = _float_in(0.0)
@@ -1069,7 +1079,7 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
                    help="oak-imu, nmea:PORT (GNSS compass / INS), visual (from the images, relative), none, "
                         "or log (a file: camera's own)")
     g = p.add_argument_group("source options")
-    g.add_argument("--calibration", metavar="FILE",
+    g.add_argument("--calibration", type=_path, metavar="FILE",
                    help="OpenCV calibration (YAML/JSON/XML: camera_matrix, image_width, image_height)")
     # Each flag takes its [source] option's type and range: 0 is "unset" as in the file, so a
     # flag can unset what a file set.
@@ -1094,13 +1104,14 @@ def _source_flags(p: argparse.ArgumentParser) -> None:
 
 
 def _output_flags(p: argparse.ArgumentParser, defaults: bool = True) -> None:
-    p.add_argument("--serial", metavar="PORT", help="serial port or pyserial URL (socket://, loop://, spy://)")
+    p.add_argument("--serial", type=_path, metavar="PORT",
+                   help="serial port or pyserial URL (socket://, loop://, spy://)")
     p.add_argument("--baud", type=_positive_int, default=115200 if defaults else None,
                    help="baud rate (default 115200)")
     p.add_argument("--format", choices=["nmea", "binary"], default="nmea" if defaults else None,
                    help="serial format (default nmea; see docs/protocol.md)")
     if not defaults:
-        p.add_argument("--jsonl", metavar="PATH|-", help="also write one JSON object per estimate here")
+        p.add_argument("--jsonl", type=_path, metavar="PATH|-", help="also write one JSON object per estimate here")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -1124,10 +1135,11 @@ def build_parser() -> argparse.ArgumentParser:
     debug.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
     p = sub.add_parser("replay", parents=[debug], help="run a recorded log through the estimator")
-    p.add_argument("log", nargs="?",
+    p.add_argument("log", nargs="?", type=_path,
                    help="a native sunrig log (.mcap) or a KITTI raw drive folder; default: the bundled demo drive")
-    p.add_argument("--jsonl", metavar="PATH|-", help="write one JSON object per estimate here (- for stdout)")
-    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
+    p.add_argument("--jsonl", type=_path, metavar="PATH|-",
+                   help="write one JSON object per estimate here (- for stdout)")
+    p.add_argument("--model", type=_path, metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregator", default="transformer", choices=["transformer", "mean", "meanshift", "single"],
                    help="how a window's crops become one answer (default transformer, the paper's)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
@@ -1143,12 +1155,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", parents=[debug], help="the live rig: camera and heading in, sun direction out")
     _source_flags(p)
-    p.add_argument("--config", metavar="FILE.toml", help="configuration file; flags override it")
-    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
+    p.add_argument("--config", type=_path, metavar="FILE.toml", help="configuration file; flags override it")
+    p.add_argument("--model", type=_path, metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregator", choices=["transformer", "mean", "meanshift", "single"],
                    help="how a window's crops become one answer (default transformer, the paper's)")
     _output_flags(p, defaults=False)
-    p.add_argument("--record", metavar="OUT.mcap", help="record estimates (and frames with --record-frames)")
+    p.add_argument("--record", type=_path, metavar="OUT.mcap",
+                   help="record estimates (and frames with --record-frames)")
     p.add_argument("--record-frames", action="store_true",
                    help="record the frames too (most of a log's size): a log that replays and trains")
     p.add_argument("--record-overwrite", action="store_true",
@@ -1163,7 +1176,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("record", parents=[debug],
                        help="record live sources (frames, heading, GNSS, intrinsics) to a native log")
     _source_flags(p)
-    p.add_argument("--out", required=True, metavar="OUT.mcap",
+    p.add_argument("--out", required=True, type=_path, metavar="OUT.mcap",
                    help="the native log to write; {start} in the name is the UTC start time (20261123T031500Z). "
                         "An existing file is refused unless --overwrite")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
@@ -1172,13 +1185,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=_positive_int, metavar="N", help="stop after N frames")
     p.add_argument("--jpeg-quality", type=_int_in(1, 100), default=90, metavar="Q",
                    help="JPEG quality of the images, 1-100 (default 90)")
-    p.add_argument("--config", metavar="FILE.toml", help="configuration file ([source] camera, heading)")
+    p.add_argument("--config", type=_path, metavar="FILE.toml", help="configuration file ([source] camera, heading)")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stderr")
     p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("demo", parents=[debug], help="the bundled drive through the live rig, in real time")
-    p.add_argument("--config", metavar="FILE.toml", help="configuration file ([output], [rig], [estimator])")
-    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
+    p.add_argument("--config", type=_path, metavar="FILE.toml",
+                   help="configuration file ([output], [rig], [estimator])")
+    p.add_argument("--model", type=_path, metavar="DIR", help="model folder (default: the shipped model)")
     _output_flags(p, defaults=False)
     p.add_argument("--fast", action="store_true",
                    help="as fast as possible instead of real time (frames the estimator cannot keep up with "
@@ -1188,14 +1202,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("config", parents=[debug], help="show the effective configuration")
     p.add_argument("--print", action="store_true", required=True, help="print it as TOML")
-    p.add_argument("--config", metavar="FILE.toml", help="configuration file (default: the built-in defaults)")
+    p.add_argument("--config", type=_path, metavar="FILE.toml",
+                   help="configuration file (default: the built-in defaults)")
     p.set_defaults(func=cmd_config)
 
     p = sub.add_parser("eval", parents=[debug], help="angular error of every aggregator over logs with ground truth")
-    p.add_argument("logs", nargs="+", help="native logs (.mcap), folders of them, or KITTI raw drive folders")
-    p.add_argument("--json", metavar="OUT", help="write the summary here (default: stdout)")
-    p.add_argument("--plot", metavar="OUT.png", help="cumulative error curves (and OUT-tokens.png)")
-    p.add_argument("--model", metavar="DIR", help="model folder (default: the shipped model)")
+    p.add_argument("logs", nargs="+", type=_path,
+                   help="native logs (.mcap), folders of them, or KITTI raw drive folders")
+    p.add_argument("--json", type=_path, metavar="OUT", help="write the summary here (default: stdout)")
+    p.add_argument("--plot", type=_path, metavar="OUT.png", help="cumulative error curves (and OUT-tokens.png)")
+    p.add_argument("--model", type=_path, metavar="DIR", help="model folder (default: the shipped model)")
     p.add_argument("--aggregators", metavar="A,B", help="comma-separated subset (default: all)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=_positive_float, default=4.0, metavar="S",
@@ -1208,10 +1224,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("quantize", parents=[debug],
                        help="a model with an int8 backbone, calibrated on logs (needs sunrig[train])")
-    p.add_argument("logs", nargs="+", help="native logs (.mcap), folders of them, or KITTI raw drive folders, "
+    p.add_argument("logs", nargs="+", type=_path,
+                   help="native logs (.mcap), folders of them, or KITTI raw drive folders, "
                                            "like those the model will see; no ground truth needed")
-    p.add_argument("--out", required=True, metavar="MODEL_DIR", help="the int8 model's folder (a new one)")
-    p.add_argument("--model", metavar="DIR", help="the model to quantize (default: the shipped model)")
+    p.add_argument("--out", required=True, type=_path, metavar="MODEL_DIR", help="the int8 model's folder (a new one)")
+    p.add_argument("--model", type=_path, metavar="DIR", help="the model to quantize (default: the shipped model)")
     p.add_argument("--calibration-crops", type=_positive_int, default=1024, metavar="N",
                    help="crops to calibrate the activations on, drawn evenly from the logs' frames (default 1024)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop and frame sampling seed (default 0)")
@@ -1223,8 +1240,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     recipe = TrainConfig()
     p = sub.add_parser("train", parents=[debug], help="train a model on logs with ground truth (needs sunrig[train])")
-    p.add_argument("logs", nargs="*", help="native logs (.mcap), folders of them, or KITTI raw drive folders")
-    p.add_argument("--out", required=True, metavar="MODEL_DIR",
+    p.add_argument("logs", nargs="*", type=_path,
+                   help="native logs (.mcap), folders of them, or KITTI raw drive folders")
+    p.add_argument("--out", required=True, type=_path, metavar="MODEL_DIR",
                    help="model folder; holds checkpoint.pt, and a run resumes from it")
     p.add_argument("--preset", default=recipe.preset,
                    help="network preset: fast (default, the 2-core CPU recipe of docs/model.md), light, "
@@ -1279,10 +1297,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")
-    p.add_argument("--init", metavar="MODEL_DIR",
+    p.add_argument("--init", type=_path, metavar="MODEL_DIR",
                    help="fine-tune: start from this model's weights instead of random ones "
                         "('shipped': the model installed with sunrig)")
-    p.add_argument("--export-only", metavar="DIR",
+    p.add_argument("--export-only", type=_path, metavar="DIR",
                    help="export the checkpoint in --out as it stands to DIR, without training (e.g. mid-run); "
                         "with the run's logs, a checkpoint that predates it also records their sun elevations")
     p.add_argument("--mirror-windows", action=argparse.BooleanOptionalAction, default=None,
@@ -1293,7 +1311,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("synth", parents=[debug], help="write procedural street drives with the true sun as native logs")
-    p.add_argument("out", help="output folder (drives already there are kept: a run resumes)")
+    p.add_argument("out", type=_path, help="output folder (drives already there are kept: a run resumes)")
     p.add_argument("--drives", type=_positive_int, default=10, help="how many drives (default 10)")
     p.add_argument("--frames", type=_positive_int, default=40, help="frames per drive (default 40)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="drive i of seed S is always the same drive")
@@ -1310,7 +1328,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time", metavar="ISO8601", help="UTC time, e.g. 2011-09-26T11:02:26Z (no offset: UTC)")
     p.add_argument("--lat", type=float, metavar="DEG", help="latitude, north positive")
     p.add_argument("--lon", type=float, metavar="DEG", help="longitude, east positive")
-    p.add_argument("--csv", metavar="IN|-", help="rows time,lat,lon[,elevation_m] with a header: one JSON line each")
+    p.add_argument("--csv", type=_path, metavar="IN|-",
+                   help="rows time,lat,lon[,elevation_m] with a header: one JSON line each")
     p.add_argument("--elevation-m", type=float, default=0.0, metavar="M", help="height above sea level (default 0)")
     p.add_argument("--pressure-hpa", type=float, metavar="P",
                    help="for refraction (default: the standard atmosphere at the elevation, 1013.25 at 0 m)")
@@ -1320,9 +1339,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_sun)
 
     p = sub.add_parser("gnss", parents=[debug], help="read a GNSS compass / INS (NMEA 0183) and print what it decodes")
-    p.add_argument("source", metavar="PORT_OR_FILE",
+    p.add_argument("source", type=_path, metavar="PORT_OR_FILE",
                    help="serial device, pyserial URL (socket://HOST:PORT) or an NMEA capture file")
-    p.add_argument("--jsonl", metavar="PATH|-", default="-",
+    p.add_argument("--jsonl", type=_path, metavar="PATH|-", default="-",
                    help="one JSON object per sentence that gives a heading, fix or time (default: - stdout)")
     p.add_argument("--baud", type=_positive_int, default=115200,
                    help="baud rate of a serial device (default 115200)")

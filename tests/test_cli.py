@@ -798,6 +798,50 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
     assert not (tmp_path / "m").exists() and not (tmp_path / "s").exists()
 
 
+# Every path a command takes, given as "" (an unset shell variable: --out "$OUT"): it wrote into the
+# current folder (quantize --out, synth), dropped the output without a word (eval --plot, run
+# --record), or read the folder as the input (gnss).
+_EMPTY_PATHS = {
+    "replay LOG": ("replay '' --quiet", "log"),
+    "replay --jsonl": ("replay --jsonl ''", "--jsonl"),
+    "replay --model": ("replay --model ''", "--model"),
+    "replay --serial": ("replay --serial ''", "--serial"),
+    "run --calibration": ("run --camera opencv:99 --calibration ''", "--calibration"),
+    "run --config": ("run --camera file:{demo} --config ''", "--config"),
+    "run --record": ("run --camera file:{demo} --fast --record ''", "--record"),
+    "run --jsonl": ("run --camera file:{demo} --fast --jsonl ''", "--jsonl"),
+    "record --out": ("record --camera file:{demo} --frames 2 --out ''", "--out"),
+    "demo --model": ("demo --fast --model ''", "--model"),
+    "config --config": ("config --print --config ''", "--config"),
+    "eval LOG": ("eval {demo} '' --quiet", "logs"),
+    "eval --json": ("eval {demo} --quiet --json ''", "--json"),
+    "eval --plot": ("eval {demo} --quiet --plot ''", "--plot"),
+    "quantize --out": ("quantize {demo} --calibration-crops 16 --quiet --out ''", "--out"),
+    "train --out": ("train {demo} --preset tiny --steps 1 --quiet --out ''", "--out"),
+    "train --init": ("train {demo} --preset tiny --steps 1 --quiet --out {tmp}/m --init ''", "--init"),
+    "train --export-only": ("train --out {tmp}/m --export-only ''", "--export-only"),
+    "synth OUT": ("synth '' --drives 1 --frames 2", "out"),
+    "sun --csv": ("sun --csv ''", "--csv"),
+    "gnss SOURCE": ("gnss ''", "PORT_OR_FILE"),
+    "gnss --jsonl": ("gnss {demo} --jsonl ''", "--jsonl"),
+}
+
+
+@pytest.mark.parametrize("slot", [pytest.param(s, marks=[pytest.mark.torch] if s.startswith(("train", "quantize"))
+                                               else []) for s in _EMPTY_PATHS])
+def test_an_empty_path_is_a_usage_error_naming_its_option(tmp_path, capsys, monkeypatch, slot):
+    line, option = _EMPTY_PATHS[slot]
+    work = tmp_path / "cwd"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    argv = [arg if arg != "''" else "" for arg in _command(line, tmp=tmp_path)]
+    rc, captured = _main_in_process(argv, capsys)
+    assert rc == 2 and captured.out == "", captured.err
+    (said,) = captured.err.strip().splitlines()
+    assert said.startswith(f"sunrig {argv[0]}: error: argument {option}: expected a path, got an empty string"), said
+    assert os.listdir(work) == [] and not (tmp_path / "m").exists()
+
+
 def test_debug_is_taken_after_the_subcommand_too(tmp_path):
     # As the errors' advice ("rerun with --debug") is most often followed: at the end of the line.
     res = run_cli("replay", str(tmp_path / "missing.mcap"), "--debug")
