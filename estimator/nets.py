@@ -13,7 +13,7 @@ y forward, z up); :func:`world_from_heading_torch` rotates them into ENU by the 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 from estimator.contract import PAPER_CROP_FOV_DEG, PAPER_CROPS_PER_FRAME, YAW_INPUT, ModelContract
@@ -32,6 +32,15 @@ ENCODING_KIND = "cyclic-nested-sine"
 # float32 next to any real score, finite so a row whose keys are all padding gives a uniform
 # softmax instead of NaN (-inf - -inf).
 MASK_NEGATIVE = -1.0e9
+
+# An ONNX file is one protobuf message, which cannot pass 2 GiB, and export writes each graph whole
+# into one file, its weights inside (estimator/export.py: a model folder is its two graphs).
+ONNX_FILE_MAX_BYTES = 2**31 - 1
+# What a graph holds beyond its float32 weights (nodes, names, shapes, the contract), per
+# transformer layer and once more for the rest of the aggregator: the tiny preset's graph grows by
+# 96.9 kB a layer for 63.4 kB of weights, and with one layer holds 60 kB beside its 76.9 kB of
+# weights; rounded up, so that an estimate from it is an upper bound.
+ONNX_BYTES_PER_LAYER = 40_000
 
 # Below this norm a predicted vector has no direction; the cosine term uses it as a floor so a
 # zero prediction gives a finite loss and gradient instead of 0/0.
@@ -412,6 +421,24 @@ class NetConfig:
         except TypeError as exc:
             raise ValidationError(f"architecture: cannot rebuild a NetConfig ({exc})") from None
 
+    def sizes(self) -> tuple[int, int, int]:
+        """Values (weights and buffers) of the backbone, of the aggregator apart from its
+        transformer layers, and of one layer: what any depth takes, without building it."""
+        backbone, aggregator = replace(self, layers=1).build()
+        layer = _values(aggregator.layers[0])
+        return _values(backbone), _values(aggregator) - layer, layer
+
+    def aggregator_graph_bytes(self, layers: int) -> int:
+        """An upper estimate of the exported aggregator graph's size with ``layers`` layers."""
+        _, rest, layer = self.sizes()
+        return 4 * (rest + layers * layer) + ONNX_BYTES_PER_LAYER * (layers + 1)
+
+    def max_layers(self) -> int:
+        """The most transformer layers whose aggregator graph one ONNX file can hold: a deeper
+        model would train for its hours and then fail to export."""
+        _, rest, layer = self.sizes()
+        return (ONNX_FILE_MAX_BYTES - 4 * rest - ONNX_BYTES_PER_LAYER) // (4 * layer + ONNX_BYTES_PER_LAYER)
+
     def build(self, seed: int | None = None) -> tuple[Backbone, Aggregator]:
         """Fresh (untrained) modules; ``seed`` makes their initial weights reproducible."""
         if seed is not None:
@@ -450,6 +477,10 @@ class NetConfig:
             architecture=self.architecture(),
             training=dict(training or {}),
         )
+
+
+def _values(module: nn.Module) -> int:
+    return sum(t.numel() for t in module.state_dict().values())
 
 
 # Sec. 4.2: ResNet18 on 224 px crops; transformer of 4 layers, 4 heads, width 512, MLP 1024,

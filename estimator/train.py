@@ -155,7 +155,34 @@ def trainable(frame: Frame) -> bool:
     return has_true_heading and frame.sun_enu_truth is not None
 
 
+# The most a crop is enlarged from the frame to the preset's crop size. The backbone's stem (a
+# stride-2 convolution, then a stride-2 max-pool) reduces a crop 4x before its first stage, so up
+# to 4x that stage still sees about one position per recorded pixel; beyond, it sees interpolation
+# only, and every frame is stored over 16x its recorded size (--crop-fov 0.1 on a KITTI frame is
+# one pixel, enlarged 96x to the fast preset's crops: 12 GB a frame).
+MAX_CROP_ENLARGEMENT = 4
+
+
+def _check_crop_span(frame: Frame, name: str, crop_size: int, crop_fov_rad: float) -> None:
+    k = frame.intrinsics
+    need = math.ceil(crop_size / MAX_CROP_ENLARGEMENT)  # source pixels a crop must span
+    if min(k.width, k.height) < need:
+        raise ValidationError(f"{name}: its frames ({k.width}x{k.height} px) are too small for {crop_size} px crops: "
+                              f"a crop needs at least {need} px of them; pass a preset with smaller crops")
+    side = crop_side_px(k, crop_fov_rad)
+    if side < need:
+        # The least angle whose crop rounds to `need` px (crop_side_px rounds), up to the 0.01 deg shown.
+        least = math.ceil(math.degrees(2.0 * math.atan((need - 0.5) / (2.0 * k.fx))) * 100.0) / 100.0
+        raise ValidationError(
+            f"{name}: --crop-fov {math.degrees(crop_fov_rad):g} deg spans {side} px of its frames (fx {k.fx:g}), "
+            f"enlarged {crop_size / side:.0f}x to {crop_size} px crops; for this camera pass a --crop-fov of at "
+            f"least {least:.2f} deg ({need} px: enlarged more than {MAX_CROP_ENLARGEMENT}x, a crop is interpolation "
+            f"to the network's first stage, and each frame is stored at over {MAX_CROP_ENLARGEMENT ** 2}x its size)")
+
+
 def _view(usable: Sequence[Frame], name: str, crop_size: int, crop_fov_rad: float) -> DriveView:
+    for frame in {f.intrinsics: f for f in usable}.values():  # once per camera, before any frame is scaled
+        _check_crop_span(frame, name, crop_size, crop_fov_rad)
     images, scales = zip(*(_scaled(f, crop_size, crop_fov_rad) for f in usable), strict=True)
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
@@ -494,6 +521,30 @@ def _check_batch_fits(windows: int, frames: int, crops_per_frame: int, crop_size
             f"this machine has; {_smaller_batch_advice(windows, crops_per_frame)}")
 
 
+def _check_layers(cfg: TrainConfig) -> None:
+    """Refuse, before anything is built, a depth that cannot become a model: an aggregator graph
+    beyond what one ONNX file holds (it would train, then fail to export), or networks whose
+    training state alone exceeds the machine's memory and swap (--layers 100000 grew past 8 GB
+    building them, with no step made)."""
+    if not cfg.layers:
+        return
+    preset = nets.PRESETS[cfg.preset]
+    most = preset.max_layers()
+    why = ("a deeper aggregator graph would pass the 2 GiB one ONNX file holds, so the model could not be "
+           "exported")
+    memory = _memory_bytes()
+    if memory is not None:
+        backbone, rest, layer = preset.sizes()
+        # Training holds every value four times in float32: itself, its gradient and AdamW's two
+        # moments. A floor, as for the batch: the activations come on top.
+        fits = (memory // 16 - backbone - rest) // layer
+        if fits < most:
+            most, why = fits, (f"deeper, its weights, gradients and optimiser state alone would pass the "
+                               f"{_gib(memory)} of memory and swap this machine has")
+    if cfg.layers > most:
+        raise ValidationError(f"layers: expected 1 to {most} for the {cfg.preset} preset ({why}), got {cfg.layers}")
+
+
 def _smaller_batch_advice(windows: int, crops_per_frame: int) -> str:
     recipe = TrainConfig.batch_windows
     # Fewer crops than the paper's would change the recipe, so --crops is named only above it.
@@ -673,6 +724,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                               f"got {cfg.layers!r}")
     if cfg.layers == nets.PRESETS[cfg.preset].layers:
         cfg = replace(cfg, layers=0)  # the preset's own depth, named: the same run as not naming it
+    _check_layers(cfg)
     for name in ("hard_share", "mirror_share", "live_share"):
         if not 0.0 <= getattr(cfg, name) <= 1.0:
             raise ValidationError(f"{name}: expected a share in [0, 1], got {getattr(cfg, name)}")

@@ -1167,3 +1167,59 @@ def test_a_checkpoint_holding_nan_weights_is_neither_exported_nor_resumed(logs, 
         assert "internal error" not in err[0] and f"{out / CHECKPOINT} holds weights that are not finite" in err[0]
         assert "its run diverged by step 4" in err[0] and "a lower --lr than 100" in err[0], err[0]
     assert not (tmp_path / "exported").exists()
+
+
+def test_a_crop_angle_too_narrow_for_the_camera_is_refused_naming_the_least_that_works(tmp_path):
+    # --crop-fov 0.1 spans one pixel of a KITTI frame: every frame was stored enlarged to make that
+    # pixel a whole crop (96x for the fast preset: 12 GB a frame), an internal MemoryError.
+    fov = math.radians(4.3)  # the test camera (fx 100) at 8 px, a quarter of the tiny preset's 32 px crops
+    assert load_drive(_frames(2, 0), "d", crop_size=32, crop_fov_rad=fov).images.shape[1:] == (320, 512, 3)
+    for narrow in (math.radians(4.2), [math.radians(17.6), math.radians(0.1)]):
+        with pytest.raises(ValidationError, match=r"^d: --crop-fov (4.2|0.1) deg spans (7|1) px of its frames "
+                           r"\(fx 100\), enlarged (5|32)x to 32 px crops; for this camera pass a --crop-fov of at "
+                           r"least 4.30 deg \(8 px"):
+            load_drive(_frames(2, 0), "d", crop_size=32, crop_fov_rad=narrow)
+    one = _write_logs(tmp_path / "logs", 1)
+    with pytest.raises(ValidationError, match="at least 4.30 deg"):
+        train(one, tmp_path / "m", TrainConfig(preset="tiny", max_steps=1, batch_windows=1, crop_fov_deg=0.1))
+    assert not (tmp_path / "m").exists()
+
+
+def test_frames_too_small_for_the_presets_crops_are_refused():
+    with pytest.raises(ValidationError, match=r"its frames \(128x80 px\) are too small for 400 px crops: a crop "
+                       r"needs at least 100 px of them; pass a preset with smaller crops"):
+        load_drive(_frames(2, 0), "d", crop_size=400, crop_fov_rad=math.radians(60.0))
+
+
+def test_more_transformer_layers_than_an_onnx_file_or_the_memory_holds_are_refused(logs, tmp_path, monkeypatch):
+    # --layers 100000 was accepted and grew past 8 GB building the networks, with no step made.
+    from estimator import nets
+    from estimator import train as train_module
+
+    def reached(*args, **kw):
+        raise AssertionError("reached")
+
+    monkeypatch.setattr(train_module, "load_drives", reached)  # refused before any data loads
+    monkeypatch.setattr(train_module, "_memory_bytes", lambda: 2**40)
+    with pytest.raises(ValidationError, match=r"^layers: expected 1 to (\d+) for the tiny preset \(a deeper "
+                       r"aggregator graph would pass the 2 GiB one ONNX file holds, so the model could not be "
+                       r"exported\), got 100000$") as info:
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", layers=100000, max_steps=1))
+    most = nets.TINY.max_layers()
+    assert f"expected 1 to {most} " in str(info.value) and 1000 < most < 100000
+    with pytest.raises(AssertionError, match="reached"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", layers=most, max_steps=1))
+    # On a machine of 1 GiB, the weights, gradients and AdamW's two moments (16 bytes a value) bound it first.
+    monkeypatch.setattr(train_module, "_memory_bytes", lambda: 2**30)
+    with pytest.raises(ValidationError, match=r"^layers: expected 1 to \d+ for the tiny preset \(deeper, its "
+                       r"weights, gradients and optimiser state alone would pass the 1.0 GiB of memory and swap "
+                       rf"this machine has\), got {most}$"):
+        train(logs, tmp_path / "m", TrainConfig(preset="tiny", layers=most, max_steps=1))
+    assert not (tmp_path / "m").exists()
+
+
+def test_the_onnx_size_estimate_of_the_aggregator_is_an_upper_bound(tiny_model_dir):
+    from estimator import nets
+
+    size = (tiny_model_dir / "aggregator.onnx").stat().st_size
+    assert size <= nets.TINY.aggregator_graph_bytes(nets.TINY.layers) < 1.5 * size
