@@ -194,8 +194,11 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     remedy = "pass the file calibrateCamera's results were saved to, or --hfov-deg instead"
     if p.is_dir():
         raise CameraError(f"calibration file {p} is a folder; {remedy}")
-    if not p.is_file():
+    if not p.exists():
         raise CameraError(f"calibration file {p} does not exist; {remedy}")
+    if not p.is_file():  # /dev/zero, a FIFO (whose open would wait for a writer without a word)
+        raise CameraError(f"calibration file {p} is not a regular file (a FIFO or device); save the calibration "
+                          "to a file and pass that, or --hfov-deg instead")
     if p.stat().st_size == 0:  # OpenCV says only "Assertion failed: buf"
         raise CameraError(f"calibration file {p} is empty (0 bytes); {remedy}")
     try:

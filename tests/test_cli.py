@@ -1156,6 +1156,24 @@ def test_every_input_of_every_command_refuses_a_bad_file_in_one_line(tmp_path, c
     assert not os.listdir(tmp_path / "out"), "an output was left by a command that failed"
 
 
+@pytest.mark.parametrize("special", ["/dev/zero", "fifo"])
+@pytest.mark.parametrize("command", ["run", "record"])
+def test_a_calibration_that_is_a_device_or_fifo_is_said_to_be_one(tmp_path, capsys, command, special):
+    # "calibration file /dev/zero does not exist": it does, it is only not a file to read.
+    if special == "fifo":
+        special = tmp_path / "cam.fifo"
+        os.mkfifo(special)  # never opened: a FIFO's open would wait for a writer
+    elif not os.path.exists(special):
+        pytest.skip(f"needs {special}")
+    argv = [command, "--camera", "opencv:99", "--heading", "none", "--calibration", str(special)]
+    out = ["--out", str(tmp_path / "d.mcap")] if command == "record" else ["--jsonl", str(tmp_path / "e.jsonl")]
+    rc, captured = _main_in_process([*argv, *out], capsys)
+    _assert_one_line_error(rc, captured, names=f"calibration file {special} is not a regular file (a FIFO or "
+                                               "device); save the calibration to a file and pass that")
+    assert "does not exist" not in captured.err and sorted(os.listdir(tmp_path)) == (
+        ["cam.fifo"] if isinstance(special, Path) else [])
+
+
 _OUTPUT_SLOTS = {
     "replay --jsonl": "replay --jsonl {target}",
     "run --jsonl": "run --heading log --camera file:{demo} --fast --jsonl {target}",
