@@ -409,6 +409,13 @@ def _check_writable(flag: str, path: str | None, suffixes: tuple[str, ...] = ())
     folder = out.parent
     if out.is_dir() or not folder.is_dir() or not os.access(folder, os.W_OK):
         raise SunrigError(f"{flag} {path}: cannot write there; check the folder exists and is writable")
+    from rig.files import check_can_write
+
+    try:  # by writing: os.access says yes to root for any folder, /proc too
+        check_can_write(out)
+    except OSError as exc:
+        raise SunrigError(f"{flag} {path}: cannot write there ({exc.strerror}); check the folder exists and is "
+                          "writable") from None
 
 
 def _open_camera(spec: str, heading: str, options=None):

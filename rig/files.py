@@ -36,15 +36,36 @@ def write_replacing(path: str | os.PathLike[str], write: Callable[[Path], object
     if path.exists() and not path.is_file():
         write(path)
         return
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    tmp = _sibling(path)
     try:
         write(tmp)
         os.replace(tmp, path)
     except BaseException as exc:
         tmp.unlink(missing_ok=True)  # a torn copy would only hold a full disk full
-        if isinstance(exc, OSError) and exc.filename is None:  # name the file the error is about
+        # Name the file the error is about: the user's, not the hidden sibling they never named.
+        if isinstance(exc, OSError) and (exc.filename is None or os.fsdecode(exc.filename) == str(tmp)):
             raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
+
+
+def _sibling(path: Path) -> Path:
+    return path.with_name(f".{path.stem}.tmp{path.suffix}")
+
+
+def check_can_write(path: str | os.PathLike[str]) -> None:
+    """Raise OSError (naming ``path``) if :func:`write_replacing` could not write ``path``: its
+    hidden sibling is made and removed. Before minutes of work, not after; os.access is no such
+    check, since it says yes to root for any folder (/proc, a read-only bind mount). A path that
+    exists and is not a regular file is written in place, and its open may wait (a FIFO): taken."""
+    path = Path(path)
+    if path.exists() and not path.is_file():
+        return
+    tmp = _sibling(path)
+    try:
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT, 0o666))  # write_replacing replaces it anyway
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
+    tmp.unlink(missing_ok=True)
 
 
 class StreamFile:

@@ -1174,6 +1174,41 @@ def test_a_calibration_that_is_a_device_or_fifo_is_said_to_be_one(tmp_path, caps
         ["cam.fifo"] if isinstance(special, Path) else [])
 
 
+def test_eval_refuses_a_json_it_cannot_make_before_the_evaluation_and_names_it(tmp_path, capsys, monkeypatch):
+    # os.access says yes to root for any folder (/proc too), so --json /proc/x.json passed the check,
+    # the evaluation ran for minutes, and the write failed naming the hidden /proc/.x.tmp.json.
+    import estimator.evaluate
+    from rig.files import write_replacing
+
+    def evaluated(*args, **kwargs):
+        raise AssertionError("evaluated before the output was checked")
+
+    monkeypatch.setattr(estimator.evaluate, "evaluate", evaluated)
+    ro = tmp_path / "ro"
+    ro.mkdir()
+
+    def refuses(path, *args, **kwargs):  # a folder that refuses files, whoever asks (/proc, a read-only mount)
+        if Path(path).parent == ro:
+            raise OSError(30, "Read-only file system", str(path))
+        return real_open(path, *args, **kwargs)
+
+    real_open = os.open
+    with monkeypatch.context() as m:
+        m.setattr(os, "open", refuses)
+        for flag, name in (("--json", "x.json"), ("--plot", "x.png")):
+            rc, captured = _main_in_process(["eval", str(DEMO_LOG), "--quiet", flag, str(ro / name)], capsys)
+            _assert_one_line_error(rc, captured, names=f"{flag} {ro / name}: cannot write there (Read-only file "
+                                                       "system); check the folder exists and is writable")
+            assert ".tmp" not in captured.err and os.listdir(ro) == []
+    # A write that fails all the same (the folder changed meanwhile) names the user's path, not the hidden one.
+    with pytest.raises(OSError) as failed:
+        write_replacing(ro / "x.json", lambda tmp: refuses(tmp, os.O_WRONLY | os.O_CREAT))
+    assert failed.value.filename == str(ro / "x.json") and os.listdir(ro) == []
+    if Path("/proc").is_dir():  # the real one, as the reviewer met it
+        rc, captured = _main_in_process(["eval", str(DEMO_LOG), "--quiet", "--json", "/proc/x.json"], capsys)
+        _assert_one_line_error(rc, captured, names="--json /proc/x.json: cannot write there")
+
+
 _OUTPUT_SLOTS = {
     "replay --jsonl": "replay --jsonl {target}",
     "run --jsonl": "run --heading log --camera file:{demo} --fast --jsonl {target}",
