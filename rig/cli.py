@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
+import itertools
 import json
 import logging
 import math
@@ -1003,6 +1004,22 @@ def cmd_gnss(args: argparse.Namespace) -> int:
     return 0
 
 
+_MAX_CSV_LINE = 2**20  # characters: a row is a time and a few numbers
+
+
+def _csv_lines(f, name: str):
+    """The lines of ``f``, each read with a bound: a file that never ends a line (/dev/zero) was
+    read whole into memory until the machine ran out of it."""
+    for n in itertools.count(1):
+        line = f.readline(_MAX_CSV_LINE + 1)
+        if not line:
+            return
+        if len(line) > _MAX_CSV_LINE:
+            raise SunrigError(f"{name} line {n}: over {_MAX_CSV_LINE // 2**20} MiB without a line end, which no row "
+                              "time,lat,lon is; pass a CSV file of rows time,lat,lon with a header")
+        yield line
+
+
 def cmd_sun(args: argparse.Namespace) -> int:
     """The sun's position by NREL's SPA for one time and place, or for each row of a CSV."""
     import csv
@@ -1022,7 +1039,7 @@ def cmd_sun(args: argparse.Namespace) -> int:
                               "time,lat,lon with a header, or - for stdin") from None
         try:
             with f:
-                rows = list(csv.reader(f))
+                rows = list(csv.reader(_csv_lines(f, name)))
         except UnicodeDecodeError as exc:
             raise SunrigError(f"{name}: not UTF-8 text (byte {exc.start}); save it as UTF-8 CSV") from None
         except (OSError, csv.Error) as exc:

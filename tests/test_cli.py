@@ -1174,6 +1174,24 @@ def test_a_calibration_that_is_a_device_or_fifo_is_said_to_be_one(tmp_path, caps
         ["cam.fifo"] if isinstance(special, Path) else [])
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/zero"), reason="needs /dev/zero")
+def test_sun_csv_of_a_file_that_never_ends_a_line_is_one_line():
+    # csv read /dev/zero's one endless line until the machine ran out of memory (here: the 2 GiB
+    # limit, an internal MemoryError); a row is a line, and none is a MiB long.
+    import resource
+
+    def limit_memory():
+        resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+
+    res = subprocess.run([sys.executable, "-m", "rig.cli", "sun", "--csv", "/dev/zero"], capture_output=True,
+                         text=True, timeout=120, preexec_fn=limit_memory, env=dict(os.environ, OMP_NUM_THREADS="1",
+                                                                                  OPENBLAS_NUM_THREADS="1"))
+    assert res.returncode == 2 and res.stdout == "", res.stderr
+    assert res.stderr.strip().splitlines() == [
+        "sunrig: error: /dev/zero line 1: over 1 MiB without a line end, which no row time,lat,lon is; pass a CSV "
+        "file of rows time,lat,lon with a header"]
+
+
 def test_eval_refuses_a_json_it_cannot_make_before_the_evaluation_and_names_it(tmp_path, capsys, monkeypatch):
     # os.access says yes to root for any folder (/proc too), so --json /proc/x.json passed the check,
     # the evaluation ran for minutes, and the write failed naming the hidden /proc/.x.tmp.json.
