@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -493,12 +494,25 @@ def mean_obliquity_arcsec(jme) -> np.ndarray:
     return np.polyval([2.45, 5.79, 27.87, 7.12, -39.05, -249.67, -51.38, 1999.25, -1.55, -4680.93, 84381.448], u)
 
 
+class RangeError(ValidationError):
+    """An input outside its range. ``index``: where the first such value is in its (flattened)
+    array, None for a scalar, so that a caller with one value per row (a CSV) can name the row."""
+
+    def __init__(self, message: str, index: int | None) -> None:
+        super().__init__(message)
+        self.index = index
+
+
+def _first(bad: np.ndarray) -> int | None:
+    return int(np.flatnonzero(bad)[0]) if bad.ndim else None
+
+
 def _check_range(name: str, value, lo: float, hi: float, unit: str) -> np.ndarray:
     arr = np.asarray(value, dtype=np.float64)
     bad = ~((arr >= lo) & (arr <= hi))  # also catches NaN
     if np.any(bad):
         first = arr[bad].flat[0] if arr.ndim else float(arr)
-        raise ValidationError(f"{name}: expected within [{lo:g}, {hi:g}] {unit}, got {first}")
+        raise RangeError(f"{name}: expected within [{lo:g}, {hi:g}] {unit}, got {first}", _first(bad))
     return arr
 
 
@@ -527,8 +541,8 @@ def spa_steps(utc, lat_deg, lon_deg, elevation_m=0.0, pressure_hpa=DEFAULT_PRESS
     if np.any(outside):
         # Said as a time, not a Julian day: at a limit, JD's decimals would hide which side it is on.
         first_s = round((float(np.ravel(jd)[np.ravel(outside)][0]) - _JD_UNIX_EPOCH) * 86_400.0)
-        raise ValidationError(f"time: expected within the years -2000..6000 (the algorithm's range), got "
-                              f"{np.datetime64(first_s, 's')}Z")
+        raise RangeError(f"time: expected within the years -2000..6000 (the algorithm's range), got "
+                         f"{np.datetime64(first_s, 's')}Z", _first(outside))
 
     s: dict[str, np.ndarray] = {"JD": jd}
     # 3.1: Julian ephemeris day and centuries/millennia from J2000.
@@ -647,31 +661,46 @@ def standard_pressure_hpa(altitude_m) -> np.ndarray:
     return DEFAULT_PRESSURE_HPA * (1.0 - 2.25577e-5 * h) ** 5.25588
 
 
+# ISO 8601: a year of 4 digits, or an expanded one (a sign and 4 to 6 digits: -1000, +002011), as
+# the algorithm's range -2000..6000 needs; year 0 is 1 BC, as numpy and the SPA count.
 _ISO_RE = re.compile(
-    r"^(?P<base>\d{4}-\d{2}-\d{2}(?:[T ]\d{2}:\d{2}(?::\d{2}(?:\.\d{1,9})?)?)?)"
+    r"^(?P<year>[+-]\d{4,6}|\d{4})-(?P<date>\d{2}-\d{2})"
+    r"(?:[T ](?P<hm>\d{2}:\d{2})(?::(?P<second>\d{2})(?P<fraction>\.\d{1,9})?)?)?"
     r"(?P<tz>Z|[+-]\d{2}(?::?\d{2})?)?$"
 )
+_NS_LIMIT = ("time: {what} is written to the nanosecond (7 to 9 decimals), which numpy holds only within the "
+             f"years {NS_YEARS}; write at most 6 decimals")
 
 
 def parse_utc_iso(text: str) -> np.datetime64:
     """ISO 8601 time -> numpy datetime64 in UTC, to the precision written (up to ns).
 
     ``2003-10-17T19:30:30Z``, ``2003-10-17 12:30:30-07:00``, ``2011-09-26T11:02:25.961661696``,
-    ``2003-10-17`` (midnight). A time without an offset is taken as UTC. Raises
-    :class:`ValidationError` with a one-line message.
+    ``2003-10-17`` (midnight), ``-1000-01-01T12:00Z`` (a signed year). A time without an offset is
+    taken as UTC. Raises :class:`ValidationError` with a one-line message.
     """
+    shown = repr(text.strip()[:40])
     m = _ISO_RE.match(text.strip())
     if not m:
-        raise ValidationError(f"time: expected ISO 8601 like 2003-10-17T19:30:30Z, got {text.strip()[:40]!r}")
-    base = m.group("base").replace(" ", "T")
+        raise ValidationError(f"time: expected ISO 8601 like 2003-10-17T19:30:30Z (or a signed year: "
+                              f"-1000-01-01T00:00Z), got {shown}")
+    year = int(m.group("year"))
+    base = (f"{year:04d}" if year >= 0 else f"-{-year:04d}") + "-" + m.group("date")
     # A leap second (23:59:60, as a GNSS receiver reports it) is the next minute's first second,
     # as the NMEA decoder counts it: numpy's time scale, like POSIX, has no second 60.
-    leap = base[17:19] == "60"
+    leap = m.group("second") == "60"
+    if m.group("hm"):
+        base += "T" + m.group("hm")
+        if m.group("second"):
+            base += ":" + ("59" if leap else m.group("second")) + (m.group("fraction") or "")
     try:
-        t = np.datetime64(base[:17] + "59" + base[19:] if leap else base)
+        t = np.datetime64(base)
     except ValueError:
-        raise ValidationError(f"time: not a valid date/time: {text.strip()[:40]!r}; check the month, day, hour, "
+        raise ValidationError(f"time: not a valid date/time: {shown}; check the month, day, hour, "
                               "minute and second") from None
+    ns = np.datetime_data(t.dtype)[0] == "ns"
+    if ns and int(t.astype("datetime64[Y]").astype(np.int64)) + 1970 != year:  # numpy wrapped it round
+        raise ValidationError(_NS_LIMIT.format(what=shown))
     if leap:
         t = t + np.timedelta64(1, "s")
     tz = m.group("tz")
@@ -682,5 +711,29 @@ def parse_utc_iso(text: str) -> np.datetime64:
         if hours > 14 or minutes > 59:
             raise ValidationError(f"time: UTC offset {tz} is not one; expected within -14:00..+14:00")
         minutes += 60 * hours
+        local = t
         t = t - np.timedelta64(sign * minutes, "m")  # local = UTC + offset
+        if minutes and (t < local) != (sign > 0):  # past the ns limit, the shift wrapped round
+            raise ValidationError(_NS_LIMIT.format(what=shown))
     return t
+
+
+def utc_column(times: Sequence[np.datetime64], places: Sequence[str] | None = None) -> np.ndarray:
+    """Times parsed one by one as one array, in the finest unit written (numpy's promotion). A
+    time to the ns makes the whole column ns, which holds only the years 1678..2262, and numpy
+    wraps a time outside them round without a word: that time is a :class:`RangeError` whose
+    ``index`` is its place in ``times``. ``places``: what a message calls each time (a CSV's
+    "line 2"; default "time 1", ...)."""
+    column = np.array(times)
+    if not column.size or np.datetime_data(column.dtype)[0] != "ns":
+        return column
+    lo, hi = UTC_NS_MIN // 10**9 + 1, UTC_NS_MAX // 10**9 - 1  # whole seconds, safely inside
+    seconds = np.array([t.astype("datetime64[s]").astype(np.int64) for t in times])
+    outside = (seconds < lo) | (seconds > hi)
+    if not np.any(outside):
+        return column
+    i = int(np.flatnonzero(outside)[0])
+    fine = next(j for j, t in enumerate(times) if np.datetime_data(t.dtype)[0] == "ns")
+    place = places[fine] if places is not None else f"time {fine + 1}"
+    raise RangeError(f"time: {times[i].astype('datetime64[s]')} is outside the years {NS_YEARS} that times written "
+                     f"to the nanosecond ({place}) limit the column to; write those with at most 6 decimals", i)

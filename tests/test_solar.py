@@ -8,6 +8,7 @@ zenith and azimuth, the requirement); pvlib to 0.001 deg (they agree to ~1e-6 in
 from __future__ import annotations
 
 import datetime as dt
+import io
 import json
 import math
 from pathlib import Path
@@ -281,6 +282,35 @@ def test_a_leap_second_is_the_next_minutes_first_second_as_gnss_reports_it():
         parse_utc_iso("2016-02-30T00:00Z")
 
 
+def test_parse_utc_iso_takes_the_signed_years_of_the_algorithms_range():
+    # The range error says -2000..6000, but "-1000-01-01T00:00:00Z" was "expected ISO 8601": ISO
+    # 8601's expanded years (a sign, 4 to 6 digits; year 0 is 1 BC, as numpy and the SPA count).
+    assert parse_utc_iso("-1000-01-01T00:00:00Z") == np.datetime64("-1000-01-01T00:00:00")
+    assert parse_utc_iso("-2000-01-01") == np.datetime64("-2000-01-01")
+    assert parse_utc_iso("+002011-09-26T11:02:25Z") == np.datetime64("2011-09-26T11:02:25")
+    assert parse_utc_iso("-0001-12-31T23:59:60+01:00") == np.datetime64("0000-01-01T00:00:00") - np.timedelta64(
+        1, "h")  # a leap second, read where the second is, not at a fixed column
+    for bad in ("12011-01-01", "+11-01-01", "--1000-01-01"):
+        with pytest.raises(ValidationError, match="expected ISO 8601"):
+            parse_utc_iso(bad)
+    pos = sun_position(parse_utc_iso("-2000-01-01T00:00:00Z"), 40.0, -105.0)
+    assert np.isfinite(pos.enu).all()
+
+
+@pytest.mark.parametrize(("text", "micro"), [
+    ("2300-01-01T00:00:00.1234567Z", "2300-01-01T00:00:00.123456"),
+    ("-1000-01-01T00:00:00.123456789Z", "-1000-01-01T00:00:00.123456"),
+    ("2262-04-11T23:47:16.854775807-01:00", "2262-04-12T00:47:16.854775"),
+])
+def test_a_time_to_the_nanosecond_outside_the_years_ns_hold_is_refused_not_wrapped(text, micro):
+    # numpy holds ns in int64 (1678..2262) and wraps past it without a word: 2300-01-01T00:00:00.1234567
+    # came out as 1715-06-13T00:25:26, and the sun of that day was printed.
+    with pytest.raises(ValidationError, match=r"1678\.\.2262.*write at most 6 decimals"):
+        parse_utc_iso(text)
+    six = text[: text.index(".") + 7] + text[text.index(".") + 1 :].lstrip("0123456789")
+    assert parse_utc_iso(six) == np.datetime64(micro)  # to the microsecond, any year
+
+
 # --- `sunrig sun` --------------------------------------------------------------------------
 
 
@@ -350,6 +380,64 @@ def test_cli_sun_bad_input_one_line_exit_2(capsys, tmp_path, args, csv_text, nee
     assert stdout == ""
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("sunrig: error: ") and needle in lines[0], err
+
+
+def test_cli_sun_takes_negative_numbers_and_signed_years_as_values(capsys):
+    # argparse takes "-1e9" or "-1000-01-01T..." for an option ("expected one argument"), as it
+    # takes all but plain negative numbers; no sunrig option starts with a minus and a digit.
+    rc, out, err = _sun(capsys, "--time", "-1000-01-01T00:00:00Z", "--lat", "-1e1", "--lon", "-2.5e1",
+                        "--elevation-m", "-1e2")
+    assert rc == 0, err
+    row = json.loads(out)
+    assert row["utc"] == "-1000-01-01T00:00:00Z" and (row["lat_deg"], row["lon_deg"], row["elevation_m"]) == (
+        -10.0, -25.0, -100.0)
+    rc, out, err = _sun(capsys, "--time", "2011-01-01T00:00:00Z", "--lat", "0", "--lon", "0", "--elevation-m", "-1e9")
+    assert rc == 2 and out == "" and err.strip() == (
+        "sunrig: error: elevation: expected within [-6.5e+06, 1e+07] m, got -1000000000.0")
+
+
+@pytest.mark.parametrize(
+    ("csv_text", "said"),
+    [
+        # Line numbers and columns for every row's fault: these named neither.
+        ("time,lat,lon\n2011-01-01T00:00:00Z,abc,20\n",
+         "line 2: lat: expected a number, got 'abc' (row '2011-01-01T00:00:00Z,abc,20')"),
+        ("time,lat,lon,elevation_m\n2011-01-01T00:00:00Z,10,20,0\n2011-01-01T00:00:00Z,10,20,-1e9\n",
+         "line 3: elevation: expected within [-6.5e+06, 1e+07] m, got -1000000000.0 (row "),
+        ("time,lat,lon\n2011-01-01T00:00:00Z,10,20\n\n9999-01-01T00:00:00Z,10,20\n",
+         "line 4: time: expected within the years -2000..6000 (the algorithm's range), got 9999-01-01T00:00:00Z"),
+        ("time,lat,lon\n2011-01-01T00:00:00Z,91,20\n", "line 2: latitude: expected within [-90, 90] deg, got 91.0"),
+        # A year numpy cannot hold in ns beside a time written to the ns: wrapped to 1922 without a word.
+        ("time,lat,lon\n2011-01-01T00:00:00.123456789Z,10,20\n-1000-01-01T00:00:00Z,10,20\n",
+         "line 3: time: -1000-01-01T00:00:00 is outside the years 1678..2262 that times written to the "
+         "nanosecond (line 2) limit the column to; write those with at most 6 decimals"),
+        # An invisible character in the header is shown, not printed as nothing.
+        ("\u200btime,lat,lon\n2011-01-01T00:00:00Z,10,20\n",
+         "line 1: expected a header row with time,lat,lon (and optionally elevation_m), got '\\u200btime,lat,lon'"),
+    ],
+    ids=["not-a-number", "elevation", "year", "latitude", "ns-beside-year-1000", "invisible-header"],
+)
+def test_cli_sun_csv_errors_name_the_line_and_column(capsys, tmp_path, csv_text, said):
+    path = tmp_path / "in.csv"
+    path.write_text(csv_text, encoding="utf-8")
+    rc, out, err = _sun(capsys, "--csv", str(path))
+    assert rc == 2 and out == "", err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"sunrig: error: {path} {said}"), line
+    assert "could not convert" not in line
+
+
+def test_cli_sun_csv_with_a_byte_order_mark_as_excel_writes_it(capsys, tmp_path, monkeypatch):
+    # "CSV UTF-8" from Excel starts with a BOM: the header was refused, the BOM invisible in the message.
+    text = "time,lat,lon\r\n2011-09-26T11:02:25Z,49.015,8.434\r\n"
+    path = tmp_path / "excel.csv"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    rc, out, err = _sun(capsys, "--csv", str(path))
+    assert rc == 0, err
+    assert json.loads(out)["lat_deg"] == 49.015
+    monkeypatch.setattr("sys.stdin", io.TextIOWrapper(io.BytesIO(b"\xef\xbb\xbf" + text.encode()), encoding="utf-8"))
+    rc, out, err = _sun(capsys, "--csv", "-")
+    assert rc == 0 and json.loads(out)["lon_deg"] == 8.434, err
 
 
 @pytest.mark.parametrize("kind", ["folder", "missing"])
