@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
-from rig.ring import FrameRing
+from rig.ring import DEFAULT_RING_CAPACITY, FrameRing
 from rig.types import Frame, SunEstimate
 from rig.window import SpreadWindowPolicy
 
@@ -36,7 +36,8 @@ class OfflineStats:
 def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: SpreadWindowPolicy,
                     *, aggregators: Sequence[str] | None = None, encode_batch: int = 8,
                     stats: OfflineStats | None = None,
-                    exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE) -> Iterator[dict[str, SunEstimate]]:
+                    exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE,
+                    ring_capacity: int = DEFAULT_RING_CAPACITY) -> Iterator[dict[str, SunEstimate]]:
     """One window per frame with a heading, estimated with each aggregator.
 
     Yields ``{aggregator: SunEstimate}`` per window. Frames without heading are counted and left
@@ -47,8 +48,11 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
     aggregators = list(aggregators or [estimator.aggregator])
     stats = stats if stats is not None else OfflineStats()
     # The live rig's ring, bounded by the policy's span (older frames can never be chosen again)
-    # rather than by count: offline, nothing may be dropped for lack of room.
-    ring = FrameRing(capacity=1_000_000, max_age_s=policy.span_s)
+    # and by the live rig's default count (``ring_capacity``): a replay chooses among the frames
+    # the rig would have held. Every frame still gets its window; the count only bounds the
+    # candidates, which with a frozen clock (every frame at one time, so none ever too old) once
+    # grew without end: each window chose among all the frames before it, 3000 frames took 271 s.
+    ring = FrameRing(capacity=ring_capacity, max_age_s=policy.span_s)
     jumps_before = stats.clock_jumps  # the ring counts this stream's; stats may pool several streams
     pending: list[Frame] = []
 

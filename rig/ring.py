@@ -64,11 +64,16 @@ class DropOldestQueue(Generic[T]):
             return len(self._items)
 
 
+# Frames a ring holds at most (the live rig's [rig] ring_capacity, and a replay's): 4 s of a
+# 30 fps camera, the window policy's default span.
+DEFAULT_RING_CAPACITY = 128
+
+
 class FrameRing:
     """The last encoded frames, oldest first, at most ``capacity`` and at most ``max_age_s`` older
     than the newest one."""
 
-    def __init__(self, capacity: int = 128, max_age_s: float = 10.0) -> None:
+    def __init__(self, capacity: int = DEFAULT_RING_CAPACITY, max_age_s: float = 10.0) -> None:
         if capacity < 1:
             raise ValidationError(f"ring capacity: expected >= 1 frames, got {capacity}")
         if not max_age_s > 0:

@@ -127,8 +127,9 @@ def test_every_stretch_of_windows_that_cannot_fill_is_said(model, caplog):
             if "partial window" in r.getMessage() or "full again" in r.getMessage()]
     assert stats.estimates + stats.windows_skipped == 100  # unpaced: windows the aggregator was behind on skip
     assert [kind for kind, _ in said] == ["partial", "full", "partial"]
-    # Full again within the 10 Hz stretch (seq 20-79), once 8 of its frames are in.
-    assert 27 <= int(said[1][1].split()[2]) < 80
+    # Full again within the 10 Hz stretch (seq 20-79): at seq 22 at the earliest, whose 4 s hold the
+    # last 5 slow frames and 3 fast ones (later when the aggregator was behind and skipped windows).
+    assert 22 <= int(said[1][1].split()[2]) < 80
 
 
 def test_a_stopped_run_accounts_for_what_was_still_queued(model):
@@ -321,6 +322,28 @@ def test_offline_counts_clock_jumps_per_stream_and_pools_them(model):
                                                            stats=stats)]
         assert [e.n_frames for e in out if e.seq == 11] == [1]  # the window started again after the jump
     assert stats.clock_jumps == 2 and stats.frames_out_of_order == 0
+
+
+def test_offline_windows_choose_among_what_the_live_ring_holds_even_with_a_frozen_clock(model):
+    # Every frame at one time (a frozen clock at a standstill): none is ever too old to keep, so
+    # each window chose among all the frames before it, 3000 frames in 271 s and 610 MB.
+    from rig.offline import estimate_stream
+    from rig.ring import DEFAULT_RING_CAPACITY
+
+    seen = []
+
+    class Recording(SpreadWindowPolicy):
+        def select(self, candidates):
+            seen.append(len(candidates))
+            return super().select(candidates)
+
+    def frozen():
+        for f in frames(DEFAULT_RING_CAPACITY + 40):
+            yield dataclasses.replace(f, t_mono_s=5.0)
+
+    out = list(estimate_stream(frozen(), SunEstimator(model), Recording(8, 4.0)))
+    assert len(out) == DEFAULT_RING_CAPACITY + 40  # every frame still gets its window
+    assert max(seen) == DEFAULT_RING_CAPACITY == seen[-1]
 
 
 def test_offline_accounts_for_every_frame_and_window(model):
