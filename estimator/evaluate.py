@@ -87,6 +87,10 @@ class EvalResult:
     frames: int = 0
     frames_without_heading: int = 0  # left out of windows, as in a replay
     frames_bad_exposure: int = 0  # too dark, bright or flat to show the sun (rig/exposure.py)
+    # Frames older than the one before (left out, as live: windows assume time order) and clock
+    # jumps (windows start again): a figure over a log whose clock misbehaved says so.
+    frames_out_of_order: int = 0
+    clock_jumps: int = 0
     windows_skipped_filling: int = 0
     windows_failed: int = 0
     windows_without_truth: int = 0
@@ -97,10 +101,11 @@ class EvalResult:
     interrupted: bool = False  # Ctrl-C: the figures are of the windows evaluated until then
 
     # The counters above: pooled by addition and reported as they are, in this order.
-    COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "windows_skipped_filling",
-              "windows_failed", "windows_without_truth", "records_skipped_corrupt")
+    COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "frames_out_of_order", "clock_jumps",
+              "windows_skipped_filling", "windows_failed", "windows_without_truth", "records_skipped_corrupt")
     # Those that estimate_stream counts per log (the others are counted here, per window).
-    STREAM_COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "windows_failed")
+    STREAM_COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "frames_out_of_order",
+                     "clock_jumps", "windows_failed")
 
     def extend(self, other: EvalResult) -> None:
         """Pool another evaluation of the same logs into this one (e.g. with other crop seeds):
