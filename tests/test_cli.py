@@ -1430,6 +1430,7 @@ def test_every_device_a_command_opens_when_absent_is_one_line_and_leaves_no_outp
     _assert_one_line_error(rc, captured, names=names)
     assert not os.listdir(tmp_path / "out")
 
+
 def _clip(path: Path) -> Path:
     """A real 64 x 48 MJPG video of 5 frames."""
     import cv2
@@ -1496,6 +1497,7 @@ def test_a_camera_index_beyond_a_c_int_is_one_line(tmp_path, capsys, command):
     rc, captured = _main_in_process(argv, capsys)
     _assert_one_line_error(rc, captured, names="camera index 2147483648: expected at most 2147483647")
     assert len(captured.err.strip().splitlines()) == 1 and not os.listdir(tmp_path / "out")
+
 
 def test_a_recording_or_drive_whose_focal_length_is_no_camera_is_no_internal_error(tmp_path, capsys, monkeypatch):
     # A log recorded with fx = 1e308 (before calibrations were checked as they load), and a KITTI
