@@ -98,6 +98,10 @@ def discard_if_empty(writer: LogWriter) -> bool:
     """
     if not writer.closed or writer.frames_written or writer.estimates_written or writer.path is None:
         return False
+    # Only a file: an --out that is a device (/dev/null with --overwrite, as root) was unlinked,
+    # removing the device node itself from the system.
+    if not writer.path.is_file():
+        return False
     writer.path.unlink(missing_ok=True)
     return True
 

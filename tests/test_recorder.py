@@ -279,3 +279,18 @@ def test_only_a_closed_recording_that_holds_nothing_is_discarded(tmp_path):
     with LogWriter(tmp_path / "frames.mcap") as w:
         w.write_frame(make_frames(1)[0])
     assert not discard_if_empty(w) and w.path.exists()
+
+
+def test_an_empty_recording_to_a_device_leaves_the_device(tmp_path):
+    # `record --out /dev/null --overwrite` with a camera that gave nothing unlinked the device node
+    # itself (as root, /dev/null). A null device of our own, made where the test may make one.
+    import stat
+
+    node = tmp_path / "null"
+    try:
+        os.mknod(node, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+    except PermissionError:
+        pytest.skip("making a device node needs root (CAP_MKNOD)")
+    w = LogWriter(node)
+    w.close()
+    assert not discard_if_empty(w) and stat.S_ISCHR(os.stat(node).st_mode)
