@@ -512,6 +512,11 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
             print(f"sunrig: source: {details}", file=sys.stderr)
     if recorder is not None and recorder.finished and not _discard_empty_recording(recorder) and not quiet:
         print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
+    if stats.frames_captured == 0 and not stop.requested:
+        # The source ended without one frame (a log none of whose frames could be read, a camera
+        # that gave up at once): not a run that worked, as replay and record say of it too.
+        raise SunrigError("the source gave no frame (the warnings above say why); check the camera and its "
+                          "cable, or the log (docs/drivers.md)")
     if recorder is not None and not recorder.finished:
         why = (f"a write to its disk did not return in {recorder.join_timeout_s:g} s: a disk that stopped answering?"
                if recorder.stuck else "closing it failed, as said above")
@@ -541,13 +546,21 @@ def _report_output_losses(publishers: dict[str, dict]) -> int:
         if not failed and not dropped:
             continue
         written = int(st.get("written") or 0)
+        # Still waiting when the output closed (its port gone): counted, so the line adds up to
+        # what was published.
+        unsent = int(st.get("pending") or 0) + int(st.get("in_flight") or 0)
+        tail = f"{written} written" + (f", {unsent} unsent at the end" if unsent else "")
         if failed:
-            print(f"sunrig: {name}: {failed} estimates failed to write, {written} written "
+            print(f"sunrig: {name}: {failed} estimates failed to write, {tail} "
                   f"(last error: {st.get('last_error') or 'see the log above'})", file=sys.stderr)
         if dropped:
-            # A slow or stalled reader, not a broken output: the status line counted them too.
-            print(f"sunrig: {name}: {dropped} estimates dropped because its reader did not keep up, "
-                  f"{written} written", file=sys.stderr)
+            # A port that failed (unplugged, or closed at the end) drops as a stalled reader does;
+            # the counters cannot tell which drop was which, so a controller's engineer is not sent
+            # to debug a read loop when the cable was out.
+            port_trouble = failed or st.get("reopens") or st.get("port_open") is False
+            why = "while its port was failing or its reader did not keep up" if port_trouble else \
+                "because its reader did not keep up"
+            print(f"sunrig: {name}: {dropped} estimates dropped {why}, {tail}", file=sys.stderr)
         if written == 0:
             code = EXIT_USER_ERROR
     return code

@@ -1530,3 +1530,44 @@ def test_a_recording_or_drive_whose_focal_length_is_no_camera_is_no_internal_err
         rc, captured = _main_in_process(argv, capsys)
         _assert_one_line_error(rc, captured, names=names)
         assert not (tmp_path / "o.jsonl").exists()
+
+
+def test_a_run_whose_source_gives_no_frame_is_an_error(tmp_path, capsys, monkeypatch):
+    # `run --camera file:LOG` of a log none of whose frames could be read said "frames 0" and
+    # exited 0, where replay and record call it an error.
+    from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+
+    import replay.native
+
+    encode = replay.native.encode_calibration
+
+    def no_camera(intr, t_ns):
+        msg = CameraCalibration.FromString(encode(intr, t_ns))
+        msg.K[0] = msg.K[4] = 1e308
+        return msg.SerializeToString()
+
+    with monkeypatch.context() as m:
+        m.setattr(replay.native, "encode_calibration", no_camera)
+        log = _write_log(tmp_path / "drive.mcap")
+    rc, captured = _main_in_process(["run", "--camera", f"file:{log}", "--heading", "log", "--fast", "--jsonl",
+                                     str(tmp_path / "o.jsonl")], capsys)
+    last = captured.err.strip().splitlines()[-1]
+    assert rc == 2 and last.startswith("sunrig: error: the source gave no frame"), captured.err
+    assert "Traceback" not in captured.err and not (tmp_path / "o.jsonl").exists()
+
+
+@pytest.mark.parametrize(("stats", "said"), [
+    # A stalled reader with the port up: its reader is named.
+    ({"published": 10, "written": 6, "dropped_overwritten": 4, "port_open": True},
+     "sunrig: SerialPublisher: 4 estimates dropped because its reader did not keep up, 6 written"),
+    # The port gone for good, one estimate still waiting at the end: once blamed on the reader,
+    # and the line added up to one less than was published.
+    ({"published": 599, "written": 24, "dropped_overwritten": 574, "pending": 1, "port_open": False},
+     "sunrig: SerialPublisher: 574 estimates dropped while its port was failing or its reader did not keep up, "
+     "24 written, 1 unsent at the end"),
+])
+def test_the_exit_report_of_an_output_adds_up_and_does_not_blame_the_reader_for_a_lost_port(stats, said, capsys):
+    from rig.cli import _report_output_losses
+
+    assert _report_output_losses({"SerialPublisher": stats}) == 0
+    assert capsys.readouterr().err.strip() == said
