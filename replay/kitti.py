@@ -65,6 +65,9 @@ CALIB_FILE = "calib_cam_to_cam.txt"
 _DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_sync$")
 _TIMESTAMP_RE = re.compile(r"^\d{4}-\d{2}-\d{2} \d{2}:\d{2}:\d{2}(\.\d{1,9})?$")
 _MAX_WARNINGS = 5
+# A synced drive's image and OXTS record of one frame are stamped within a few ms (13 ms at most in
+# the fixture drive 2011_09_26_0001); a second apart, one of the stamps is damaged.
+MAX_IMAGE_OXTS_SKEW_NS = 1_000_000_000
 
 # The 30 OXTS fields in the order of the KITTI devkit's dataformat.txt.
 OXTS_FIELDS = (
@@ -403,11 +406,6 @@ class KittiDrive:
             self._warn(f"{name}/oxts/timestamps.txt line {oxts_stamps[i][0]}: OXTS time "
                        f"{_show_times(oxts_stamps[i][1], offset_ns)} is outside the years {NS_YEARS} that ns "
                        f"since 1970 hold; frame {i} has no heading, position or truth")
-        # Seconds from the first frame with a time, by an exact difference of Python integers
-        # (1678 to 2262 is more ns than int64 holds).
-        t0 = int(image_ns[np.argmax(image_time_held)])
-        self.t_mono_s = np.array([(t - t0) / 1e9 if ok else np.nan
-                                  for t, ok in zip(image_ns.tolist(), image_time_held.tolist(), strict=True)])
         with np.errstate(invalid="ignore"):  # NaN rows (bad records) compare False, as they should
             in_range = oxts_in_range(oxts)
         for i in np.flatnonzero(~np.all(in_range, axis=1) & np.all(np.isfinite(oxts), axis=1)).tolist():
@@ -423,6 +421,24 @@ class KittiDrive:
         self.time_ok[held[longest_increasing(image_ns[held])]] = True
         for i in np.flatnonzero(~self.time_ok & image_time_held).tolist():
             self._warn(f"{name}: frame {i}'s timestamp is out of order with the frames around it; frame skipped")
+        # Seconds from the first frame kept, by an exact difference of Python integers (1678 to
+        # 2262 is more ns than int64 holds). From a first stamp that was skipped instead, every
+        # frame's time was an hour below 0 and `record --camera file:` refused the drive.
+        t0 = int(image_ns[np.argmax(self.time_ok)]) if self.time_ok.any() else 0
+        self.t_mono_s = np.array([(t - t0) / 1e9 if ok else np.nan
+                                  for t, ok in zip(image_ns.tolist(), self.time_ok.tolist(), strict=True)])
+        # A synced drive stamps a frame's image and its OXTS record within a few ms of each other.
+        # Where they are further apart, one of the two is damaged, and which one is unknown: the
+        # truth would be the sun of another instant (a stamp 8 h ahead at a drive's end was kept,
+        # being still in increasing order, and graded against a sun below the horizon).
+        # In Python integers: two stamps of 1678..2262 can be more ns apart than int64 holds.
+        skew_ns = np.array([abs(a - b) for a, b in zip(self.utc_ns.tolist(), self.oxts_utc_ns.tolist(), strict=True)],
+                           dtype=np.float64)
+        apart = image_time_held & oxts_time_held & (skew_ns > MAX_IMAGE_OXTS_SKEW_NS)
+        for i in np.flatnonzero(apart & self.pose_ok & self.time_ok).tolist():  # skipped frames are said once
+            self._warn(f"{name}: frame {i}'s image and OXTS timestamps are {skew_ns[i] / 1e9:g} s apart; "
+                       f"frame {i} has no heading, position or truth")
+        self.pose_ok &= ~apart
         self.sun_enu = np.full((n, 3), np.nan)
         ok = self.pose_ok & self.time_ok
         if np.any(ok):
