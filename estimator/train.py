@@ -70,6 +70,7 @@ from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
 from rig.files import write_replacing
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
+from rig.ring import DEFAULT_MAX_AGE_S
 from rig.types import Frame, HeadingRef
 from rig.window import SpreadWindowPolicy
 
@@ -210,20 +211,41 @@ def load_drive(frames: Sequence[Frame], name: str, crop_size: int,
                  t_s=np.array([f.t_mono_s for f in usable], dtype=np.float64))
 
 
+def split_at_clock_jumps(frames: Sequence[Frame], max_gap_s: float = DEFAULT_MAX_AGE_S) -> list[list[Frame]]:
+    """``frames`` in runs of one clock: a new run wherever the time steps back (a source that
+    restarted its clock) or forward by more than ``max_gap_s`` (a suspend, a recording paused).
+    The rig never puts frames across such a jump in one window (``rig.ring.FrameRing`` starts
+    again, and the window span is shorter than the gap), and training must not either: a window
+    across it paired frames an hour apart under one sun, and the live draws' binary search over
+    times out of order picked frames of both runs."""
+    runs: list[list[Frame]] = []
+    for f in frames:
+        if not runs or f.t_mono_s < runs[-1][-1].t_mono_s or f.t_mono_s - runs[-1][-1].t_mono_s > max_gap_s:
+            runs.append([])
+        runs[-1].append(f)
+    return runs
+
+
 def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float | Sequence[float],
                 read_frames: Callable[[Path], Iterable[Frame]] | None = None,
                 progress: Callable[[int, int], None] | None = None) -> list[Drive]:
-    """Every log as one drive. ``read_frames`` defaults to the native log reader."""
+    """Every log as one drive, or one per run of its clock (:func:`split_at_clock_jumps`).
+    ``read_frames`` defaults to the native log reader."""
     if read_frames is None:
         from replay.sources import open_frames
 
         read_frames = open_frames
     drives = []
     for i, path in enumerate(paths):
-        drive = load_drive(list(read_frames(Path(path))), Path(path).name, crop_size, crop_fov_rad)
-        if drive is not None:
-            drives.append(drive)
-        elif len(paths) > 1:  # said once, at the end, when none is usable
+        runs = split_at_clock_jumps([f for f in read_frames(Path(path)) if trainable(f)])
+        if len(runs) > 1:
+            log.warning("%s: its clock jumps %d times (at seq %s); trained as %d drives, no window across a jump",
+                        path, len(runs) - 1, ", ".join(str(r[0].seq) for r in runs[1:6]), len(runs))
+        named = [(Path(path).name, run) for run in runs] if len(runs) <= 1 else [
+            (f"{Path(path).name}#{k}", run) for k, run in enumerate(runs)]
+        loaded = [d for name, run in named if (d := load_drive(run, name, crop_size, crop_fov_rad)) is not None]
+        drives.extend(loaded)
+        if not loaded and len(paths) > 1:  # said once, at the end, when none is usable
             log.warning("%s: no frame with both a TRUE heading and the true sun; not trained on", path)
         if progress:
             progress(i + 1, len(paths))

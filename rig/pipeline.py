@@ -38,7 +38,7 @@ from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.pacing import Pacer
 from rig.publishers import ErrorTally, Publisher, failed_writes, publisher_name
-from rig.ring import DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing
+from rig.ring import DEFAULT_MAX_AGE_S, DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
 
@@ -56,7 +56,7 @@ class PipelineError(SunrigError):
 class RigConfig:
     queue_size: int = 2  # frames waiting for the backbone; more only adds latency
     ring_capacity: int = DEFAULT_RING_CAPACITY
-    ring_max_age_s: float = 10.0
+    ring_max_age_s: float = DEFAULT_MAX_AGE_S
     status_every_s: float = 5.0
     realtime: bool = False  # pace a recorded source by its timestamps
     exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE  # None: every frame joins windows

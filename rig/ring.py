@@ -67,13 +67,16 @@ class DropOldestQueue(Generic[T]):
 # Frames a ring holds at most (the live rig's [rig] ring_capacity, and a replay's): 4 s of a
 # 30 fps camera, the window policy's default span.
 DEFAULT_RING_CAPACITY = 128
+# The oldest frame a ring keeps behind the newest (the live rig's [rig] ring_max_age_s); a frame
+# further behind is a clock that jumped, and the ring starts again from it.
+DEFAULT_MAX_AGE_S = 10.0
 
 
 class FrameRing:
     """The last encoded frames, oldest first, at most ``capacity`` and at most ``max_age_s`` older
     than the newest one."""
 
-    def __init__(self, capacity: int = DEFAULT_RING_CAPACITY, max_age_s: float = 10.0) -> None:
+    def __init__(self, capacity: int = DEFAULT_RING_CAPACITY, max_age_s: float = DEFAULT_MAX_AGE_S) -> None:
         if capacity < 1:
             raise ValidationError(f"ring capacity: expected >= 1 frames, got {capacity}")
         if not max_age_s > 0:

@@ -1223,3 +1223,28 @@ def test_the_onnx_size_estimate_of_the_aggregator_is_an_upper_bound(tiny_model_d
 
     size = (tiny_model_dir / "aggregator.onnx").stat().st_size
     assert size <= nets.TINY.aggregator_graph_bytes(nets.TINY.layers) < 1.5 * size
+
+
+def test_a_log_whose_clock_jumps_trains_as_one_drive_per_run_of_its_clock(tmp_path, caplog):
+    # A clock that restarted (100-110 s, then 0-10 s) or was suspended for an hour: windows drawn
+    # across the jump paired frames of other instants, and the live draws' binary search over times
+    # out of order picked frames of both runs in 198 of 200 windows.
+    from estimator.train import load_drives, split_at_clock_jumps
+    from replay.native import LogWriter
+
+    frames = _frames(24, 0)
+    times = [100.0 + 0.5 * i for i in range(8)] + [0.5 * i for i in range(8)] + [3600.0 + 0.5 * i for i in range(8)]
+    jumpy = [replace(f, t_mono_s=t) for f, t in zip(frames, times, strict=True)]
+    assert [[f.seq for f in run] for run in split_at_clock_jumps(jumpy)] == [
+        list(range(8)), list(range(8, 16)), list(range(16, 24))]
+    assert len(split_at_clock_jumps(frames)) == 1  # an even clock, and equal times, are one run
+    assert len(split_at_clock_jumps([replace(f, t_mono_s=5.0) for f in frames])) == 1
+    log = tmp_path / "jumpy.mcap"
+    with LogWriter(log) as w:
+        for f in jumpy:
+            w.write_frame(f)
+    drives = load_drives([log], 16, math.radians(PAPER_CROP_FOV_DEG))
+    assert [d.name for d in drives] == ["jumpy.mcap#0", "jumpy.mcap#1", "jumpy.mcap#2"]
+    for d in drives:
+        assert np.all(np.diff(d.t_s) > 0) and d.t_s[-1] - d.t_s[0] == pytest.approx(3.5)
+    assert "its clock jumps 2 times (at seq 8, 16); trained as 3 drives" in caplog.text
