@@ -1499,13 +1499,12 @@ def test_a_camera_index_beyond_a_c_int_is_one_line(tmp_path, capsys, command):
     assert len(captured.err.strip().splitlines()) == 1 and not os.listdir(tmp_path / "out")
 
 
-def test_a_recording_or_drive_whose_focal_length_is_no_camera_is_no_internal_error(tmp_path, capsys, monkeypatch):
-    # A log recorded with fx = 1e308 (before calibrations were checked as they load), and a KITTI
-    # drive whose P_rect_02 says so: replay and eval ended in an internal OverflowError.
+def _log_with_no_camera(path: Path, monkeypatch) -> Path:
+    """A log recorded with fx = fy = 1e308 (before calibrations were checked as they load): none
+    of its frames can be read."""
     from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 
     import replay.native
-    from tests.test_kitti import _CALIB, DRIVE, make_drive
 
     encode = replay.native.encode_calibration
 
@@ -1516,7 +1515,15 @@ def test_a_recording_or_drive_whose_focal_length_is_no_camera_is_no_internal_err
 
     with monkeypatch.context() as m:
         m.setattr(replay.native, "encode_calibration", no_camera)
-        log = _write_log(tmp_path / "drive.mcap")
+        return _write_log(path)
+
+
+def test_a_recording_or_drive_whose_focal_length_is_no_camera_is_no_internal_error(tmp_path, capsys, monkeypatch):
+    # A log recorded with fx = 1e308 (before calibrations were checked as they load), and a KITTI
+    # drive whose P_rect_02 says so: replay and eval ended in an internal OverflowError.
+    from tests.test_kitti import _CALIB, DRIVE, make_drive
+
+    log = _log_with_no_camera(tmp_path / "drive.mcap", monkeypatch)
     date = make_drive(tmp_path / "kitti", 3)
     calib = date / "calib_cam_to_cam.txt"
     calib.write_text(_CALIB.replace("P_rect_02: 7.215377e+02", "P_rect_02: 1e308"))
@@ -1535,20 +1542,7 @@ def test_a_recording_or_drive_whose_focal_length_is_no_camera_is_no_internal_err
 def test_a_run_whose_source_gives_no_frame_is_an_error(tmp_path, capsys, monkeypatch):
     # `run --camera file:LOG` of a log none of whose frames could be read said "frames 0" and
     # exited 0, where replay and record call it an error.
-    from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-
-    import replay.native
-
-    encode = replay.native.encode_calibration
-
-    def no_camera(intr, t_ns):
-        msg = CameraCalibration.FromString(encode(intr, t_ns))
-        msg.K[0] = msg.K[4] = 1e308
-        return msg.SerializeToString()
-
-    with monkeypatch.context() as m:
-        m.setattr(replay.native, "encode_calibration", no_camera)
-        log = _write_log(tmp_path / "drive.mcap")
+    log = _log_with_no_camera(tmp_path / "drive.mcap", monkeypatch)
     rc, captured = _main_in_process(["run", "--camera", f"file:{log}", "--heading", "log", "--fast", "--jsonl",
                                      str(tmp_path / "o.jsonl")], capsys)
     last = captured.err.strip().splitlines()[-1]

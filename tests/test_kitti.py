@@ -786,19 +786,11 @@ def test_an_unreadable_image_is_counted_and_warned(kitti_date, caplog):
     assert any("0000000003.png is missing or not an image" in r.getMessage() for r in caplog.records)
 
 
-def _restamp(date: Path, index: int, stamp: str, which=("image_02",)) -> None:
-    for folder in which:
-        path = date / DRIVE / folder / "timestamps.txt"
-        lines = path.read_text().splitlines()
-        lines[index] = stamp
-        path.write_text("\n".join(lines) + "\n")
-
-
 def test_a_last_image_stamped_hours_off_gets_no_truth_of_another_instant(tmp_path, caplog):
     # Still in increasing order, the last frame was kept and graded against the sun 8 h later
     # (below the horizon): its image and OXTS stamps now disagree, so it has no pose or truth.
     date = make_drive(tmp_path, 12)
-    _restamp(date, 11, "2011-09-26 21:02:26.101234567")
+    _stamp(date, "image_02", 11, "2011-09-26 21:02:26.101234567")
     drive = open_kitti(date, utc_offset_h=2.0)
     frames = list(drive)
     assert len(frames) == 12 and frames[-1].sun_enu_truth is None and frames[-1].attitude is None
@@ -810,7 +802,8 @@ def test_times_count_from_the_first_frame_kept(tmp_path):
     # A first stamp an hour ahead is skipped, and the times once counted from it: every frame an
     # hour below 0, which `record --camera file:` then refused.
     date = make_drive(tmp_path, 12)
-    _restamp(date, 0, "2011-09-26 14:02:25.001234567", which=("image_02", "oxts"))
+    for stream in ("image_02", "oxts"):
+        _stamp(date, stream, 0, "2011-09-26 14:02:25.001234567")
     frames = list(open_kitti(date, utc_offset_h=2.0))
     assert [f.seq for f in frames] == list(range(1, 12))
     assert frames[0].t_mono_s == 0.0 and frames[1].t_mono_s == pytest.approx(0.1)

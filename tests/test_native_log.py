@@ -575,6 +575,17 @@ def test_corrupt_heading_drops_only_that_message(tmp_path, monkeypatch, bad):
     assert src.stats.corrupt_skipped == 1
 
 
+def _log_with_message_of_seq_12(path, frames, monkeypatch, encoder, payload):
+    """A log of ``frames`` in which ``encoder`` (of replay.native) wrote ``payload`` for seq 12."""
+    with LogWriter(path) as w:
+        for f in frames:
+            if f.seq == 12:
+                monkeypatch.setattr(native, encoder, lambda *a: payload)
+            w.write_frame(f)
+            monkeypatch.undo()
+    return path
+
+
 _DEEP_JSON = b"[" * 100_000 + b"]" * 100_000  # valid JSON, nested past the decoder's recursion limit
 
 
@@ -584,14 +595,7 @@ def test_a_json_message_nested_too_deep_is_skipped_as_corrupt(tmp_path, monkeypa
     # A crafted payload [[[[...]]]] made the JSON decoder raise RecursionError, which no reader
     # caught: replay, eval and record ended in an internal error instead of skipping one message.
     frames = make_frames(5)
-    path = tmp_path / "deep.mcap"
-    with LogWriter(path) as w:
-        for f in frames:
-            if f.seq == 12:
-                monkeypatch.setattr(native, encoder, lambda *a: _DEEP_JSON)
-            w.write_frame(f)
-            monkeypatch.undo()
-    src = open_log(path)
+    src = open_log(_log_with_message_of_seq_12(tmp_path / "deep.mcap", frames, monkeypatch, encoder, _DEEP_JSON))
     with caplog.at_level(logging.WARNING, logger="replay.native"):
         got = list(src)
     assert [g.seq for g in got] == [f.seq for f in frames]
@@ -625,14 +629,7 @@ def test_an_estimate_nested_too_deep_is_skipped(tmp_path, monkeypatch):
 )
 def test_an_out_of_range_utc_or_truth_drops_only_that_message(tmp_path, monkeypatch, encoder, bad, field):
     frames = make_frames(5)
-    path = tmp_path / "badaux.mcap"
-    with LogWriter(path) as w:
-        for f in frames:
-            if f.seq == 12:
-                monkeypatch.setattr(native, encoder, lambda *a: bad)
-            w.write_frame(f)
-            monkeypatch.undo()
-    src = open_log(path)
+    src = open_log(_log_with_message_of_seq_12(tmp_path / "badaux.mcap", frames, monkeypatch, encoder, bad))
     got = list(src)
     assert [g.seq for g in got] == [f.seq for f in frames]
     assert getattr(got[2], field) is None and got[2].attitude is not None
