@@ -212,11 +212,13 @@ class RigPipeline:
             self._stage("encode", self._encode, self._encode_done),
             self._stage("estimate", self._estimate, estimate_done),
         ]
-        for t in threads:
-            t.start()
         next_status = self.clock() + self.config.status_every_s
         deadline = None if timeout_s is None else self.clock() + timeout_s
         try:
+            # Started inside the try: a Ctrl-C landing between two starts once left the started
+            # stages running ONNX Runtime while the interpreter exited (SIGABRT, a core dump).
+            for t in threads:
+                t.start()
             while not all(done.is_set() for done in stages.values()):
                 estimate_done.wait(_POLL_S)
                 now = self.clock()
@@ -234,6 +236,9 @@ class RigPipeline:
             self._stop.set()
             self._frames.close()
             self._mailbox.close()
+            for t, done in zip(threads, stages.values(), strict=True):
+                if t.ident is None:  # never started (the stop came first): nothing to wait for
+                    done.set()
             end = time.monotonic() + _JOIN_S
             for done in stages.values():
                 done.wait(max(0.0, end - time.monotonic()))

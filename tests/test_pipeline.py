@@ -431,3 +431,20 @@ def test_a_ctrl_c_stops_every_stage_before_run_returns(model):
     stats = pipe.run(timeout_s=60.0)
     assert not publishing.is_set(), "run() returned while a stage was still publishing"
     assert 3 <= len(out.estimates) < 200 and stats.frames_captured < 200
+
+
+def test_a_stop_between_the_stage_starts_leaves_no_stage_running(model, monkeypatch):
+    # Ctrl-C landing between two Thread.start() calls once escaped run() with the started stages
+    # still running ONNX Runtime while the interpreter exited: a SIGABRT and a core dump.
+    started = threading.Thread.start
+
+    def start(self):
+        if self.name == "sunrig-encode":
+            raise KeyboardInterrupt
+        started(self)
+
+    monkeypatch.setattr(threading.Thread, "start", start)
+    _, stats = run_pipeline(frames(400), SunEstimator(model), [Collect()], queue_size=4)
+    monkeypatch.undo()
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("sunrig-") and t.is_alive()]
+    assert stats.frames_encoded == 0 and stats.ended_s is not None
