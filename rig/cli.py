@@ -976,6 +976,10 @@ def cmd_gnss(args: argparse.Namespace) -> int:
     # The source first: a wrong path fails before an output file is created.
     reader = GnssReader(args.source, baudrate=args.baud, events=4096, require_checksum=args.require_checksum)
     out = None
+    # A capture file is read to its end, as replay reads a log: one cut short by a stop is an
+    # interrupted command (128 + the signal), where a live port's session ends that way (exit 0).
+    capture = Path(args.source).is_file()
+    interrupted = False
     try:
         out = JsonlPublisher(args.jsonl or "-")  # the same lines, flushes and write errors as replay's
         while True:
@@ -986,7 +990,7 @@ def cmd_gnss(args: argparse.Namespace) -> int:
             if done and not updates:
                 break
     except KeyboardInterrupt:
-        pass  # Ctrl-C is how a live port session ends
+        interrupted = capture  # Ctrl-C is how a live port session ends
     finally:
         reader.close()
         if out is not None:
@@ -1006,7 +1010,11 @@ def cmd_gnss(args: argparse.Namespace) -> int:
             summary += "; " + ", ".join(f"{k} {v}" for k, v in dropped.items())
         if stats["last_error"]:
             summary += f"; last error: {stats['last_error']}"
+        if interrupted:
+            summary += f" (stopped by {args.stop.by or 'Ctrl-C'} before the end of {args.source})"
         print(f"gnss: {summary}", file=sys.stderr)
+    if interrupted:
+        return args.stop.exit_code()
     if not stats["sentences"] and stats["bad_checksum"]:
         # Sentences came, all damaged: a noisy line or a wrong baud that happens to frame, not a wrong file.
         raise SunrigError(f"gnss: every sentence from {args.source} failed its checksum ({stats['bad_checksum']}); "
