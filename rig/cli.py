@@ -160,10 +160,16 @@ def _utc_offset_type(text: str) -> float:
     return _float_in(-UTC_OFFSET_LIMIT_H, UTC_OFFSET_LIMIT_H, lo_included=True)(text)
 
 
-def _load_model(model_dir: str | None):
+def _load_model(model_dir: str | None, stop: StopSignals):
     from estimator.models import resolve_model_dir
-    from estimator.runtime import OnnxModel
 
+    # A stop landing inside onnxruntime's import is turned by it into "ImportError: initialization
+    # failed", an internal error (exit 1, a failed unit at a service's stop): the import is a block
+    # a stop must not cut, and a stop held meanwhile is taken right after it.
+    with stop.finishing():
+        from estimator.runtime import OnnxModel
+    if stop.requested:
+        raise KeyboardInterrupt
     return OnnxModel.load(resolve_model_dir(model_dir or None))
 
 
@@ -264,7 +270,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     # The log is checked before the model is loaded: a wrong path should fail in milliseconds.
     source = open_frames(log_path, utc_offset_h=args.utc_offset)
     _refuse_overwriting([Path(log_path)], jsonl=args.jsonl)
-    model = _load_model(args.model)
+    model = _load_model(args.model, args.stop)
     estimator = SunEstimator(model, aggregator=args.aggregator, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
     pubs = _publishers(serial=args.serial, baud=args.baud, fmt=args.format, jsonl=args.jsonl,
@@ -455,7 +461,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     from rig.pipeline import RigConfig, RigPipeline
     from rig.window import SpreadWindowPolicy
 
-    model = _load_model(cfg["estimator"]["model"])
+    model = _load_model(cfg["estimator"]["model"], stop)
     estimator = SunEstimator(model, aggregator=cfg["estimator"]["aggregator"], seed=cfg["estimator"]["seed"])
     check_window_fits(cfg, estimator.frames_per_window)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=cfg["window"]["span_s"],
@@ -787,7 +793,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     _refuse_overwriting(paths, json=args.json, plot=args.plot)
     opened, left_out = _open_logs("eval", paths, args.utc_offset)
     sources = [(str(p), frames) for p, frames in opened]
-    model = _load_model(args.model)
+    model = _load_model(args.model, args.stop)
     estimator = SunEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
     aggregators = args.aggregators.split(",") if args.aggregators else list(AGGREGATORS)
@@ -942,7 +948,7 @@ def cmd_quantize(args: argparse.Namespace) -> int:
     from estimator.quantize import quantize_logs_model
     from estimator.recipe import command_line
 
-    model = _load_model(args.model)
+    model = _load_model(args.model, args.stop)
     # Calibration reads images only: a KITTI drive's UTC offset (its true sun) does not matter here.
     opened, _ = _open_logs("quantize", _expand_logs(args.logs), 0.0)
     # Frames are the unit: how many the logs hold is known only once read.
