@@ -1442,7 +1442,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, late_signals: str = "restore") -> int:
+    """The command line. ``late_signals``: what a stop signal does once the command has returned
+    (:meth:`rig.stopping.StopSignals.installed`): "restore" the handlers before it (a library
+    caller, tests), or "ignore" it (the ``sunrig`` console command, which is about to exit)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -1454,7 +1457,7 @@ def main(argv: list[str] | None = None) -> int:
     # command in a thread of its own (which signals never reach), share no stop state.
     stop = args.stop = StopSignals()
     try:
-        with stop.installed():
+        with stop.installed(after=late_signals):
             return args.func(args)
     except SunrigError as exc:
         if args.debug:
@@ -1478,5 +1481,13 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BUG
 
 
+def console_main() -> int:
+    """The ``sunrig`` command: :func:`main`, with a stop signal after the command has returned
+    ignored. GNU timeout signals the command and then its process group; the second signal came
+    once the work was done and killed the finished command with the default action (exit 143 for
+    a recording that was complete)."""
+    return main(late_signals="ignore")
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(console_main())

@@ -10,10 +10,14 @@ An interrupt must not land in the middle of finishing something, where it would 
 recording unfinished; and a second signal is common (GNU ``timeout`` signals the command and its
 process group, so twice; an impatient Ctrl-C). So:
 
-- the first signal raises ``KeyboardInterrupt``, unless the command is inside :meth:`finishing`
+- signals within :data:`BURST_S` of the first of them are one request, not several: GNU timeout
+  signals the command and then its process group, a few ms apart, and two signals counted as two
+  requests quit a recording the first had asked to finish (a quarter of the time, when the first
+  landed in a frame's write), leaving it without its summary;
+- the first request raises ``KeyboardInterrupt``, unless the command is inside :meth:`finishing`
   (writing a frame, closing its outputs): then it is held, and :attr:`requested` tells the command
   to stop at the next point it looks;
-- a signal that finds the command finishing (the first, held; or the second, while the first's
+- a request that finds the command finishing (the first, held; or the second, while the first's
   stop closes the outputs) is told to wait, once;
 - the next one after that raises ``KeyboardInterrupt`` wherever the command is: quit at once.
 
@@ -27,13 +31,17 @@ import contextlib
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from types import FrameType
 from typing import Any
 
 NAMES = ("SIGINT", "SIGTERM", "SIGHUP", "SIGBREAK")  # each skipped where the OS has none (SIGBREAK: Windows)
 
-_WAIT_MESSAGE = b"sunrig: stopping: finishing what is being written; signal once more to quit at once\n"
+_WAIT_MESSAGE = b"sunrig: stopping: finishing what is under way; signal once more to quit at once\n"
+# Signals this close to the first of them are one stop request (GNU timeout's two, a few ms apart);
+# a person who means "quit at once" signals again after reading the wait message.
+BURST_S = 0.5
 
 
 class StopSignals:
@@ -41,10 +49,13 @@ class StopSignals:
     :meth:`installed` around a command; the command reads :attr:`requested` and wraps what must
     not be cut in :meth:`finishing`."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self.received: list[int] = []
         self._finishing = 0
-        self._told_at: int | None = None  # how many signals had come when told to wait
+        self._told_at: int | None = None  # how many requests had come when told to wait
+        self._requests = 0  # bursts of signals (BURST_S), each one request
+        self._burst_start_s: float | None = None
+        self._clock = clock
 
     @property
     def requested(self) -> bool:
@@ -64,7 +75,12 @@ class StopSignals:
 
     def handle(self, signum: int, frame: object) -> None:  # noqa: ARG002 - a signal handler's signature
         self.received.append(signum)
-        n = len(self.received)
+        now = self._clock()
+        if self._burst_start_s is not None and now - self._burst_start_s < BURST_S:
+            return  # the request under way, sent again (module docstring)
+        self._burst_start_s = now
+        self._requests += 1
+        n = self._requests
         if (n == 1 and not self._finishing) or (self._told_at is not None and n > self._told_at):
             raise KeyboardInterrupt  # the first, with nothing to finish; or once more after the wait message
         if self._told_at is None:
@@ -85,9 +101,14 @@ class StopSignals:
             self._finishing -= 1
 
     @contextlib.contextmanager
-    def installed(self, names: tuple[str, ...] = NAMES) -> Iterator[StopSignals]:
-        """:meth:`handle` for ``names`` while the block runs, then the previous handlers back. Off
-        the main thread (a library caller: Python sets handlers there only) nothing changes."""
+    def installed(self, names: tuple[str, ...] = NAMES, after: str = "restore") -> Iterator[StopSignals]:
+        """:meth:`handle` for ``names`` while the block runs, then the previous handlers back, or,
+        with ``after="ignore"``, those signals ignored: for a process that exits once the block
+        ends, where a late signal (the second of GNU timeout's, after the work is done) would kill
+        a command that finished with the default action. Off the main thread (a library caller:
+        Python sets handlers there only) nothing changes."""
+        if after not in ("restore", "ignore"):
+            raise ValueError(f"installed(after=...): expected 'restore' or 'ignore', got {after!r}")
         previous: dict[signal.Signals, Callable[[int, FrameType | None], Any] | int] = {}
         try:
             if threading.current_thread() is threading.main_thread():
@@ -107,4 +128,4 @@ class StopSignals:
             yield self
         finally:
             for sig, before in previous.items():
-                signal.signal(sig, before)
+                signal.signal(sig, signal.SIG_IGN if after == "ignore" else before)

@@ -473,8 +473,12 @@ def test_a_signal_after_the_wait_message_quits_a_record_whose_write_hangs(tmp_pa
     # more; a disk that never returns must not make the recording unstoppable short of SIGKILL.
     import signal
 
+    import rig.stopping
     from replay.native import LogWriter, read_frames
 
+    # A person's second signal, after the wait message: not one burst with the first, though
+    # raised microseconds after it here (rig.stopping.BURST_S).
+    monkeypatch.setattr(rig.stopping, "BURST_S", 0.0)
     real_write = LogWriter.write_frame
     slept = []
 
