@@ -19,6 +19,7 @@ model.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import os
@@ -140,7 +141,22 @@ def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLi
     out = _check_output(model, out_dir)
     if len(calibration) == 0:
         raise ValidationError("no frames to calibrate on: pass logs that hold frames")
+    made = not out.exists()
     out = make_output_folder(out, what="model folder", holds="a model is a folder")
+    try:
+        _write_quantized(model, calibration, out, onnx, quantization, record)
+    except BaseException:
+        # Interrupted or failed (Ctrl-C during the minutes of calibration): a folder this run made
+        # and left empty is neither a model nor absent; rmdir removes it only when empty.
+        if made:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+    return out
+
+
+def _write_quantized(model: Any, calibration: np.ndarray, out: Path, onnx: Any, quantization: Any,
+                     record: dict[str, Any] | None) -> None:
     contract = model.contract
     quantized = replace(contract, training={**contract.training, QUANTIZATION_KEY: {
         "backbone": "int8", "format": "QDQ", "activations": "uint8, calibrated (min-max)",
@@ -173,7 +189,6 @@ def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLi
         os.replace(sums, out / CHECKSUMS_FILE)  # the sums first, as an export writes them
         for name, path in staged.items():
             os.replace(path, out / name)
-    return out
 
 
 def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[Frame]]], out_dir: str | os.PathLike,

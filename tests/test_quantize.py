@@ -161,3 +161,24 @@ def test_without_the_onnx_package_it_names_the_extra_before_reading_a_log(model,
     with pytest.raises(MissingExtraError, match=r"install the train extra with `pip install 'sunrig\[train\]'`"):
         quantize_logs_model(model, [(tmp_path / "drive.mcap", never_read())], tmp_path / "int8")
     assert not (tmp_path / "int8").exists()
+
+
+@pytest.mark.parametrize("existed", [False, True])
+def test_an_interrupted_quantization_leaves_no_folder_it_made(model, tmp_path, monkeypatch, existed):
+    # Ctrl-C during the quantizer's calibration left an empty --out: neither a model nor absent.
+    # A folder the user made beforehand stays, empty as it was.
+    from onnxruntime import quantization
+
+    from estimator.quantize import calibration_crops, quantize_model
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(quantization, "quantize_static", interrupted)
+    out = tmp_path / "int8"
+    if existed:
+        out.mkdir()
+    calibration = calibration_crops(SunEstimator(model), [_frames(10, seed=1)], n_crops=16)
+    with pytest.raises(KeyboardInterrupt):
+        quantize_model(model, calibration, out)
+    assert out.exists() == existed and (not existed or not any(out.iterdir()))
