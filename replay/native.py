@@ -386,12 +386,8 @@ def decode_gnss(data: bytes) -> GnssFix:
     if not msg.HasField("timestamp"):
         raise ValueError("location fix without its UTC timestamp")
     alt = None if math.isnan(msg.altitude) else msg.altitude
-    utc_ns = _ns_from_timestamp(msg.timestamp)
-    if not 0 <= utc_ns <= UTC_NS_MAX:
-        raise ValueError(f"location fix: expected a time from 1970 to 2262 (what ns since 1970 hold), got "
-                         f"{msg.timestamp.seconds} s")
     return GnssFix(
-        utc_ns=utc_ns,
+        utc_ns=_utc_ns_held("location fix", msg.timestamp.seconds, _ns_from_timestamp(msg.timestamp)),
         lat_deg=msg.latitude,
         lon_deg=msg.longitude,
         alt_m=alt,
@@ -410,10 +406,15 @@ def decode_utc(data: bytes) -> int:
     sec, nsec = utc["sec"], utc["nsec"]
     if not (isinstance(sec, int) and isinstance(nsec, int) and 0 <= nsec < 1_000_000_000):
         raise ValueError(f"utc: expected integer sec and nsec in [0, 1e9), got {utc!r}")
-    utc_ns = sec * 1_000_000_000 + nsec
-    # A date no clock meant: past int64 ns (2262) the ephemeris cannot take it, numpy wraps it.
+    return _utc_ns_held("utc", sec, sec * 1_000_000_000 + nsec)
+
+
+def _utc_ns_held(what: str, sec: int, utc_ns: int) -> int:
+    """``utc_ns`` if it is a time from 1970 to 2262, else a ValueError (the message is then
+    skipped as corrupt): a date no clock meant, which past int64 ns (2262) the ephemeris cannot
+    take and numpy wraps round to another date."""
     if not 0 <= utc_ns <= UTC_NS_MAX:
-        raise ValueError(f"utc: expected a time from 1970 to 2262 (what ns since 1970 hold), got sec {sec}")
+        raise ValueError(f"{what}: expected a time from 1970 to 2262 (what ns since 1970 hold), got sec {sec}")
     return utc_ns
 
 
