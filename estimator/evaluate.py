@@ -94,15 +94,14 @@ class EvalResult:
     windows_skipped_filling: int = 0
     windows_failed: int = 0
     windows_without_truth: int = 0
-    # Damaged records the log readers skipped (replay.sources.corrupt_skipped): a figure computed
-    # over a damaged log says so, and the frames it lost are in no other count. Per log as well.
-    records_skipped_corrupt: int = 0
+    # Damaged records the log readers skipped (replay.sources.corrupt_skipped), per log: a figure
+    # computed over a damaged log says so, and the frames it lost are in no other count.
     records_skipped_corrupt_by_log: dict[str, int] = field(default_factory=dict)
     interrupted: bool = False  # Ctrl-C: the figures are of the windows evaluated until then
 
     # The counters above: pooled by addition and reported as they are, in this order.
     COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "frames_out_of_order", "clock_jumps",
-              "windows_skipped_filling", "windows_failed", "windows_without_truth", "records_skipped_corrupt")
+              "windows_skipped_filling", "windows_failed", "windows_without_truth")
     # Those that estimate_stream counts per log (the others are counted here, per window).
     STREAM_COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "frames_out_of_order",
                      "clock_jumps", "windows_failed")
@@ -120,8 +119,13 @@ class EvalResult:
         self.interrupted |= other.interrupted  # pooled with a cut-short run: so is the pool
         for name in self.COUNTS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
-        for log, n in other.records_skipped_corrupt_by_log.items():  # the total is one of the COUNTS
+        for log, n in other.records_skipped_corrupt_by_log.items():
             self.records_skipped_corrupt_by_log[log] = self.records_skipped_corrupt_by_log.get(log, 0) + n
+
+    @property
+    def records_skipped_corrupt(self) -> int:
+        """Damaged records skipped over all logs (the per-log counts, summed)."""
+        return sum(self.records_skipped_corrupt_by_log.values())
 
     def trim_to_whole_windows(self) -> None:
         """After an interruption: drop what a window cut short left in some lists but not others
@@ -170,6 +174,7 @@ class EvalResult:
             "worst_logs": {name: self.by_log(name)[:WORST_LOGS] for name in self.errors_deg},
             "logs": self.logs,
             **{name: getattr(self, name) for name in self.COUNTS},
+            "records_skipped_corrupt": self.records_skipped_corrupt,
             **({"interrupted": True} if self.interrupted else {}),
         }
 
@@ -198,10 +203,8 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
                 for key in EvalResult.STREAM_COUNTS:
                     setattr(result, key, getattr(result, key) + getattr(stats, key))
                 # Asked of the reader once its pass has ended: the log is not read again for it.
-                damaged = corrupt_skipped(frames)
-                result.records_skipped_corrupt += damaged
                 by_log = result.records_skipped_corrupt_by_log
-                by_log[name] = by_log.get(name, 0) + damaged
+                by_log[name] = by_log.get(name, 0) + corrupt_skipped(frames)
             if progress:
                 progress(len(result.window_logs), n_logs)
     except KeyboardInterrupt:

@@ -42,11 +42,11 @@ def test_pooled_results_add_windows_and_keep_this_ones_logs():
     a = EvalResult(errors_deg={"transformer": [1.0, 2.0], "mean": [5.0, 6.0]},
                    flags={"transformer": [ok, ok], "mean": [ok, ok]}, logs=["d0"],
                    window_logs=["d0", "d0"], frames=10, frames_bad_exposure=2, windows_skipped_filling=7,
-                   windows_failed=1, records_skipped_corrupt=1, records_skipped_corrupt_by_log={"d0": 1})
+                   windows_failed=1, records_skipped_corrupt_by_log={"d0": 1})
     b = EvalResult(errors_deg={"transformer": [40.0], "mean": [3.0]}, flags={"transformer": [hedge], "mean": [ok]},
                    logs=["d0"], window_logs=["d0"], frames=10,
                    frames_without_heading=3, frames_bad_exposure=2, windows_skipped_filling=7, windows_without_truth=2,
-                   records_skipped_corrupt=1, records_skipped_corrupt_by_log={"d0": 1})
+                   records_skipped_corrupt_by_log={"d0": 1})
     a.extend(b)
     s = a.summary()
     # The status figures pool too: the 40-deg window was flagged, so the controller's worst is 2 deg.
