@@ -433,10 +433,11 @@ class NetConfig:
         _, rest, layer = self.sizes()
         return 4 * (rest + layers * layer) + ONNX_BYTES_PER_LAYER * (layers + 1)
 
-    def max_layers(self) -> int:
+    def max_layers(self, sizes: tuple[int, int, int] | None = None) -> int:
         """The most transformer layers whose aggregator graph one ONNX file can hold: a deeper
-        model would train for its hours and then fail to export."""
-        _, rest, layer = self.sizes()
+        model would train for its hours and then fail to export. ``sizes``: :meth:`sizes`, if the
+        caller has them (each call builds the networks)."""
+        _, rest, layer = sizes or self.sizes()
         return (ONNX_FILE_MAX_BYTES - 4 * rest - ONNX_BYTES_PER_LAYER) // (4 * layer + ONNX_BYTES_PER_LAYER)
 
     def build(self, seed: int | None = None) -> tuple[Backbone, Aggregator]:

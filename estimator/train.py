@@ -551,12 +551,13 @@ def _check_layers(cfg: TrainConfig) -> None:
     if not cfg.layers:
         return
     preset = nets.PRESETS[cfg.preset]
-    most = preset.max_layers()
+    sizes = preset.sizes()  # built once, for both bounds
+    most = preset.max_layers(sizes)
     why = ("a deeper aggregator graph would pass the 2 GiB one ONNX file holds, so the model could not be "
            "exported")
     memory = _memory_bytes()
     if memory is not None:
-        backbone, rest, layer = preset.sizes()
+        backbone, rest, layer = sizes
         # Training holds every value four times in float32: itself, its gradient and AdamW's two
         # moments. A floor, as for the batch: the activations come on top.
         fits = (memory // 16 - backbone - rest) // layer
