@@ -13,12 +13,17 @@ used: a frame gets no attitude (``None``, counted) when
   ``after``: the heading source has ended before it;
 - ``mixed``: the samples around it have different references (true vs magnetic), and neither
   reference's own samples give it a heading. A source that interleaves references (HDT beside an
-  HDG without variation) gives each frame the best one that brackets it: true, then magnetic.
+  HDG without variation) gives each frame the best one that brackets it: true, then magnetic;
+- ``ahead``: live, it is stamped after it arrived, so its stamp is not the host's clock (a device
+  clock that stepped, a replayed file): the samples at its stamp were measured after it was taken.
 
 Live, the sample after a frame arrives after the frame, so the stream wrapper holds each frame
-until its heading is known (at most ``max_age_s``, in a bounded buffer): this delays frames by
-up to one heading interval. ``latency_s`` moves the samples earlier by the heading device's
-known output latency (a sample is stamped when its sentence ends, after the measurement).
+until its heading is known (in a bounded buffer): this delays frames by up to one heading
+interval. The wait is counted from the frame's stamp, which is no later than its arrival (a
+frame stamped later is ``ahead`` and does not wait), so no frame waits more than ``max_age_s``
+(beyond ``latency_s``) after it arrived, and neither do the frames behind it. ``latency_s``
+moves the samples earlier by the heading device's known output latency (a sample is stamped
+when its sentence ends, after the measurement).
 
 :class:`HeadingInterpolator` is pure (samples and times in, an Attitude out); :func:`with_heading`
 is the stream wrapper, and the only place that reads the clock.
@@ -45,7 +50,7 @@ from rig.types import Attitude, Frame, HeadingRef
 DEFAULT_MAX_GAP_S = 1.5
 DEFAULT_MAX_AGE_S = 1.5
 
-FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed")
+FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed", "ahead")
 # Which heading a frame takes where a source gives several references (HeadingRef.RELATIVE last:
 # its zero is the source's start, not north).
 _PREFERENCE = (HeadingRef.TRUE, HeadingRef.MAGNETIC, HeadingRef.RELATIVE)
@@ -85,11 +90,18 @@ class HeadingInterpolator:
         self.counts = dict.fromkeys(FINAL, 0)
 
     def lookup(self, samples: Sequence[HeadingSample], t_mono_s: float, now_s: float | None = None, *,
-               count: bool = True) -> Lookup:
+               arrived_s: float | None = None, count: bool = True) -> Lookup:
         """The heading at ``t_mono_s``. ``now_s``: the current monotonic time while more samples
         may come (a frame after the newest sample is then ``pending`` until ``max_age_s``);
-        None when no more will come (the source has ended, or a recorded sequence)."""
-        result = self._lookup(samples, t_mono_s, now_s)
+        None when no more will come (the source has ended, or a recorded sequence).
+        ``arrived_s``: when the frame arrived, on the clock of ``now_s``; a frame stamped after
+        it is ``ahead`` (None: not known, the stamp is trusted)."""
+        if arrived_s is not None and t_mono_s > arrived_s:
+            # Not the host's clock, so no sample time can be matched to it; and waiting for its
+            # stamp held it (and every frame behind it) until the clock got there.
+            result = Lookup(None, "ahead")
+        else:
+            result = self._lookup(samples, t_mono_s, now_s)
         if count and result.status != "pending":
             self.counts[result.status] += 1
         return result
@@ -214,12 +226,13 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
     ``live``: samples are still arriving, so a frame newer than the newest sample waits (checked
     again as each next frame arrives) until its heading comes, or ``max_age_s`` passes, or
     ``max_pending`` frames wait (then the oldest is let go without heading, counted ``overflow``).
+    A frame stamped after it arrived (by ``clock``) does not wait: it is ``ahead``, without heading.
     At the end of the frames, what still waits is resolved with the samples there are.
     """
     interp = interpolator or HeadingInterpolator()
     stats = stats if stats is not None else PairingStats(interp)
     read = _samples_of(heading_source)
-    pending: deque[Frame] = deque()
+    pending: deque[tuple[Frame, float | None]] = deque()  # each frame with when it arrived (live)
 
     def release(final: bool) -> Iterator[Frame]:
         # A source that has ended (a capture file read to its end) will send nothing more: no waiting.
@@ -227,8 +240,8 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
         samples = read()
         now = clock()
         while pending:
-            frame = pending[0]
-            result = interp.lookup(samples, frame.t_mono_s, None if ended else now)
+            frame, arrived = pending[0]
+            result = interp.lookup(samples, frame.t_mono_s, None if ended else now, arrived_s=arrived)
             if result.status == "pending":
                 if len(pending) <= max_pending:
                     return
@@ -239,6 +252,6 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
 
     for frame in frames:
         stats.frames += 1
-        pending.append(frame)
+        pending.append((frame, clock() if live else None))  # not live: no clock, the stamps are all there is
         yield from release(final=False)
     yield from release(final=True)

@@ -698,7 +698,7 @@ def _source_summary(stats: dict) -> str:
         if camera.get(key):
             parts.append(f"camera {key.replace('_', ' ')} {camera[key]}")
     pairing = stats.get("pairing") or {}
-    for key in ("gap", "before", "after", "stale", "mixed", "overflow"):
+    for key in ("gap", "before", "after", "stale", "mixed", "ahead", "overflow"):
         if pairing.get(key):
             parts.append(f"heading {key} {pairing[key]}")
     gnss = stats.get("gnss") or {}  # why a heading port gave no headings: its bytes, as the framer saw them

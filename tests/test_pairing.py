@@ -108,6 +108,18 @@ def test_the_wait_for_a_late_compass_counts_from_its_own_clock():
     assert interp.lookup(arrived, 11.2, now_s=13.8).status == "stale"  # 1.5 s past its time on the compass's clock
 
 
+def test_a_frame_stamped_after_it_arrived_gets_no_heading():
+    # Its stamp is not the host's clock (a device clock that stepped, a replayed file): the
+    # samples at its stamp were measured after the frame was taken, so none is matched to it.
+    interp = HeadingInterpolator(max_gap_s=1.5, max_age_s=1.5)
+    samples = [sample(10.0, 0.0), sample(11.0, 10.0)]
+    assert interp.lookup(samples, 10.5, now_s=11.0, arrived_s=10.2).status == "ahead"
+    assert interp.lookup(samples, 10.5, arrived_s=10.2).status == "ahead"  # the source has ended: the same
+    assert interp.lookup(samples, 10.5, now_s=11.0, arrived_s=10.5).status == "interpolated"  # stamped on arrival
+    assert interp.lookup(samples, 10.5, now_s=11.0).status == "interpolated"  # no arrival given: by its stamp
+    assert interp.counts["ahead"] == 2
+
+
 def test_mixed_references_are_not_interpolated():
     interp = HeadingInterpolator()
     samples = [sample(0.0, 10.0, HeadingRef.TRUE), sample(1.0, 12.0, HeadingRef.MAGNETIC)]
@@ -240,6 +252,52 @@ def test_the_wait_buffer_is_bounded():
                             clock=clock, stats=stats, max_pending=3))
     assert len(out) == 10 and all(f.attitude is None for f in out)
     assert stats.overflow == 10 - 3  # all but the last max_pending were let go early
+
+
+def test_a_frame_stamped_far_ahead_does_not_hold_the_frames_behind_it():
+    # A frame stamped 100 s ahead of the clock waited until the clock reached its stamp (plus
+    # max_age_s), and every frame behind it with it, until 256 piled up: 8.5 s of a 30 Hz camera
+    # with no output. Now each frame waits at most max_age_s (beyond the latency) after it arrived.
+    clock = Clock()
+    max_age_s, latency_s, dt = 0.5, 0.2, 1 / 30
+    samples = [sample(0.1 * k + latency_s, float(k)) for k in range(101)]  # 10 Hz, stamped on arrival
+    stats = PairingStats(HeadingInterpolator(max_gap_s=0.5, max_age_s=max_age_s, latency_s=latency_s))
+    arrived = {}
+
+    def frames():
+        for seq in range(270):  # 9 s: more than max_pending frames behind the one stamped ahead
+            clock.t = 0.5 + seq * dt
+            arrived[seq] = clock.t
+            yield frame(clock.t + (100.0 if seq == 3 else 0.0), seq)
+
+    out = []
+    for f in with_heading(frames(), ArrivingHeadings(samples, clock), stats.interpolator, clock=clock, stats=stats):
+        out.append(f)
+        if f.seq < 260:  # the last ones come out when the camera stops
+            assert clock.t - arrived[f.seq] <= max_age_s + latency_s + dt, f.seq
+    assert [f.seq for f in out] == list(range(270))
+    assert out[3].attitude is None  # its samples would come 100 s after it was taken
+    # Every other frame gets its heading, as before (but the last few: the camera stopped first).
+    assert all(f.attitude is not None for f in out[:260] if f.seq != 3)
+    counts = stats.as_dict()
+    assert counts["ahead"] == 1 and counts["overflow"] == 0 and counts["stale"] == 0
+
+
+def test_a_frame_stamped_a_little_ahead_gets_no_heading_though_samples_come_for_its_stamp():
+    # 0.3 s ahead of the clock, within max_age_s: the samples around its stamp do arrive in
+    # time, but they were measured 0.3 s after the frame was taken; no heading is matched to it.
+    clock = Clock()
+    samples = [sample(0.1 * k, float(k)) for k in range(31)]
+    stats = PairingStats(HeadingInterpolator(max_gap_s=0.5, max_age_s=1.0))
+
+    def frames():
+        for seq, t in enumerate((1.0, 1.1, 1.2, 1.3, 1.4, 1.5)):
+            clock.t = t
+            yield frame(t + (0.3 if seq == 1 else 0.0), seq)
+
+    out = list(with_heading(frames(), ArrivingHeadings(samples, clock), stats.interpolator, clock=clock, stats=stats))
+    assert [f.attitude is not None for f in out] == [True, False, True, True, True, True]
+    assert stats.as_dict()["ahead"] == 1
 
 
 def test_gnss_utc_and_fix_are_attached():
