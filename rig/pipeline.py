@@ -97,7 +97,9 @@ class RigStats:
     frames_bad_exposure: int = 0
     frames_encoded: int = 0
     frames_out_of_order: int = 0
-    clock_jumps: int = 0  # frames far older than the one before: the ring started again from them
+    # frames far older than the one before, or whose UTC moved on far more than their monotonic
+    # clock (a suspend): the ring started again from them
+    clock_jumps: int = 0
     windows_skipped: int = 0
     estimates: int = 0
     estimates_failed: int = 0
@@ -352,8 +354,8 @@ class RigPipeline:
                 continue
             if self.ring.restarts != self.stats.clock_jumps:  # the ring counts them; this one says so
                 self.stats.clock_jumps = self.ring.restarts
-                log.warning("seq %d is more than %.0f s older than the frame before it: the clock jumped; "
-                            "windows start again from it", frame.seq, self.ring.max_age_s)
+                log.warning("seq %d %s: the clock jumped; windows start again from it",
+                            frame.seq, self.ring.last_restart)
             if not self._mailbox.put((feats, arrived)):
                 self.stats.windows_skipped += 1
 

@@ -70,6 +70,14 @@ DEFAULT_RING_CAPACITY = 128
 # The oldest frame a ring keeps behind the newest (the live rig's [rig] ring_max_age_s); a frame
 # further behind is a clock that jumped, and the ring starts again from it.
 DEFAULT_MAX_AGE_S = 10.0
+# How far the UTC between a frame and the newest held may disagree with their monotonic stamps
+# before it is a clock jump: CLOCK_MONOTONIC stands still while the host is suspended and UTC does
+# not, so after a resume the held frames are as old as the suspend, not a moment. Honest clocks
+# disagree by far less: a UTC carried by the monotonic clock from the newest GNSS sentence moves by
+# the sentences' latency (tens of ms), an NTP slew by 0.5 ms a second, a leap second by 1 s. Missed
+# disagreements are harmless: a window mixes frames at most this much further apart than it thinks,
+# and the sun moves at most ~0.25 deg a minute, 0.02 deg in 5 s.
+UTC_DISAGREEMENT_TOLERANCE_S = 5.0
 
 
 class FrameRing:
@@ -88,28 +96,46 @@ class FrameRing:
         self.evicted = 0
         self.out_of_order = 0
         self.restarts = 0
+        self.last_restart = ""  # why the ring last started again, worded to follow "seq N "
 
     def push(self, feats: FrameFeatures) -> bool:
         """Add the newest frame; a frame older than the newest held is refused (and counted):
         windows assume time order, and a late frame adds nothing to a live estimate.
 
-        A frame more than ``max_age_s`` older than the newest is not late: the clock jumped (one
-        frame stamped far ahead, or a source that restarted its clock). Refusing it would refuse
-        every frame from then on, so the ring starts again from it (counted in ``restarts``)."""
+        The ring starts again from the frame (counted in ``restarts``, the reason in
+        ``last_restart``) when its clock jumped: it is more than ``max_age_s`` older than the newest
+        (one frame stamped far ahead, or a source that restarted its clock; refusing it would refuse
+        every frame from then on), or it and the newest both carry UTC and their UTC difference
+        disagrees with their monotonic one by more than ``UTC_DISAGREEMENT_TOLERANCE_S`` (a suspend,
+        which the monotonic clock does not count: the held frames are older than they look)."""
+        frame = feats.frame
         with self._lock:
-            if self._frames and feats.frame.t_mono_s < self._frames[-1].frame.t_mono_s:
-                if self._frames[-1].frame.t_mono_s - feats.frame.t_mono_s <= self.max_age_s:
+            if self._frames:
+                newest = self._frames[-1].frame
+                behind_s = newest.t_mono_s - frame.t_mono_s
+                if behind_s > self.max_age_s:
+                    self._restart(f"is {behind_s:.1f} s older than the frame before it")
+                elif behind_s > 0:
                     self.out_of_order += 1
                     return False
-                self.evicted += len(self._frames)
-                self._frames.clear()
-                self.restarts += 1
+                elif newest.utc_ns is not None and frame.utc_ns is not None:
+                    utc_s, mono_s = (frame.utc_ns - newest.utc_ns) / 1e9, frame.t_mono_s - newest.t_mono_s
+                    if abs(utc_s - mono_s) > UTC_DISAGREEMENT_TOLERANCE_S:
+                        self._restart(f"is {utc_s:.1f} s after the frame before it in UTC but {mono_s:.1f} s "
+                                      "on the monotonic clock (a suspend and resume, or a clock set)")
             self._frames.append(feats)
-            newest = feats.frame.t_mono_s
-            while len(self._frames) > self.capacity or newest - self._frames[0].frame.t_mono_s > self.max_age_s:
+            newest_s = frame.t_mono_s
+            while len(self._frames) > self.capacity or newest_s - self._frames[0].frame.t_mono_s > self.max_age_s:
                 self._frames.popleft()
                 self.evicted += 1
             return True
+
+    def _restart(self, why: str) -> None:
+        """Called under the lock: drop every held frame (counted as evicted) and say why."""
+        self.evicted += len(self._frames)
+        self._frames.clear()
+        self.restarts += 1
+        self.last_restart = why
 
     def snapshot(self) -> list[FrameFeatures]:
         """A copy of the held frames, oldest first, for the window policy to choose from."""

@@ -212,6 +212,27 @@ def test_one_frame_stamped_an_hour_ahead_costs_a_refill_not_the_run(model):
     assert "clock jumps 1" in stats.status_line(stats.ended_s)
 
 
+def test_a_suspend_the_monotonic_clock_did_not_see_starts_the_windows_again(model, caplog):
+    # A laptop suspended for an hour between seq 19 and 20: CLOCK_MONOTONIC stood still, UTC did
+    # not. No window may mix the frames from before (the sun has moved ~15 deg) with those after.
+    utc0_ns = 1_700_000_000 * 10**9
+
+    def suspended():
+        for f in frames(40, dt=0.05):
+            utc_ns = utc0_ns + round(f.t_mono_s * 1e9) + (3600 * 10**9 if f.seq >= 20 else 0)
+            yield dataclasses.replace(f, utc_ns=utc_ns)
+
+    out = Collect()
+    with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
+        _, stats = run_pipeline(suspended(), SunEstimator(model), [out], queue_size=100)
+    assert stats.clock_jumps == 1 and stats.frames_out_of_order == 0
+    # Every window from the resume on holds frames from after it only (seq 20 on).
+    after = [e for e in out.estimates if e.seq >= 20]
+    assert after and all(e.n_frames <= e.seq - 19 for e in after)
+    warned = [r.getMessage() for r in caplog.records if "clock jumped" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("seq 20 ") and "UTC" in warned[0]
+
+
 def test_the_status_line_counts_every_kind_of_publisher_loss():
     from rig.pipeline import RigStats
 

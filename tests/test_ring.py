@@ -6,15 +6,21 @@ import numpy as np
 import pytest
 
 from rig.errors import ValidationError
-from rig.ring import DropOldestQueue, FrameRing
+from rig.ring import UTC_DISAGREEMENT_TOLERANCE_S, DropOldestQueue, FrameRing
 from rig.types import Attitude, Frame, FrameFeatures, HeadingRef, Intrinsics
 
 INTR = Intrinsics(fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
 IMG = np.zeros((16, 16, 3), np.uint8)
 
 
-def feats(seq, t):
-    frame = Frame(t_mono_s=t, seq=seq, image_bgr=IMG, intrinsics=INTR, attitude=Attitude(0.0, HeadingRef.TRUE))
+UTC0_NS = 1_700_000_000 * 10**9  # 2023-11-14: the UTC the stamps below count from
+
+
+def feats(seq, t, utc_s=None):
+    """A frame at monotonic ``t``, and at ``utc_s`` seconds after UTC0_NS when given."""
+    utc_ns = None if utc_s is None else UTC0_NS + round(utc_s * 1e9)
+    frame = Frame(t_mono_s=t, seq=seq, image_bgr=IMG, intrinsics=INTR, attitude=Attitude(0.0, HeadingRef.TRUE),
+                  utc_ns=utc_ns)
     return FrameFeatures(frame, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 2), np.float32), "m")
 
 
@@ -125,6 +131,41 @@ def test_ring_tells_a_late_frame_from_a_clock_jump_by_how_far_behind_the_newest_
     assert ring.out_of_order == 2 and ring.restarts == 0 and len(ring) == 1
     assert ring.push(feats(3, 995.5))  # more than max_age_s behind: the clock jumped
     assert ring.restarts == 1 and [f.frame.seq for f in ring.snapshot()] == [3]
+
+
+def test_ring_starts_again_after_a_suspend_that_the_monotonic_clock_did_not_see():
+    # A host suspended for an hour: CLOCK_MONOTONIC stood still, UTC did not. The frames from before
+    # the suspend are an hour old (the sun moved ~15 deg since), not a moment: no window may mix
+    # them with the frame after the resume. The live ring (max age 10 s), stamps as the clocks give.
+    ring = FrameRing(capacity=128, max_age_s=10.0)
+    for i in range(3):
+        assert ring.push(feats(i, 1000.0 + 0.25 * i, 0.25 * i))
+    assert ring.push(feats(3, 1000.75, 3600.75))  # 0.25 s on from seq 2 by one clock, an hour by the other
+    assert [f.frame.seq for f in ring.snapshot()] == [3]
+    assert ring.restarts == 1 and ring.evicted == 3 and ring.out_of_order == 0
+    assert "UTC" in ring.last_restart  # what the live rig's log line says
+    # The clocks agree again from there: the ring fills as usual.
+    assert ring.push(feats(4, 1001.0, 3601.0))
+    assert [f.frame.seq for f in ring.snapshot()] == [3, 4] and ring.restarts == 1
+
+
+def test_ring_keeps_frames_whose_utc_and_monotonic_clock_disagree_by_no_more_than_the_tolerance():
+    # A UTC carried by the monotonic clock from the newest GNSS sentence moves by the sentences'
+    # latency (tens of ms) when the next one arrives, a leap second by 1 s: not a suspend. The edge
+    # itself is kept; only frames that both carry UTC are compared.
+    tol = UTC_DISAGREEMENT_TOLERANCE_S
+    ring = FrameRing(capacity=10, max_age_s=10.0)
+    assert ring.push(feats(0, 1000.0, 0.0))
+    assert ring.push(feats(1, 1000.25, 0.25 + 0.05))
+    assert ring.push(feats(2, 1000.5, 0.5 + 0.05 + 1.0))  # a leap second
+    assert ring.push(feats(3, 1000.75, 0.75 + 0.05 + 1.0 + tol))
+    assert ring.restarts == 0 and len(ring) == 4
+    assert ring.push(feats(4, 1001.0))  # no UTC: nothing to compare it with
+    assert ring.push(feats(5, 1001.25, 3600.0))  # the newest kept (seq 4) has none either
+    assert ring.restarts == 0 and len(ring) == 6
+    # Between two that carry it, a disagreement either way counts (a host clock set back).
+    assert ring.push(feats(6, 1001.5, 3600.25 - tol - 0.5))
+    assert ring.restarts == 1 and [f.frame.seq for f in ring.snapshot()] == [6]
 
 
 def test_bad_sizes():
