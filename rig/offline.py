@@ -27,8 +27,8 @@ class OfflineStats:
     frames_without_heading: int = 0
     frames_bad_exposure: int = 0
     frames_out_of_order: int = 0
-    # frames far older than the one before, or whose UTC moved on far more than their monotonic
-    # clock (a suspend): windows start again from them
+    # frames more than 1 s older than the one before (a clock stepped back), or whose UTC moved on
+    # far more than their monotonic clock (a suspend): windows start again from them
     clock_jumps: int = 0
     windows: int = 0
     windows_failed: int = 0

@@ -97,8 +97,8 @@ class RigStats:
     frames_bad_exposure: int = 0
     frames_encoded: int = 0
     frames_out_of_order: int = 0
-    # frames far older than the one before, or whose UTC moved on far more than their monotonic
-    # clock (a suspend): the ring started again from them
+    # frames more than 1 s older than the one before (a clock stepped back), or whose UTC moved on
+    # far more than their monotonic clock (a suspend): the ring started again from them
     clock_jumps: int = 0
     windows_skipped: int = 0
     estimates: int = 0

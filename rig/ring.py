@@ -67,9 +67,15 @@ class DropOldestQueue(Generic[T]):
 # Frames a ring holds at most (the live rig's [rig] ring_capacity, and a replay's): 4 s of a
 # 30 fps camera, the window policy's default span.
 DEFAULT_RING_CAPACITY = 128
-# The oldest frame a ring keeps behind the newest (the live rig's [rig] ring_max_age_s); a frame
-# further behind is a clock that jumped, and the ring starts again from it.
+# The oldest frame a ring keeps behind the newest (the live rig's [rig] ring_max_age_s).
 DEFAULT_MAX_AGE_S = 10.0
+# How far behind the newest held a frame may be stamped and still be late (refused) rather than a
+# clock that stepped back (the ring starts again from it). A late frame is a few frames late: tens
+# of ms at 30 fps, a few hundred at 5 fps. Refusing a step back costs every frame until the stamps
+# catch up, no estimate at all for that long; starting again costs a refill, estimates from fewer
+# frames. Beyond a second the refill is the smaller loss. Not tied to max_age_s: the live ring
+# (10 s) refused 5 s of frames after a 5 s step where a replay's (the 4 s window span) restarted.
+LATE_FRAME_TOLERANCE_S = 1.0
 # How far the UTC between a frame and the newest held may disagree with their monotonic stamps
 # before it is a clock jump: CLOCK_MONOTONIC stands still while the host is suspended and UTC does
 # not, so after a resume the held frames are as old as the suspend, not a moment. Honest clocks
@@ -103,17 +109,18 @@ class FrameRing:
         windows assume time order, and a late frame adds nothing to a live estimate.
 
         The ring starts again from the frame (counted in ``restarts``, the reason in
-        ``last_restart``) when its clock jumped: it is more than ``max_age_s`` older than the newest
-        (one frame stamped far ahead, or a source that restarted its clock; refusing it would refuse
-        every frame from then on), or it and the newest both carry UTC and their UTC difference
-        disagrees with their monotonic one by more than ``UTC_DISAGREEMENT_TOLERANCE_S`` (a suspend,
-        which the monotonic clock does not count: the held frames are older than they look)."""
+        ``last_restart``) when its clock jumped: it is more than ``LATE_FRAME_TOLERANCE_S`` older
+        than the newest (one frame stamped far ahead, or a source whose clock stepped back or
+        restarted; refusing it would refuse every frame until the stamps caught up, or from then on),
+        or it and the newest both carry UTC and their UTC difference disagrees with their monotonic
+        one by more than ``UTC_DISAGREEMENT_TOLERANCE_S`` (a suspend, which the monotonic clock does
+        not count: the held frames are older than they look)."""
         frame = feats.frame
         with self._lock:
             if self._frames:
                 newest = self._frames[-1].frame
                 behind_s = newest.t_mono_s - frame.t_mono_s
-                if behind_s > self.max_age_s:
+                if behind_s > LATE_FRAME_TOLERANCE_S:
                     self._restart(f"is {behind_s:.1f} s older than the frame before it")
                 elif behind_s > 0:
                     self.out_of_order += 1

@@ -212,6 +212,25 @@ def test_one_frame_stamped_an_hour_ahead_costs_a_refill_not_the_run(model):
     assert "clock jumps 1" in stats.status_line(stats.ended_s)
 
 
+def test_stamps_that_step_back_seconds_start_the_windows_again_at_once(model, caplog):
+    # A source whose stamps step back 5 s at seq 30 (it reset its clock's offset): with the live
+    # ring's 10 s max age, each later frame was refused as late until the stamps caught up, 5 s
+    # without an estimate. A late frame is a few frames late, not seconds.
+    def stepped_back():
+        for f in frames(60, dt=0.05):
+            yield dataclasses.replace(f, t_mono_s=1000.0 + f.t_mono_s - (5.0 if f.seq >= 30 else 0.0))
+
+    out = Collect()
+    with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
+        _, stats = run_pipeline(stepped_back(), SunEstimator(model), [out], queue_size=100)
+    assert stats.clock_jumps == 1 and stats.frames_out_of_order == 0
+    after = [e for e in out.estimates if e.seq >= 30]
+    assert after and all(e.n_frames <= e.seq - 29 for e in after) and out.estimates[-1].seq == 59
+    warned = [r.getMessage() for r in caplog.records if "clock jumped" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("seq 30 is ")  # 4.95 s, shown to 0.1 s
+    assert warned[0].endswith(" s older than the frame before it: the clock jumped; windows start again from it")
+
+
 def test_a_suspend_the_monotonic_clock_did_not_see_starts_the_windows_again(model, caplog):
     # A laptop suspended for an hour between seq 19 and 20: CLOCK_MONOTONIC stood still, UTC did
     # not. No window may mix the frames from before (the sun has moved ~15 deg) with those after.

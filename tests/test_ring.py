@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rig.errors import ValidationError
-from rig.ring import UTC_DISAGREEMENT_TOLERANCE_S, DropOldestQueue, FrameRing
+from rig.ring import LATE_FRAME_TOLERANCE_S, UTC_DISAGREEMENT_TOLERANCE_S, DropOldestQueue, FrameRing
 from rig.types import Attitude, Frame, FrameFeatures, HeadingRef, Intrinsics
 
 INTR = Intrinsics(fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
@@ -118,19 +118,33 @@ def test_ring_starts_again_after_a_clock_jump():
     assert [f.frame.seq for f in ring.snapshot()] == [4, 5]
     assert ring.restarts == 1 and ring.out_of_order == 0
     assert ring.evicted == 4  # 3 by age when the jump came, then the one stamped ahead at the restart
-    # A frame late by less than max_age_s is still refused, not a restart.
+    # A frame a few frames late is still refused, not a restart.
     assert not ring.push(feats(6, 0.45)) and ring.out_of_order == 1 and ring.restarts == 1
 
 
 def test_ring_tells_a_late_frame_from_a_clock_jump_by_how_far_behind_the_newest_it_is():
-    # Stamps as a monotonic clock gives them (seconds since boot), not near zero.
-    ring = FrameRing(capacity=10, max_age_s=4.0)
+    # Stamps as a monotonic clock gives them (seconds since boot), not near zero. How far behind a
+    # late frame may be does not hang on how long the ring keeps frames (the live rig's 10 s here).
+    ring = FrameRing(capacity=10, max_age_s=10.0)
     assert ring.push(feats(0, 1000.0))
-    assert not ring.push(feats(1, 999.5))  # half a second late
-    assert not ring.push(feats(2, 996.0))  # exactly max_age_s behind: still late, not a jump
+    assert not ring.push(feats(1, 999.96))  # one frame late at 30 fps
+    assert not ring.push(feats(2, 1000.0 - LATE_FRAME_TOLERANCE_S))  # exactly the tolerance: still late
     assert ring.out_of_order == 2 and ring.restarts == 0 and len(ring) == 1
-    assert ring.push(feats(3, 995.5))  # more than max_age_s behind: the clock jumped
+    assert ring.push(feats(3, 1000.0 - LATE_FRAME_TOLERANCE_S - 0.25))  # further back: the clock stepped back
     assert ring.restarts == 1 and [f.frame.seq for f in ring.snapshot()] == [3]
+    assert ring.last_restart == "is 1.2 s older than the frame before it"
+
+
+@pytest.mark.parametrize("max_age_s", [4.0, 10.0])  # a replay's ring (the window span) and the live rig's
+def test_a_clock_stepped_back_by_seconds_restarts_either_ring_at_once(max_age_s):
+    # A source whose stamps step back 5 s: the live ring refused every frame for 5 s as late (no
+    # estimates), while a replay's ring started again at once. Both start again now.
+    ring = FrameRing(capacity=128, max_age_s=max_age_s)
+    for i in range(4):
+        assert ring.push(feats(i, 1000.0 + 0.25 * i))
+    assert ring.push(feats(4, 1001.0 - 5.0))
+    assert ring.restarts == 1 and ring.out_of_order == 0 and [f.frame.seq for f in ring.snapshot()] == [4]
+    assert ring.push(feats(5, 996.25)) and [f.frame.seq for f in ring.snapshot()] == [4, 5]
 
 
 def test_ring_starts_again_after_a_suspend_that_the_monotonic_clock_did_not_see():
