@@ -1572,3 +1572,64 @@ def test_the_exit_report_of_an_output_adds_up_and_does_not_blame_the_reader_for_
 
     assert _report_output_losses({"SerialPublisher": stats}) == 0
     assert capsys.readouterr().err.strip() == said
+
+
+def _sunrig_script() -> tuple[str, str]:
+    """The module and function that pyproject's ``sunrig`` console script calls."""
+    import tomllib
+
+    target = tomllib.loads((Path(__file__).resolve().parent.parent / "pyproject.toml").read_text())
+    module, _, function = target["project"]["scripts"]["sunrig"].partition(":")
+    return module, function
+
+
+def test_the_sunrig_command_starts_without_importing_numpy():
+    # A Ctrl-C in the first ~0.3 s of any command landed inside `import numpy` (which `import rig`
+    # did, for rig.types) or another import of rig.cli, before any handler of ours ran: a
+    # traceback. The module the console script imports, and the rig package, load nothing heavy;
+    # the names `from rig import ...` gives still resolve, to the same objects as before.
+    module, _ = _sunrig_script()
+    code = (f"import sys, rig, {module}\n"
+            "heavy = [m for m in ('numpy', 'rig.types', 'rig.cli') if m in sys.modules]\n"
+            "from rig import *\n"
+            "from rig import Frame, ValidationError\n"
+            "import rig.errors, rig.types\n"
+            "assert Frame is rig.types.Frame and ValidationError is rig.errors.ValidationError\n"
+            "assert all(getattr(rig, name) is globals()[name] for name in rig.__all__)\n"
+            "assert set(rig.__all__) <= set(dir(rig))\n"
+            "print(heavy)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.strip() == "[]", res.stdout + res.stderr
+
+
+_CTRL_C_WHILE_IMPORTING_THE_CLI = """
+import signal, sys
+
+class CtrlCOnImport:  # a real SIGINT, delivered while rig.cli is being imported
+    def find_spec(self, name, path=None, target=None):
+        if name == "rig.cli":
+            signal.raise_signal(signal.SIGINT)
+        return None
+
+sys.meta_path.insert(0, CtrlCOnImport())
+from {module} import {function}
+sys.exit({function}())
+"""
+
+
+def test_a_ctrl_c_before_the_command_has_started_exits_130_without_a_traceback():
+    module, function = _sunrig_script()
+    code = _CTRL_C_WHILE_IMPORTING_THE_CLI.format(module=module, function=function)
+    res = subprocess.run([sys.executable, "-c", code, "replay", "--jsonl", os.devnull], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 130, res.stderr
+    assert res.stderr == "sunrig: interrupted\n", res.stderr
+
+
+def test_the_sunrig_console_script_runs_the_command(tmp_path):
+    # What the console script calls is the whole command: its errors and exit codes are main()'s.
+    module, function = _sunrig_script()
+    res = subprocess.run([sys.executable, "-c", f"import sys; from {module} import {function}; sys.exit({function}())",
+                          "replay", str(tmp_path / "nope.mcap")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and res.stderr.startswith("sunrig: error:"), res.stderr
+    assert "Traceback" not in res.stderr
