@@ -10,6 +10,7 @@ a reopen even in the paced run (300 frames: 298 written, 1 timeout, 1 reopen). A
 
     python3 benchmarks/bench_rig.py [--model DIR] [--frames 400]
     python3 benchmarks/bench_rig.py --preset paper [--int8]     # the paper's architecture, random weights
+    python3 benchmarks/bench_rig.py --resolution 1920x1080      # memory at a camera's size
 
 ``--preset`` runs an untrained model of that network preset (speed does not depend on the weights;
 needs the train extra), ``--int8`` the model with its backbone quantized (``sunrig quantize``,
@@ -33,24 +34,50 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import machine  # noqa: E402
 
 
-def looped(frames, n: int, dt: float):
-    """``n`` frames from a drive played over and over, renumbered, ``dt`` apart."""
+def at_resolution(frames, width: int, height: int) -> list:
+    """The drive's frames resized to ``width`` x ``height``, their intrinsics scaled with them."""
     from dataclasses import replace
 
+    import cv2
+
+    from replay.kitti import scaled_intrinsics
+
+    return [replace(f, image_bgr=cv2.resize(f.image_bgr, (width, height), interpolation=cv2.INTER_LINEAR),
+                    intrinsics=scaled_intrinsics(f.intrinsics, width, height)) for f in frames]
+
+
+def handed_out(frame, t_mono_s: float, seq: int, own_image: bool):
+    """``frame`` renumbered and restamped; with ``own_image``, in an image buffer of its own, as a
+    camera fills a new one for every frame (a looped drive's frames otherwise share its 40 images,
+    which hides what holding frames costs)."""
+    from dataclasses import replace
+
+    if own_image:
+        return replace(frame, t_mono_s=t_mono_s, seq=seq, image_bgr=frame.image_bgr.copy())
+    return replace(frame, t_mono_s=t_mono_s, seq=seq)
+
+
+def looped(frames, n: int, dt: float, own_images: bool = False):
+    """``n`` frames from a drive played over and over, renumbered, ``dt`` apart."""
     for i in range(n):
-        yield replace(frames[i % len(frames)], t_mono_s=i * dt, seq=i)
+        yield handed_out(frames[i % len(frames)], i * dt, i, own_images)
 
 
-def flood(frames, seconds: float):
+def flood(frames, seconds: float, own_images: bool = False):
     """Frames as fast as they can be made for ``seconds``, stamped with the monotonic clock: a
     source far faster than the estimator, for the sustained (overloaded) update rate."""
-    from dataclasses import replace
-
     end = time.monotonic() + seconds
     i = 0
     while time.monotonic() < end:
-        yield replace(frames[i % len(frames)], t_mono_s=time.monotonic(), seq=i)
+        yield handed_out(frames[i % len(frames)], time.monotonic(), i, own_images)
         i += 1
+
+
+def resolution(text: str) -> tuple[int, int]:
+    width, sep, height = text.partition("x")
+    if not (sep and width.isdigit() and height.isdigit() and 64 <= int(width) <= 8192 and 64 <= int(height) <= 8192):
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, each 64..8192 px (e.g. 1920x1080), got {text!r}")
+    return int(width), int(height)
 
 
 def rss_mb() -> float:
@@ -65,6 +92,9 @@ def main() -> None:
     ap.add_argument("--int8", action="store_true", help="quantize the model's backbone first")
     ap.add_argument("--ort-spinning", action="store_true",
                     help="ONNX Runtime's threads spin between ops (its default, not the rig's), to compare")
+    ap.add_argument("--resolution", type=resolution, metavar="WxH",
+                    help="the drive's frames resized to this size, each frame in an image buffer of its own as "
+                         "a camera's: what the rig's memory holds at that size (max_rss_mb)")
     args = ap.parse_args()
 
     from estimator.estimator import SunEstimator
@@ -76,6 +106,8 @@ def main() -> None:
     from rig.window import SpreadWindowPolicy
 
     drive = list(open_frames(DEMO_LOG))
+    if args.resolution:
+        drive = at_resolution(drive, *args.resolution)
     tmp = tempfile.TemporaryDirectory()
     if args.preset:
         from estimator.export import build_random_model
@@ -97,7 +129,8 @@ def main() -> None:
         pub = SerialPublisher(os.ttyname(slave), format="nmea")
         est = SunEstimator(model)
         rss_before = rss_mb()
-        source = looped(drive, args.frames, 0.1) if realtime else flood(drive, args.frames / 10.0)
+        own = args.resolution is not None
+        source = looped(drive, args.frames, 0.1, own) if realtime else flood(drive, args.frames / 10.0, own)
         pipe = RigPipeline(source, est, SpreadWindowPolicy(), [pub], config=RigConfig(realtime=realtime))
         t0 = time.monotonic()
         stats = pipe.run()
@@ -132,7 +165,9 @@ def main() -> None:
         "calls": len(calls), "p50_ms": calls[len(calls) // 2], "p99_ms": calls[int(len(calls) * 0.99)],
         "max_ms": calls[-1], "serial": pub_stats,
     }
+    size = args.resolution or (drive[0].intrinsics.width, drive[0].intrinsics.height)
     print(json.dumps({"benchmark": "rig", "model": model.model_id, "preset": args.preset, "int8": args.int8,
+                      "resolution": f"{size[0]}x{size[1]}", "own_images": args.resolution is not None,
                       "ort_spinning": args.ort_spinning,
                       "trained": bool(model.contract.training.get("trained", True)), "results": results,
                       "machine": machine()}, indent=2))

@@ -236,7 +236,9 @@ class SunEstimator:
         for frame, (boxes, angles, _) in zip(frames, parts, strict=True):
             n = len(boxes)
             mirrored = emb[n_all + start : n_all + start + n] if self.mirror_windows else None
-            out.append(FrameFeatures(frame, boxes, angles, emb[start : start + n], self.model.model_id, mirrored))
+            # The frame's pixels stay out of its features: the crops above are all that reads them.
+            out.append(FrameFeatures(frame.meta(), boxes, angles, emb[start : start + n], self.model.model_id,
+                                     mirrored))
             start += n
         return out
 

@@ -14,13 +14,14 @@ from typing import TYPE_CHECKING, Any
 from rig.errors import ContractMismatch, LogError, ModelError, SunrigError, ValidationError
 
 if TYPE_CHECKING:
-    from rig.types import Attitude, Frame, FrameFeatures, GnssFix, HeadingRef, Intrinsics, SunEstimate
+    from rig.types import Attitude, Frame, FrameFeatures, FrameMeta, GnssFix, HeadingRef, Intrinsics, SunEstimate
 
 __all__ = [
     "Attitude",
     "ContractMismatch",
     "Frame",
     "FrameFeatures",
+    "FrameMeta",
     "GnssFix",
     "HeadingRef",
     "Intrinsics",
@@ -32,7 +33,8 @@ __all__ = [
 ]
 
 # The names imported on first use, and the module each comes from.
-_LAZY = dict.fromkeys(("Attitude", "Frame", "FrameFeatures", "GnssFix", "HeadingRef", "Intrinsics", "SunEstimate"),
+_LAZY = dict.fromkeys(("Attitude", "Frame", "FrameFeatures", "FrameMeta", "GnssFix", "HeadingRef", "Intrinsics",
+                                "SunEstimate"),
                       "rig.types")
 
 

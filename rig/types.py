@@ -209,6 +209,22 @@ class GnssFix:
             object.__setattr__(self, "alt_m", _finite("alt_m", self.alt_m))
 
 
+def _check_frame_fields(obj: Frame | FrameMeta, cls: str) -> None:
+    """Validate (and normalise) the fields a :class:`Frame` and its :class:`FrameMeta` share."""
+    object.__setattr__(obj, "t_mono_s", _finite("t_mono_s", obj.t_mono_s))
+    object.__setattr__(obj, "seq", _seq(f"{cls}.seq", obj.seq))
+    if not isinstance(obj.intrinsics, Intrinsics):
+        raise ValidationError(f"{cls}.intrinsics: expected Intrinsics, got {type(obj.intrinsics).__name__}")
+    if obj.attitude is not None and not isinstance(obj.attitude, Attitude):
+        raise ValidationError(f"{cls}.attitude: expected Attitude or None, got {type(obj.attitude).__name__}")
+    if obj.gnss is not None and not isinstance(obj.gnss, GnssFix):
+        raise ValidationError(f"{cls}.gnss: expected GnssFix or None, got {type(obj.gnss).__name__}")
+    if obj.utc_ns is not None:
+        object.__setattr__(obj, "utc_ns", _utc_ns(f"{cls}.utc_ns", obj.utc_ns))
+    if obj.sun_enu_truth is not None:
+        object.__setattr__(obj, "sun_enu_truth", _vector3(f"{cls}.sun_enu_truth", obj.sun_enu_truth, unit=True))
+
+
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One camera frame with everything known about it at capture. The one type every source yields.
@@ -227,8 +243,7 @@ class Frame:
     sun_enu_truth: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "t_mono_s", _finite("t_mono_s", self.t_mono_s))
-        object.__setattr__(self, "seq", _seq("Frame.seq", self.seq))
+        _check_frame_fields(self, "Frame")
         img = self.image_bgr
         if not isinstance(img, np.ndarray):
             raise ValidationError(f"Frame.image_bgr: expected a numpy array, got {type(img).__name__}")
@@ -236,10 +251,6 @@ class Frame:
             raise ValidationError(f"Frame.image_bgr: expected dtype uint8, got {img.dtype}")
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValidationError(f"Frame.image_bgr: expected shape (H, W, 3) BGR, got {img.shape}")
-        if not isinstance(self.intrinsics, Intrinsics):
-            raise ValidationError(
-                f"Frame.intrinsics: expected Intrinsics, got {type(self.intrinsics).__name__}"
-            )
         if img.shape[:2] != (self.intrinsics.height, self.intrinsics.width):
             raise ValidationError(
                 "Frame.image_bgr: expected shape "
@@ -249,14 +260,37 @@ class Frame:
             img = img.view()
             img.setflags(write=False)
             object.__setattr__(self, "image_bgr", img)
-        if self.attitude is not None and not isinstance(self.attitude, Attitude):
-            raise ValidationError(f"Frame.attitude: expected Attitude or None, got {type(self.attitude).__name__}")
-        if self.gnss is not None and not isinstance(self.gnss, GnssFix):
-            raise ValidationError(f"Frame.gnss: expected GnssFix or None, got {type(self.gnss).__name__}")
-        if self.utc_ns is not None:
-            object.__setattr__(self, "utc_ns", _utc_ns("Frame.utc_ns", self.utc_ns))
-        if self.sun_enu_truth is not None:
-            object.__setattr__(self, "sun_enu_truth", _vector3("Frame.sun_enu_truth", self.sun_enu_truth, unit=True))
+
+    @property
+    def heading_rad(self) -> float | None:
+        return None if self.attitude is None else self.attitude.heading_rad
+
+    def meta(self) -> FrameMeta:
+        """Everything about this frame but its pixels (what the ring keeps once they are encoded)."""
+        return FrameMeta(self.t_mono_s, self.seq, self.intrinsics, self.attitude, self.utc_ns, self.gnss,
+                         self.sun_enu_truth)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameMeta:
+    """A :class:`Frame` without its image: its time, sequence number, camera, heading, UTC,
+    position and true sun, with the same names and checks.
+
+    Once the backbone has encoded a frame's crops nothing downstream reads its pixels, and the ring
+    keeps a few seconds of frames: 128 frames of a 1920 x 1080 camera are 800 MB of images, which a
+    small computer does not have to spare (``benchmarks/bench_rig.py --resolution``).
+    """
+
+    t_mono_s: float
+    seq: int
+    intrinsics: Intrinsics
+    attitude: Attitude | None = None
+    utc_ns: int | None = None
+    gnss: GnssFix | None = None
+    sun_enu_truth: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        _check_frame_fields(self, "FrameMeta")
 
     @property
     def heading_rad(self) -> float | None:
@@ -267,6 +301,9 @@ class Frame:
 class FrameFeatures:
     """A frame with its crops' view angles and backbone embeddings, computed once when it arrives.
 
+    ``frame`` is the frame without its pixels (:class:`FrameMeta`); a :class:`Frame` given is kept
+    as its ``meta()``, so that nothing holding features (the ring, a replay's window) holds images.
+
     ``crop_boxes_px`` rows are (x0, y0, side_x, side_y) in image pixels; ``crop_angles_rad`` rows are
     (horizontal, vertical) view angles of the crop centres; ``embeddings`` rows are the backbone's
     output per crop. ``model_id`` names the backbone that made them, so a cache never mixes models.
@@ -274,7 +311,7 @@ class FrameFeatures:
     same crops' embeddings flipped left to right, row for row; None otherwise.
     """
 
-    frame: Frame
+    frame: FrameMeta
     crop_boxes_px: np.ndarray
     crop_angles_rad: np.ndarray
     embeddings: np.ndarray
@@ -282,6 +319,10 @@ class FrameFeatures:
     embeddings_mirrored: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.frame, Frame):
+            object.__setattr__(self, "frame", self.frame.meta())
+        elif not isinstance(self.frame, FrameMeta):
+            raise ValidationError(f"FrameFeatures.frame: expected Frame or FrameMeta, got {type(self.frame).__name__}")
         n = len(self.crop_boxes_px)
         checks = (
             ("crop_boxes_px", self.crop_boxes_px, (n, 4)),

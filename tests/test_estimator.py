@@ -1,7 +1,9 @@
 """The estimator end to end on a tiny random model: cache, aggregators, exact yaw invariance."""
 
 import dataclasses
+import gc
 import math
+import weakref
 from types import SimpleNamespace
 
 import numpy as np
@@ -263,16 +265,29 @@ def _mirror_image(ff: FrameFeatures) -> FrameFeatures:
                          ff.model_id, ff.embeddings)
 
 
+def test_an_encoded_frame_lets_its_image_go(model):
+    # Nothing after the backbone reads a frame's pixels, and the ring holds seconds of features:
+    # a camera's image must be freed once encoded, not kept alive by the features made from it.
+    image = np.random.default_rng(0).integers(0, 256, size=(80, 128, 3), dtype=np.uint8)
+    freed = weakref.ref(image)
+    frame = Frame(t_mono_s=0.0, seq=0, image_bgr=image, intrinsics=INTR,
+                  attitude=Attitude(0.0, HeadingRef.TRUE))
+    feats = SunEstimator(model, mirror_windows=True).encode(frame)
+    del frame, image
+    gc.collect()
+    assert freed() is None and feats.frame.seq == 0 and feats.frame.attitude.heading_rad == 0.0
+
+
 def test_mirror_windows_follows_the_contract_unless_told(model):
     frames = make_frames(2)
     assert model.contract.mirror_windows is False  # the tiny test model's export
     plain = SunEstimator(model).encode_batch(frames)
     assert SunEstimator(model).mirror_windows is False and plain[0].embeddings_mirrored is None
     mirrored = SunEstimator(model, mirror_windows=True).encode_batch(frames)
-    for p, m in zip(plain, mirrored, strict=True):
+    for frame, p, m in zip(frames, plain, mirrored, strict=True):
         np.testing.assert_array_equal(p.crop_boxes_px, m.crop_boxes_px)  # the same crops ...
         np.testing.assert_allclose(p.embeddings, m.embeddings, atol=1e-5)
-        crops = cut_crops(p.frame.image_bgr, p.crop_boxes_px, model.contract.crop_size_px)
+        crops = cut_crops(frame.image_bgr, p.crop_boxes_px, model.contract.crop_size_px)
         flipped = model.embed(np.ascontiguousarray(crops[:, :, ::-1]))  # ... and their flips' embeddings beside them
         np.testing.assert_allclose(m.embeddings_mirrored, flipped, atol=1e-5)
 

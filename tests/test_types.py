@@ -11,6 +11,7 @@ from rig.types import (
     Attitude,
     Frame,
     FrameFeatures,
+    FrameMeta,
     GnssFix,
     HeadingRef,
     Intrinsics,
@@ -330,6 +331,36 @@ def test_frame_features_check_their_shapes_and_keep_their_own_read_only_copies()
     for arr in (ff.crop_boxes_px, ff.crop_angles_rad, ff.embeddings):
         with pytest.raises(ValueError):
             arr[0, 0] = 1.0
+
+
+def test_frame_features_keep_the_frame_without_its_pixels():
+    # The ring keeps seconds of features; with the frames' images inside them that was 800 MB for a
+    # 1920 x 1080 camera. Every field but the image is kept, with the same names and values.
+    truth = [0.0, 0.6, 0.8]
+    frame = make_frame(attitude=Attitude(1.0, HeadingRef.TRUE), utc_ns=7,
+                       gnss=GnssFix(utc_ns=7, lat_deg=49.0, lon_deg=8.4), sun_enu_truth=truth)
+    ff = FrameFeatures(frame, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 8), np.float32), "m")
+    assert isinstance(ff.frame, FrameMeta) and not hasattr(ff.frame, "image_bgr")
+    for name in ("t_mono_s", "seq", "intrinsics", "attitude", "utc_ns", "gnss", "heading_rad"):
+        assert getattr(ff.frame, name) == getattr(frame, name), name
+    np.testing.assert_array_equal(ff.frame.sun_enu_truth, frame.sun_enu_truth)
+    with pytest.raises(ValidationError, match="FrameFeatures.frame: expected Frame or FrameMeta, got dict"):
+        FrameFeatures({"seq": 1}, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 8), np.float32), "m")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"seq": -1}, "FrameMeta.seq: expected a non-negative integer, got -1"),
+        ({"attitude": 1.5}, "FrameMeta.attitude: expected Attitude or None, got float"),
+        ({"utc_ns": 1.5e18}, "FrameMeta.utc_ns: expected integer ns since the epoch"),
+        ({"sun_enu_truth": [0.0, 0.0, 2.0]}, "FrameMeta.sun_enu_truth: expected a unit vector"),
+    ],
+)
+def test_frame_meta_checks_its_fields_as_a_frame_does(kwargs, message):
+    with pytest.raises(ValidationError) as info:
+        FrameMeta(**{"t_mono_s": 0.0, "seq": 0, "intrinsics": make_frame().intrinsics, **kwargs})
+    assert message in str(info.value)
 
 
 def test_a_value_that_is_no_number_is_a_validation_error():
