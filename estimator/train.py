@@ -35,12 +35,14 @@ graphs with the contract, including the command and data that produced it.
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import logging
 import math
 import os
 import re
+import tempfile
 import time
 import zipfile
 import zlib
@@ -781,6 +783,7 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     out_dir = Path(out_dir)
     ckpt_path = out_dir / CHECKPOINT
     state = _resumable_state(out_dir, cfg)
+    _check_out_writable(out_dir)
     _check_batch_fits(cfg.batch_windows, cfg.frames_per_window,
                       int(state["config"]["crops_per_frame"]) if state is not None  # saved resolved, never 0
                       else cfg.crops_per_frame or PAPER_CROPS_PER_FRAME, net_cfg.crop_size)
@@ -1056,6 +1059,25 @@ _RUN_OWN_WHEN_ZERO: dict[str, tuple[str, Any, Callable[[Any], Any], Callable[[An
     "crops_per_frame": ("--crops", PAPER_CROPS_PER_FRAME, int, str),
     "crop_fov_deg": ("--crop-fov", PAPER_CROP_FOV_DEG, fovs_deg, format_fovs_deg),
 }
+
+
+def _check_out_writable(out_dir: Path) -> None:
+    """Refuse, before minutes of loading data, an ``--out`` that cannot be written: it was found
+    by the mkdir after every log had loaded, or (a folder the user may not write) by the first
+    metrics line or checkpoint, after the training. Checked by making a folder and removing it,
+    in ``out_dir`` or the nearest folder above it that exists (the one mkdir will write in):
+    os.access says yes to root for /proc or a read-only mount. The probe is hidden, so one a kill
+    leaves behind does not make the folder "hold files"."""
+    where = out_dir
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        if not where.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
+        os.rmdir(tempfile.mkdtemp(prefix=".sunrig-probe-", dir=where))
+    except OSError as exc:
+        raise ValidationError(f"--out {out_dir}: cannot write there ({exc.strerror}: {where}); pass a folder "
+                              "you can write to") from None
 
 
 def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:

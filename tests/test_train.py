@@ -1248,3 +1248,19 @@ def test_a_log_whose_clock_jumps_trains_as_one_drive_per_run_of_its_clock(tmp_pa
     for d in drives:
         assert np.all(np.diff(d.t_s) > 0) and d.t_s[-1] - d.t_s[0] == pytest.approx(3.5)
     assert "its clock jumps 2 times (at seq 8, 16); trained as 3 drives" in caplog.text
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_the_logs_load(logs, tmp_path, monkeypatch):
+    # It was found by the mkdir after loading every log (minutes for a fleet's folder), or, in a
+    # folder the user may not write, by the first metrics line or checkpoint: after the training.
+    import estimator.train as train_module
+
+    def no_loading(*args, **kwargs):
+        raise AssertionError("the logs were loaded before --out was checked")
+
+    monkeypatch.setattr(train_module, "load_drives", no_loading)
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("not a folder")
+    with pytest.raises(ValidationError, match=r"--out .*notes.txt/model: cannot write there .*; pass a folder"):
+        train(logs, a_file / "model", TrainConfig(preset="tiny", max_steps=1, batch_windows=1))
+    assert not (a_file.parent / "model").exists()
