@@ -790,6 +790,10 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     # Checked before minutes of loading data; used only by a new run (a resumed one has its weights).
     init_start = _checked_init(Path(cfg.init), net_cfg) if cfg.init and state is None else None
     init_weights = init_start[0] if init_start is not None else None
+    if cfg.init:
+        # Recorded whole: a run resumed from another folder compares it with --init from there, and
+        # the contract's provenance of a relative "shipped" or "model" would not say which folder.
+        cfg = replace(cfg, init=os.path.abspath(cfg.init))
     if state is not None:
         if _run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
             log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])

@@ -1264,3 +1264,20 @@ def test_an_out_that_cannot_be_written_is_refused_before_the_logs_load(logs, tmp
     with pytest.raises(ValidationError, match=r"--out .*notes.txt/model: cannot write there .*; pass a folder"):
         train(logs, a_file / "model", TrainConfig(preset="tiny", max_steps=1, batch_windows=1))
     assert not (a_file.parent / "model").exists()
+
+
+def test_a_fine_tune_with_a_relative_init_resumes_from_another_working_directory(logs, tmp_path, monkeypatch):
+    # The run recorded --init as given ("start"), then compared it, resolved against the new working
+    # directory, with the same folder named from there ("models/start"): refused as another run.
+    from estimator.runtime import OnnxModel
+
+    cfg = TrainConfig(preset="tiny", max_steps=1, batch_windows=1, warmup_steps=1)
+    models = tmp_path / "models"
+    train(logs, models / "start", cfg)
+    monkeypatch.chdir(models)
+    out = train(logs, tmp_path / "tuned", replace(cfg, init="start"))
+    assert OnnxModel.load(out).contract.training["recipe"]["init"] == str(models / "start")
+    monkeypatch.chdir(tmp_path)
+    events = []
+    train(logs, tmp_path / "tuned", replace(cfg, max_steps=2, init="models/start"), progress=events.append)
+    assert [e["step"] for e in events if e["phase"] == "train"] == [2]
