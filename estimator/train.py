@@ -1203,6 +1203,10 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
         raise ValidationError(f"--init {model_dir} {what}; pass a model folder written by `sunrig train`, "
                               "e.g. the shipped model's")
     if not path.is_file():
+        if (Path(model_dir) / CHECKPOINT).is_file():  # a run stopped before its end exports nothing
+            raise ValidationError(f"--init {model_dir} holds a training run that has not exported its model yet; "
+                                  f"export it with `sunrig train --out {model_dir} --export-only DIR` and pass "
+                                  "--init DIR, or let the run finish")
         raise ValidationError(f"--init {model_dir}: no {WEIGHTS_FILE} there; pass a model folder written by "
                               "`sunrig train` (the shipped model has one)")
     try:

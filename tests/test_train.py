@@ -1281,3 +1281,15 @@ def test_a_fine_tune_with_a_relative_init_resumes_from_another_working_directory
     events = []
     train(logs, tmp_path / "tuned", replace(cfg, max_steps=2, init="models/start"), progress=events.append)
     assert [e["step"] for e in events if e["phase"] == "train"] == [2]
+
+
+def test_an_init_folder_of_a_run_not_yet_exported_says_how_to_export_it(tmp_path):
+    from estimator import nets
+    from estimator.train import check_init
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / CHECKPOINT).write_bytes(b"")  # a run stopped before its end: a checkpoint, no model yet
+    with pytest.raises(ValidationError, match=r"holds a training run that has not exported its model yet; "
+                                              r"export it with `sunrig train --out .*run --export-only DIR`"):
+        check_init(run, nets.TINY)
