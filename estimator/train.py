@@ -228,21 +228,41 @@ def split_at_clock_jumps(frames: Sequence[Frame], max_gap_s: float = DEFAULT_MAX
     return runs
 
 
+def split_at_camera_changes(frames: Sequence[Frame]) -> list[list[Frame]]:
+    """``frames`` in runs of one camera (one set of intrinsics): a new run wherever they change (a
+    resolution or calibration changed mid-recording). A drive is scaled and cropped by one
+    camera's intrinsics (:class:`DriveView`): frames of another size could not be stacked with it,
+    and frames of the same size took the first camera's view angles."""
+    runs: list[list[Frame]] = []
+    for f in frames:
+        if not runs or f.intrinsics != runs[-1][-1].intrinsics:
+            runs.append([])
+        runs[-1].append(f)
+    return runs
+
+
 def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float | Sequence[float],
                 read_frames: Callable[[Path], Iterable[Frame]] | None = None,
                 progress: Callable[[int, int], None] | None = None) -> list[Drive]:
-    """Every log as one drive, or one per run of its clock (:func:`split_at_clock_jumps`).
-    ``read_frames`` defaults to the native log reader."""
+    """Every log as one drive, or one per run of its clock (:func:`split_at_clock_jumps`) and of
+    its camera (:func:`split_at_camera_changes`). ``read_frames`` defaults to the native log reader."""
     if read_frames is None:
         from replay.sources import open_frames
 
         read_frames = open_frames
     drives = []
     for i, path in enumerate(paths):
-        runs = split_at_clock_jumps([f for f in read_frames(Path(path)) if trainable(f)])
-        if len(runs) > 1:
+        clock_runs = split_at_clock_jumps([f for f in read_frames(Path(path)) if trainable(f)])
+        if len(clock_runs) > 1:
             log.warning("%s: its clock jumps %d times (at seq %s); trained as %d drives, no window across a jump",
-                        path, len(runs) - 1, ", ".join(str(r[0].seq) for r in runs[1:6]), len(runs))
+                        path, len(clock_runs) - 1, ", ".join(str(r[0].seq) for r in clock_runs[1:6]), len(clock_runs))
+        runs = [part for run in clock_runs for part in split_at_camera_changes(run)]
+        if len(runs) > len(clock_runs):
+            starts = {id(run[0]) for run in clock_runs}
+            changes = [r[0].seq for r in runs if id(r[0]) not in starts]
+            log.warning("%s: its camera changes %d time%s (at seq %s); trained as %d drives, each of one camera",
+                        path, len(changes), "" if len(changes) == 1 else "s", ", ".join(map(str, changes[:5])),
+                        len(runs))
         named = [(Path(path).name, run) for run in runs] if len(runs) <= 1 else [
             (f"{Path(path).name}#{k}", run) for k, run in enumerate(runs)]
         loaded = [d for name, run in named if (d := load_drive(run, name, crop_size, crop_fov_rad)) is not None]

@@ -1293,3 +1293,32 @@ def test_an_init_folder_of_a_run_not_yet_exported_says_how_to_export_it(tmp_path
     with pytest.raises(ValidationError, match=r"holds a training run that has not exported its model yet; "
                                               r"export it with `sunrig train --out .*run --export-only DIR`"):
         check_init(run, nets.TINY)
+
+
+@pytest.mark.parametrize("other", [
+    Intrinsics(fx=200.0, fy=200.0, cx=80.0, cy=50.0, width=160, height=100),  # another size: refused
+    Intrinsics(fx=100.0, fy=100.0, cx=40.0, cy=40.0, width=128, height=80),  # same size: the first's used
+])
+def test_a_log_whose_camera_changes_trains_as_one_drive_per_camera(tmp_path, caplog, other):
+    # One camera's frames, then another's (a resolution or calibration changed mid-recording). A
+    # drive holds one camera's intrinsics: frames of another size refused the whole run ("frames of
+    # different sizes in one drive ... split the log", though no sunrig command splits a log, and
+    # replay and eval take it), and frames of the same size took the first camera's view angles.
+    from estimator.train import load_drives
+    from replay.native import LogWriter
+
+    frames = _frames(16, 0)
+    rng = np.random.default_rng(1)
+    mixed = frames[:8] + [replace(f, intrinsics=other, image_bgr=rng.integers(
+        0, 256, (other.height, other.width, 3), dtype=np.uint8)) for f in frames[8:]]
+    log = tmp_path / "two_cameras.mcap"
+    with LogWriter(log) as w:
+        for f in mixed:
+            w.write_frame(f)
+    drives = load_drives([log], 16, math.radians(PAPER_CROP_FOV_DEG))
+    assert [(d.name, len(d.images)) for d in drives] == [("two_cameras.mcap#0", 8), ("two_cameras.mcap#1", 8)]
+    for d, k in zip(drives, (frames[0].intrinsics, other), strict=True):
+        view = d.views[0]
+        scale = view.images.shape[2] / k.width
+        assert view.cx == pytest.approx(k.cx * scale, rel=0.02) and view.fx == pytest.approx(k.fx * scale, rel=0.02)
+    assert "its camera changes 1 time (at seq 8); trained as 2 drives" in caplog.text
