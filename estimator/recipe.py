@@ -49,12 +49,37 @@ class TrainConfig:
 
 def data_fingerprint(paths: Sequence[Path]) -> str:
     """Short hash of the logs' names and sizes, recorded in the contract: of a run's training
-    logs, and of an int8 model's calibration logs."""
+    logs, and of an int8 model's calibration logs.
+
+    A native log (a file) counts by its file name and size. A KITTI drive (a folder: its date
+    folder or its drive folder, one fingerprint either way) counts by the files its reader uses,
+    named from the date folder, so a copy elsewhere is the same data. Sizes, not contents: a
+    drive holds thousands of images, stat-ed here rather than read."""
     h = hashlib.sha256()
-    for p in sorted(Path(x) for x in paths):
-        h.update(p.name.encode())
-        h.update(str(p.stat().st_size).encode())
+    for _, files in sorted(_log_files(Path(p)) for p in paths):
+        for name, size in files:
+            h.update(name.encode())
+            h.update(str(size).encode())
     return h.hexdigest()[:12]
+
+
+def _log_files(path: Path) -> tuple[Path, list[tuple[str, int]]]:
+    """(where the log sorts among the others, its files' names and sizes)."""
+    if not path.is_dir():
+        # As the shipped models' contracts recorded it: the same bytes hashed, in path order.
+        return path, [(path.name, path.stat().st_size)]
+    from replay.kitti import CALIB_FILE, CAMERA, find_drive
+
+    date_dir, drive_dir = find_drive(path)
+    # The files replay.kitti.KittiDrive reads; not the drive's other cameras or velodyne points.
+    used = [drive_dir / CAMERA / "timestamps.txt", *sorted((drive_dir / CAMERA / "data").glob("*.png")),
+            drive_dir / "oxts" / "timestamps.txt", *sorted((drive_dir / "oxts" / "data").glob("*.txt"))]
+    if (drive_dir / "oxts" / "dataformat.txt").is_file():
+        used.append(drive_dir / "oxts" / "dataformat.txt")
+    # A NUL between name and size, which no file name holds: a name cannot pass for a size.
+    files = [(f"{CALIB_FILE}\0", (date_dir / CALIB_FILE).stat().st_size)]
+    files += [(f"{drive_dir.name}/{f.relative_to(drive_dir).as_posix()}\0", f.stat().st_size) for f in used]
+    return drive_dir, files
 
 
 def command_line() -> str:

@@ -733,6 +733,58 @@ def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
         train(logs[:2], out_on_data, replace(cfg, max_steps=2, data={"fingerprint": data_fingerprint(logs[:2])}))
 
 
+def test_the_fingerprint_of_native_logs_is_their_names_and_sizes_as_shipped_models_recorded(tmp_path):
+    # The shipped model's contract records one of .mcap logs: the hash is the one it was made with
+    # (file names and sizes in path order), or a fine-tune from the same logs could not be matched.
+    (tmp_path / "x").mkdir()
+    (tmp_path / "y").mkdir()
+    (tmp_path / "x" / "drive_1.mcap").write_bytes(bytes(1000))
+    (tmp_path / "y" / "drive_0.mcap").write_bytes(bytes(25))
+    assert data_fingerprint([tmp_path / "y" / "drive_0.mcap", tmp_path / "x" / "drive_1.mcap"]) == "fe126cf1436d"
+    assert data_fingerprint([tmp_path / "x" / "drive_1.mcap"]) == "7fd958fb7481"
+
+
+def test_a_kitti_drive_has_one_fingerprint_by_either_folder_from_the_files_it_reads(tmp_path, monkeypatch):
+    # A drive is a folder: its "size" was the folder entry's (4096 bytes), so changed images went
+    # unnoticed, and the same drive named by its date folder had another fingerprint than by its
+    # drive folder (both taken by sunrig train), and a resume named the other way was refused.
+    import builtins
+    import io
+    import shutil
+
+    from tests.test_kitti import DRIVE, make_drive
+
+    date = make_drive(tmp_path / "kitti", 3)
+    drive = date / DRIVE
+    fingerprint = data_fingerprint([drive])
+    assert data_fingerprint([date]) == fingerprint
+    # Names are the drive's own, not where it sits: a copy elsewhere is the same data.
+    copy = shutil.copytree(date, tmp_path / "elsewhere" / date.name)
+    assert data_fingerprint([copy]) == data_fingerprint([copy / DRIVE]) == fingerprint
+    # Files the reader does not use do not count (velodyne points deleted to save space).
+    (drive / "velodyne_points").mkdir()
+    (drive / "velodyne_points" / "timestamps.txt").write_text("2011-09-26 13:02:25.0\n")
+    assert data_fingerprint([drive]) == fingerprint
+    # Each file it reads does, by its size: an image, an OXTS record, the calibration.
+    for changed in (drive / "image_02" / "data" / "0000000001.png", drive / "oxts" / "data" / "0000000002.txt",
+                    date / "calib_cam_to_cam.txt"):
+        kept = changed.read_bytes()
+        changed.write_bytes(kept + b"\n")
+        assert data_fingerprint([date]) == data_fingerprint([drive]) != fingerprint, changed
+        changed.write_bytes(kept)
+    assert data_fingerprint([drive]) == fingerprint
+    # Thousands of images a drive: they are stat-ed, never read.
+    real_open = io.open
+
+    def no_images(file, *args, **kwargs):
+        assert not str(file).endswith(".png"), f"read {file}"
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(io, "open", no_images)
+    monkeypatch.setattr(builtins, "open", no_images)
+    assert data_fingerprint([date]) == fingerprint
+
+
 @pytest.mark.slow
 def test_a_run_switched_from_steps_to_minutes_decays_from_where_it_stopped(logs, tmp_path):
     # The same --minutes as the steps run carried (as the CLI's default does): only --steps went.
