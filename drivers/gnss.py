@@ -46,6 +46,28 @@ DEFAULT_BAUD = 115200  # what GNSS compasses ship with; NMEA 0183 itself says 48
 # heading a second, and the line and the device add latency and jitter on top.
 DEFAULT_MAX_AGE_S = 1.5
 _READ_CHUNK = 4096
+# How far CLOCK_BOOTTIME - CLOCK_MONOTONIC may move between a sentence and now before the sentence
+# is from before a suspend. The difference grows by exactly the time spent suspended (NTP slews
+# both clocks alike), but it is two clock reads one after the other, so a thread preempted between
+# them sees it move by the preemption (ms on a busy host). A suspend shorter than this leaves a
+# UTC at most this late (0.002 deg of sun) and a heading no older than DEFAULT_MAX_AGE_S lets one be.
+SUSPEND_TOLERANCE_S = 0.5
+
+
+def boottime_offset_s() -> float | None:
+    """CLOCK_BOOTTIME - CLOCK_MONOTONIC in seconds: the time the host has spent suspended since it
+    booted, which ``time.monotonic()`` does not count. None where there is no CLOCK_BOOTTIME (not
+    Linux): suspends go unseen there, and ages are judged by the monotonic clock alone."""
+    boottime = getattr(time, "CLOCK_BOOTTIME", None)
+    if boottime is None:
+        return None
+    return time.clock_gettime(boottime) - time.clock_gettime(time.CLOCK_MONOTONIC)
+
+
+def _suspended_between(then_s: float | None, now_s: float | None) -> bool:
+    """Whether the host was suspended between two boot offsets (:func:`boottime_offset_s`); False
+    when either is unknown."""
+    return then_s is not None and now_s is not None and abs(now_s - then_s) > SUSPEND_TOLERANCE_S
 
 
 class FileTransport:
@@ -151,6 +173,12 @@ class GnssReader:
     :meth:`get_events`. A live port never waits for the consumer: the oldest is dropped and
     counted in ``events_dropped``; a capture file waits instead, since nothing is lost by
     replaying more slowly.
+
+    ``clock`` stamps each read (the monotonic time frames are stamped with). It does not advance
+    while the host is suspended, so a sentence from before a suspend would look a moment old after
+    it: ``boot_offset`` (:func:`boottime_offset_s`: CLOCK_BOOTTIME - CLOCK_MONOTONIC, the time spent
+    suspended so far) is kept with each sentence too, and a heading, fix or UTC kept from before a
+    suspend is not handed out after it. Where it returns None (no CLOCK_BOOTTIME), it is not checked.
     """
 
     def __init__(
@@ -160,6 +188,7 @@ class GnssReader:
         baudrate: int = DEFAULT_BAUD,
         timeout_s: float = 0.1,
         clock: Callable[[], float] = time.monotonic,
+        boot_offset: Callable[[], float | None] = boottime_offset_s,
         history: int = 512,
         events: int = 0,
         require_checksum: bool = False,
@@ -174,6 +203,7 @@ class GnssReader:
         if history < 1 or events < 0:
             raise GnssError(f"history: expected >= 1 samples and events >= 0, got {history}, {events}")
         self._clock = clock
+        self._boot_offset = boot_offset
         self._join_timeout_s = join_timeout_s
         self._port = open_source(port_or_url, baudrate=baudrate, timeout_s=timeout_s)
         self._is_file = isinstance(self._port, FileTransport)
@@ -183,9 +213,10 @@ class GnssReader:
         self._stream = NmeaStream(max_len=max_len, require_checksum=require_checksum)
 
         self._cond = threading.Condition()  # guards everything below, and wakes get_events()
-        self._headings: deque[HeadingSample] = deque(maxlen=history)
-        self._fix: tuple[float, GnssFix] | None = None
-        self._utc: tuple[float, int] | None = None
+        # Each with the boot offset when it was read: what is from before a suspend is not handed out.
+        self._headings: deque[tuple[float | None, HeadingSample]] = deque(maxlen=history)
+        self._fix: tuple[float | None, float, GnssFix] | None = None
+        self._utc: tuple[float | None, float, int] | None = None
         self._events: deque[GnssUpdate] = deque()
         self._events_max = events
         self._counts = dict.fromkeys(("bytes", "updates", "read_errors", "reopens", "events_dropped"), 0)
@@ -200,35 +231,47 @@ class GnssReader:
 
     # --- the caller's side: never waits on I/O ----------------------------------------------
 
+    # ``now_s`` below is the monotonic time now (the clock's): a suspend is judged by the clocks as
+    # they are when asked, so a heading, fix or UTC from before one is never handed out after it.
+
     def latest_heading(self, now_s: float, max_age_s: float = DEFAULT_MAX_AGE_S) -> HeadingReading | None:
         """The newest heading received at or before ``now_s`` (monotonic) with its age, or None
-        when there is none or it is older than ``max_age_s``: a stale heading is never returned."""
+        when there is none or it is older than ``max_age_s`` or from before a suspend: a stale
+        heading is never returned."""
         with self._cond:
-            samples = list(self._headings)
+            kept = list(self._headings)
+        boot_now = self._boot_offset()
+        samples = [s for boot_then, s in kept if not _suspended_between(boot_then, boot_now)]
         return newest_heading(samples, now_s, max_age_s)
 
     def heading_history(self) -> list[HeadingSample]:
         """The kept heading samples, oldest first (for interpolating to a frame's time)."""
         with self._cond:
-            return list(self._headings)
+            return [s for _, s in self._headings]
 
     def latest_fix(self, now_s: float, max_age_s: float = DEFAULT_MAX_AGE_S) -> GnssFix | None:
-        """The newest position fix, or None when there is none or it arrived more than ``max_age_s`` ago."""
+        """The newest position fix, or None when there is none, it arrived more than ``max_age_s``
+        ago, or before a suspend."""
         with self._cond:
             kept = self._fix
-        if kept is None or not 0.0 <= now_s - kept[0] <= max_age_s:
+        if kept is None or not self._fresh(kept[0], now_s - kept[1], max_age_s):
             return None
-        return kept[1]
+        return kept[2]
 
     def utc_at(self, now_s: float, max_age_s: float = 10.0) -> int | None:
         """UTC (ns) at monotonic ``now_s``, carried forward from the newest UTC sentence by the
-        monotonic clock; None when there is none or it is older than ``max_age_s``. It is late
-        by the sentence's transmit time and the device's latency (tens of ms; docs/gnss.md)."""
+        monotonic clock; None when there is none, it is older than ``max_age_s``, or it is from
+        before a suspend (which the monotonic clock does not count: carried forward, it would be
+        late by the whole suspend). It is late by the sentence's transmit time and the device's
+        latency (tens of ms; docs/gnss.md)."""
         with self._cond:
             kept = self._utc
-        if kept is None or not 0.0 <= now_s - kept[0] <= max_age_s:
+        if kept is None or not self._fresh(kept[0], now_s - kept[1], max_age_s):
             return None
-        return kept[1] + round((now_s - kept[0]) * 1e9)
+        return kept[2] + round((now_s - kept[1]) * 1e9)
+
+    def _fresh(self, boot_then: float | None, age_s: float, max_age_s: float) -> bool:
+        return 0.0 <= age_s <= max_age_s and not _suspended_between(boot_then, self._boot_offset())
 
     def get_events(self, timeout_s: float = 0.5) -> list[GnssUpdate]:
         """Take every queued update (``events`` > 0), waiting at most ``timeout_s`` for one."""
@@ -296,9 +339,9 @@ class GnssReader:
                     continue
                 if data:
                     self._backoff.reset()
-                    self._take(data, self._clock())
+                    self._take(data, *self._stamp())
                 elif self._is_file and self._port.at_eof:
-                    self._take(b"", self._clock(), end=True)
+                    self._take(b"", *self._stamp(), end=True)
                     break
         except BaseException as exc:  # a bug: report it rather than die silently
             with self._cond:
@@ -311,7 +354,14 @@ class GnssReader:
                 self._finished.set()
                 self._cond.notify_all()
 
-    def _take(self, data: bytes, t_mono_s: float, end: bool = False) -> None:
+    def _stamp(self) -> tuple[float, float | None]:
+        """The monotonic time of a read, and the boot offset then. The offset first: a suspend
+        between the two reads leaves the bytes marked as from before it (not handed out), never
+        bytes from before it marked as from after."""
+        boot_offset_s = self._boot_offset()
+        return self._clock(), boot_offset_s
+
+    def _take(self, data: bytes, t_mono_s: float, boot_offset_s: float | None, end: bool = False) -> None:
         """Decode outside the lock (pure work), then publish the results under it."""
         updates = self._stream.flush(t_mono_s) if end else self._stream.feed(data, t_mono_s)
         counts = self._stream.counts
@@ -322,11 +372,11 @@ class GnssReader:
             self._stream_counts = counts
             for u in updates:
                 if u.heading is not None:
-                    self._headings.append(u.heading)
+                    self._headings.append((boot_offset_s, u.heading))
                 if u.fix is not None:
-                    self._fix = (u.t_mono_s, u.fix)
+                    self._fix = (boot_offset_s, u.t_mono_s, u.fix)
                 if u.utc_ns is not None:
-                    self._utc = (u.t_mono_s, u.utc_ns)
+                    self._utc = (boot_offset_s, u.t_mono_s, u.utc_ns)
             if self._events_max and updates:
                 self._queue(updates)
                 self._cond.notify_all()

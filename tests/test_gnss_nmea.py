@@ -596,6 +596,61 @@ def test_the_newest_fix_replaces_the_one_before():
         assert fix is not None and fix.lat_deg == pytest.approx(42 + 5.735766 / 60, abs=1e-9)
 
 
+def utc_ns_of(iso: str) -> int:
+    return round(datetime.fromisoformat(iso).timestamp()) * 10**9
+
+
+def test_a_fix_utc_or_heading_from_before_a_suspend_is_not_handed_out_after_it():
+    # CLOCK_MONOTONIC stands still while the host is suspended: after an hour's suspend the RMC read
+    # at 100.0 looked 0.5 s old at 100.5, and utc_at carried its UTC on to frames an hour late. The
+    # injected boot offset stands for CLOCK_BOOTTIME - CLOCK_MONOTONIC, which grows by the time
+    # suspended: nothing stamped before a suspend is handed out after it (no UTC rather than a wrong one).
+    from drivers.gnss import SUSPEND_TOLERANCE_S
+
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    clock, boot = FakeClock(100.0), FakeClock(0.0)
+    with GnssReader(port, clock=clock, boot_offset=boot, events=4, timeout_s=0.05) as reader:
+        port.write(RMC + nmea("HEHDT,123.45,T"))
+        assert len(collect(reader, lambda us: len(us) == 2)) == 2
+        boot.now = SUSPEND_TOLERANCE_S / 2  # the two clocks read a moment apart: not a suspend
+        assert reader.utc_at(100.5) == utc_ns_of("2014-02-19T20:41:33+00:00") + 500_000_000
+        assert reader.latest_fix(100.5) is not None and reader.latest_heading(100.5) is not None
+        boot.now = 3600.0  # suspended for an hour, and resumed
+        assert reader.utc_at(100.5) is None
+        assert reader.latest_fix(100.5) is None
+        assert reader.latest_heading(100.5) is None
+        # The first sentences after the resume are fresh, and what they say is handed out again.
+        clock.now = 101.0
+        port.write(nmea("GPRMC,214133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D")
+                   + nmea("HEHDT,200.0,T"))
+        assert len(collect(reader, lambda us: len(us) == 2)) == 2
+        assert reader.utc_at(101.5) == utc_ns_of("2014-02-19T21:41:33+00:00") + 500_000_000
+        assert reader.latest_fix(101.5) is not None
+        reading = reader.latest_heading(101.5)
+        assert reading is not None and math.degrees(reading.heading_rad) == pytest.approx(200.0)
+        # Asked of a moment before the resume, the heading from before the suspend is still not
+        # handed out: it is judged by the clocks now, and the frame asking is as old as the suspend.
+        assert reader.latest_heading(100.5) is None
+
+
+def test_without_clock_boottime_a_suspend_goes_unseen_as_before(monkeypatch):
+    # Not Linux: no CLOCK_BOOTTIME, so nothing tells a suspend; the reader works by the monotonic
+    # clock alone, as it did.
+    from drivers.gnss import boottime_offset_s
+
+    first, second = boottime_offset_s(), boottime_offset_s()
+    if hasattr(time, "CLOCK_BOOTTIME"):  # the host's time suspended so far (to the µs between two reads)
+        assert first is not None and second is not None and first > -0.01 and abs(second - first) < 0.01
+    monkeypatch.delattr(time, "CLOCK_BOOTTIME", raising=False)
+    assert boottime_offset_s() is None
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    with GnssReader(port, clock=FakeClock(100.0), boot_offset=lambda: None, events=4, timeout_s=0.05) as reader:
+        port.write(RMC)
+        assert len(collect(reader, lambda us: len(us) == 1)) == 1
+        assert reader.utc_at(100.5) == utc_ns_of("2014-02-19T20:41:33+00:00") + 500_000_000
+        assert reader.latest_fix(100.5) is not None
+
+
 def test_live_events_drop_the_oldest_and_count_it():
     # A live port never waits for its consumer: with room for 2, five headings leave the newest two
     # and 3 counted drops; `updates` counts every one decoded (docs/gnss.md's counters). The heading
