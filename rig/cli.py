@@ -739,15 +739,47 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def _expand_logs(items: list[str]) -> list[Path]:
-    """Log arguments: files, or folders whose *.mcap files are taken in name order."""
+    """Log arguments: files, or folders whose *.mcap files are taken in name order. A folder
+    with none is taken as a KITTI drive, unless it is none (:func:`_refuse_folder_without_logs`)."""
     paths: list[Path] = []
     for item in items:
         p = Path(item)
-        if p.is_dir() and any(p.glob("*.mcap")):
-            paths.extend(sorted(p.glob("*.mcap")))
+        logs = sorted(p.glob("*.mcap")) if p.is_dir() else []
+        if logs:
+            paths.extend(logs)
         else:
+            if p.is_dir():
+                _refuse_folder_without_logs(p)
             paths.append(p)
     return paths
+
+
+def _refuse_folder_without_logs(folder: Path) -> None:
+    """Raise LogError for a folder given as logs that holds no .mcap log and is not a KITTI drive
+    (nor a date folder of drives), saying what it holds instead: a recordings folder still empty
+    was told it is "not a KITTI raw drive". A KITTI folder is left to its reader, whose errors
+    name what a drive lacks."""
+    # The reader's own test of a drive, so that the two cannot disagree.
+    from replay.kitti import _looks_like_drive, drive_folders
+    from rig.errors import LogError
+
+    if _looks_like_drive(folder) or drive_folders(folder):
+        return
+    entries = sorted(folder.iterdir())
+    if not entries:
+        raise LogError(f"{folder}: no .mcap logs in this folder (it is empty); record or copy logs into it, "
+                       "or pass another folder")
+    nested = [e for e in entries if e.is_dir() and any(e.glob("*.mcap"))]
+    if len(nested) == 1:
+        raise LogError(f"{folder}: no .mcap logs in this folder, only in its subfolder {nested[0]}; "
+                       "pass that folder")
+    if nested:
+        raise LogError(f"{folder}: no .mcap logs in this folder, only in its {len(nested)} subfolders "
+                       f"({nested[0]} ...); pass those folders")
+    names = [e.name + ("/" if e.is_dir() else "") for e in entries]
+    held = ", ".join(names) if len(names) <= 3 else f"{len(names)} others: {', '.join(names[:3])}, ..."
+    raise LogError(f"{folder}: no .mcap logs in this folder (only {held}) and not a KITTI drive; "
+                   "pass .mcap logs, folders of them, or KITTI drive folders")
 
 
 def _open_logs(command: str, paths: list[Path],

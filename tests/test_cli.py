@@ -259,6 +259,45 @@ def test_train_of_a_folder_leaves_out_a_log_with_no_frames_and_its_fingerprint_t
     assert data["logs"] == 1 and data["fingerprint"] == data_fingerprint([good])
 
 
+@pytest.mark.parametrize("command", ["eval", pytest.param("train", marks=pytest.mark.torch)])
+def test_a_folder_without_logs_says_what_it_holds_and_what_to_do(tmp_path, capsys, command):
+    # `sunrig train data/train recordings/` with recordings/ still empty said "not a KITTI raw
+    # drive ... and not a native log", of a folder given as a folder of logs.
+    from tests.test_kitti import DRIVE, make_drive
+
+    out = ["--json", str(tmp_path / "e.json")] if command == "eval" else ["--out", str(tmp_path / "m")]
+
+    def refused(folder):
+        rc, captured = _main_in_process([command, str(DEMO_LOG), str(folder), *out, "--quiet"], capsys)
+        assert rc == 2 and len(captured.err.splitlines()) == 1, captured.err
+        assert not (tmp_path / "e.json").exists() and not (tmp_path / "m").exists()  # refused before any work
+        return captured.err.removeprefix("sunrig: error: ").rstrip("\n")
+
+    empty = tmp_path / "rec"
+    empty.mkdir()
+    assert refused(empty) == (f"{empty}: no .mcap logs in this folder (it is empty); record or copy logs into it, "
+                              "or pass another folder")
+    (empty / "notes.txt").write_text("to do")
+    (empty / "clip.mp4").write_bytes(b"video")
+    assert refused(empty) == (f"{empty}: no .mcap logs in this folder (only clip.mp4, notes.txt) and not a KITTI "
+                              "drive; pass .mcap logs, folders of them, or KITTI drive folders")
+    (empty / "notes.txt").unlink()
+    (empty / "clip.mp4").unlink()
+    # Logs one level down: subfolders are not searched, so name them.
+    for day in ("day2", "day1"):
+        shutil.copy(DEMO_LOG, (empty / day).mkdir() or empty / day / "a.mcap")
+    assert refused(empty) == (f"{empty}: no .mcap logs in this folder, only in its 2 subfolders ({empty / 'day1'} "
+                              "...); pass those folders")
+    shutil.rmtree(empty / "day1")
+    shutil.rmtree(empty / "day2")
+    # A KITTI folder is still the reader's to judge: its message names what the drive lacks.
+    date = make_drive(tmp_path / "kitti", 3)
+    (date / "calib_cam_to_cam.txt").unlink()
+    for folder in (date, date / DRIVE):
+        rc, captured = _main_in_process([command, str(folder), *out, "--quiet"], capsys)
+        assert rc == 2 and "no calib_cam_to_cam.txt in its date folder" in captured.err, captured.err
+
+
 @pytest.mark.torch
 def test_quantize_writes_an_int8_model_that_every_command_runs(tmp_path, tiny_model_dir, capsys):
     from estimator.runtime import OnnxModel
