@@ -72,7 +72,7 @@ from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
 from rig.files import write_replacing
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
-from rig.ring import DEFAULT_MAX_AGE_S
+from rig.ring import DEFAULT_MAX_AGE_S, UTC_DISAGREEMENT_TOLERANCE_S
 from rig.types import Frame, HeadingRef
 from rig.window import SpreadWindowPolicy
 
@@ -215,17 +215,29 @@ def load_drive(frames: Sequence[Frame], name: str, crop_size: int,
 
 def split_at_clock_jumps(frames: Sequence[Frame], max_gap_s: float = DEFAULT_MAX_AGE_S) -> list[list[Frame]]:
     """``frames`` in runs of one clock: a new run wherever the time steps back (a source that
-    restarted its clock) or forward by more than ``max_gap_s`` (a suspend, a recording paused).
-    The rig never puts frames across such a jump in one window (``rig.ring.FrameRing`` starts
-    again, and the window span is shorter than the gap), and training must not either: a window
-    across it paired frames an hour apart under one sun, and the live draws' binary search over
-    times out of order picked frames of both runs."""
+    restarted its clock) or forward by more than ``max_gap_s`` (a recording paused), or where a
+    frame and the one before both carry UTC and their UTC difference disagrees with their
+    monotonic one by more than ``rig.ring.UTC_DISAGREEMENT_TOLERANCE_S`` (a suspend, which the
+    monotonic clock does not count, or a clock set). The rig never puts frames across such a jump
+    in one window (``rig.ring.FrameRing`` starts again, and the window span is shorter than the
+    gap), and training must not either: a window across it paired frames an hour apart under one
+    sun, and the live draws' binary search over times out of order picked frames of both runs."""
     runs: list[list[Frame]] = []
     for f in frames:
-        if not runs or f.t_mono_s < runs[-1][-1].t_mono_s or f.t_mono_s - runs[-1][-1].t_mono_s > max_gap_s:
+        if not runs or _clock_jumps(runs[-1][-1], f, max_gap_s):
             runs.append([])
         runs[-1].append(f)
     return runs
+
+
+def _clock_jumps(before: Frame, f: Frame, max_gap_s: float) -> bool:
+    """Whether the clock jumped between two frames of a log (:func:`split_at_clock_jumps`)."""
+    mono_s = f.t_mono_s - before.t_mono_s
+    if mono_s < 0 or mono_s > max_gap_s:
+        return True
+    if before.utc_ns is None or f.utc_ns is None:
+        return False  # nothing to compare, as in the ring
+    return abs((f.utc_ns - before.utc_ns) / 1e9 - mono_s) > UTC_DISAGREEMENT_TOLERANCE_S
 
 
 def split_at_camera_changes(frames: Sequence[Frame]) -> list[list[Frame]]:

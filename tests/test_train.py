@@ -1302,6 +1302,55 @@ def test_a_log_whose_clock_jumps_trains_as_one_drive_per_run_of_its_clock(tmp_pa
     assert "its clock jumps 2 times (at seq 8, 16); trained as 3 drives" in caplog.text
 
 
+def test_a_log_whose_utc_leaps_past_its_clock_splits_where_the_ring_starts_again():
+    # A suspend recorded in a log: CLOCK_MONOTONIC stood still for an hour and UTC did not, so the
+    # monotonic stamps step on evenly and the log trained as one drive, with windows pairing frames
+    # an hour apart in sun time (~15 deg) under one sun. Training splits where the live ring starts
+    # again: UTC and monotonic stamps of a frame and the one before disagree by more than the ring's
+    # tolerance; a frame without UTC is not compared.
+    from estimator.train import split_at_clock_jumps
+    from rig.ring import UTC_DISAGREEMENT_TOLERANCE_S as tol
+    from rig.ring import FrameRing
+    from rig.types import FrameFeatures
+
+    utc0_ns = 1_700_000_000 * 10**9
+    frames = _frames(24, 0)  # 0.5 s apart on the monotonic clock
+
+    def with_utc(shift_s, from_seq=8, without=()):
+        """The frames with UTC = their monotonic time + ``shift_s`` from ``from_seq`` on (none for ``without``)."""
+        return [replace(f, utc_ns=None if f.seq in without else
+                        utc0_ns + round((f.t_mono_s + (shift_s if f.seq >= from_seq else 0.0)) * 1e9))
+                for f in frames]
+
+    def split(fs):
+        return [run[0].seq for run in split_at_clock_jumps(fs)]
+
+    def ring_starts(fs):
+        ring, starts = FrameRing(capacity=128), [fs[0].seq]
+        for f in fs:
+            restarts = ring.restarts
+            assert ring.push(FrameFeatures(f, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 2), np.float32), "m"))
+            if ring.restarts > restarts:
+                starts.append(f.seq)
+        return starts
+
+    cases = {
+        "suspended for an hour": (with_utc(3600.0), [0, 8]),
+        "a clock set back": (with_utc(-(tol + 0.5)), [0, 8]),
+        "two suspends": ([replace(f, utc_ns=f.utc_ns + (60 * 10**9 if f.seq >= 16 else 0))
+                          for f in with_utc(3600.0)], [0, 8, 16]),
+        "a leap second and the tolerance itself": (with_utc(tol), [0]),
+        "no UTC: nothing to compare": (frames, [0]),
+        "the frame before has no UTC": (with_utc(3600.0, without={7}), [0]),
+        "the frame itself has none": (with_utc(3600.0, from_seq=9, without={8}), [0]),
+    }
+    for name, (fs, starts) in cases.items():
+        assert split(fs) == starts == ring_starts(fs), name
+    # A monotonic jump still splits, whatever UTC says.
+    jumped = [replace(f, t_mono_s=f.t_mono_s + (3600.0 if f.seq >= 8 else 0.0)) for f in with_utc(3600.0)]
+    assert split(jumped) == [0, 8]
+
+
 def test_an_out_that_cannot_be_written_is_refused_before_the_logs_load(logs, tmp_path, monkeypatch):
     # It was found by the mkdir after loading every log (minutes for a fleet's folder), or, in a
     # folder the user may not write, by the first metrics line or checkpoint: after the training.
