@@ -68,16 +68,12 @@ def _log_files(path: Path) -> tuple[Path, list[tuple[str, int]]]:
     if not path.is_dir():
         # As the shipped models' contracts recorded it: the same bytes hashed, in path order.
         return path, [(path.name, path.stat().st_size)]
-    from replay.kitti import CALIB_FILE, CAMERA, find_drive
+    from replay.kitti import drive_files, find_drive
 
     date_dir, drive_dir = find_drive(path)
-    # The files replay.kitti.KittiDrive reads; not the drive's other cameras or velodyne points.
-    used = [drive_dir / CAMERA / "timestamps.txt", *sorted((drive_dir / CAMERA / "data").glob("*.png")),
-            drive_dir / "oxts" / "timestamps.txt", *sorted((drive_dir / "oxts" / "data").glob("*.txt"))]
-    if (drive_dir / "oxts" / "dataformat.txt").is_file():
-        used.append(drive_dir / "oxts" / "dataformat.txt")
+    calib, *used = drive_files(date_dir, drive_dir)
     # A NUL between name and size, which no file name holds: a name cannot pass for a size.
-    files = [(f"{CALIB_FILE}\0", (date_dir / CALIB_FILE).stat().st_size)]
+    files = [(f"{calib.name}\0", calib.stat().st_size)]
     files += [(f"{drive_dir.name}/{f.relative_to(drive_dir).as_posix()}\0", f.stat().st_size) for f in used]
     return drive_dir, files
 

@@ -277,8 +277,21 @@ def drive_folders(date_dir: Path) -> list[Path]:
     return sorted(p for p in Path(date_dir).iterdir() if p.is_dir() and _DRIVE_RE.match(p.name))
 
 
-def _looks_like_drive(path: Path) -> bool:
+def looks_like_drive(path: Path) -> bool:
+    """Whether ``path`` is a drive folder (by its name, or by its image and OXTS folders)."""
     return bool(_DRIVE_RE.match(path.name)) or ((path / "oxts").is_dir() and (path / CAMERA).is_dir())
+
+
+def drive_files(date_dir: Path, drive_dir: Path) -> list[Path]:
+    """The files :class:`KittiDrive` reads of a drive, in a fixed order: the date's calibration,
+    then the camera's timestamps and images and the OXTS timestamps, records and data format (not
+    the drive's other cameras or velodyne points)."""
+    cam_dir, oxts_dir = drive_dir / CAMERA, drive_dir / "oxts"
+    used = [date_dir / CALIB_FILE, cam_dir / "timestamps.txt", *sorted((cam_dir / "data").glob("*.png")),
+            oxts_dir / "timestamps.txt", *sorted((oxts_dir / "data").glob("*.txt"))]
+    if (oxts_dir / "dataformat.txt").is_file():
+        used.append(oxts_dir / "dataformat.txt")
+    return used
 
 
 def find_drive(path: str | Path) -> tuple[Path, Path]:
@@ -286,7 +299,7 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
     p = Path(path)
     if not p.is_dir():
         raise LogError(f"{p}: not a folder; a KITTI drive is a YYYY_MM_DD/ folder or one of its *_drive_NNNN_sync/")
-    if _looks_like_drive(p):
+    if looks_like_drive(p):
         date_dir, drive_dir = p.resolve().parent, p
     else:
         drives = drive_folders(p)

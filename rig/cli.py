@@ -760,10 +760,10 @@ def _refuse_folder_without_logs(folder: Path) -> None:
     was told it is "not a KITTI raw drive". A KITTI folder is left to its reader, whose errors
     name what a drive lacks."""
     # The reader's own test of a drive, so that the two cannot disagree.
-    from replay.kitti import _looks_like_drive, drive_folders
+    from replay.kitti import drive_folders, looks_like_drive
     from rig.errors import LogError
 
-    if _looks_like_drive(folder) or drive_folders(folder):
+    if looks_like_drive(folder) or drive_folders(folder):
         return
     entries = sorted(folder.iterdir())
     if not entries:
