@@ -42,5 +42,13 @@ def resolve_init_dir(init: str) -> Path:
     return DEFAULT_MODEL_DIR
 
 
+def is_shipped(model_dir: str | Path) -> bool:
+    """Whether ``model_dir`` is the shipped default model's folder (by whatever path it is named)."""
+    try:
+        return Path(model_dir).resolve() == DEFAULT_MODEL_DIR
+    except OSError:  # a path that cannot be resolved (a loop of links) is not ours
+        return False
+
+
 def _default_installed() -> bool:
     return (DEFAULT_MODEL_DIR / BACKBONE_FILE).is_file() and (DEFAULT_MODEL_DIR / AGGREGATOR_FILE).is_file()

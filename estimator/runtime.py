@@ -36,7 +36,7 @@ from estimator.contract import (
     input_affine,
     parse_checksums,
 )
-from rig.errors import ContractMismatch, ModelError, ValidationError
+from rig.errors import REINSTALL, ContractMismatch, ModelError, ValidationError
 
 ROLES = {BACKBONE_FILE: "backbone", AGGREGATOR_FILE: "aggregator"}
 DEFAULT_EMBED_BATCH = 32  # one paper window's worth of crops; bounds peak memory per run
@@ -131,6 +131,23 @@ class OnnxModel:
         model that does not fit.
         """
         root = Path(model_dir)
+        from estimator.models import is_shipped
+
+        shipped = is_shipped(root)
+        try:
+            return cls._load(root, intra_op_threads=intra_op_threads, spin_wait=spin_wait, expect=expect,
+                             checksums_required=shipped)
+        except ModelError as exc:
+            if not shipped or isinstance(exc, ContractMismatch) and expect:
+                raise  # a user's folder; or a caller's expectation the shipped model does not meet
+            # The remedy a user's folder gets (copy it again, re-export it) is not one for the
+            # package's own files: what is wrong, and to reinstall.
+            what = str(exc).split("; ", 1)[0]
+            raise type(exc)(f"the model installed with sunrig is damaged: {what}; {REINSTALL}") from None
+
+    @classmethod
+    def _load(cls, root: Path, *, intra_op_threads: int | None, spin_wait: bool, expect: Mapping[str, Any] | None,
+              checksums_required: bool) -> OnnxModel:
         if not root.is_dir():
             what = "is a file, not a model folder" if root.exists() else "does not exist"
             raise ModelError(
@@ -149,9 +166,9 @@ class OnnxModel:
                 f"{BACKBONE_FILE} and {AGGREGATOR_FILE} as written by `sunrig train`"
             )
         opts = session_options(intra_op_threads, spin_wait=spin_wait)
-        blobs = {name: p.read_bytes() for name, p in paths.items()}
+        blobs = {name: _read_graph(p) for name, p in paths.items()}
         digests = {name: hashlib.sha256(blob).hexdigest() for name, blob in blobs.items()}
-        _check_checksums(root, digests)
+        _check_checksums(root, digests, required=checksums_required)
         sessions = {name: _open_session(paths[name], blobs[name], opts) for name in paths}
         contracts = {
             name: _read_contract(paths[name], sessions[name], ROLES[name]) for name in paths
@@ -289,13 +306,24 @@ def _float32(name: str, value: Any) -> np.ndarray:
     return arr.astype(np.float32, copy=False)
 
 
-def _check_checksums(root: Path, digests: Mapping[str, str]) -> None:
-    """Compare the graphs with the folder's SHA256SUMS, when it has one (an export writes it)."""
+def _read_graph(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read it ({exc.strerror or exc}); check its permissions, or copy the "
+                         "model folder again") from None
+
+
+def _check_checksums(root: Path, digests: Mapping[str, str], required: bool = False) -> None:
+    """Compare the graphs with the folder's SHA256SUMS, when it has one (an export writes it).
+    ``required``: a folder without one is refused (the shipped model, which always has one)."""
     path = root / CHECKSUMS_FILE
     if path.exists() and not path.is_file():  # a folder of that name: not a sums file to skip quietly
         raise ModelError(f"{path} is not a file; copy the model folder again, re-export it, or remove "
                          f"{CHECKSUMS_FILE} to load it unchecked")
     if not path.is_file():
+        if required:
+            raise ModelError(f"{path} is missing; the graphs cannot be checked")
         return
     try:
         expected = parse_checksums(path.read_text(encoding="utf-8", errors="replace"))

@@ -13,11 +13,20 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 
+from rig.errors import REINSTALL, LogError
 from rig.types import Frame
 
 # A 40-frame synthetic street drive (`sunrig synth OUT --drives 1 --frames 40 --seed 3000`),
 # shipped so the quick start runs without any download.
 DEMO_LOG = Path(__file__).resolve().parent / "data" / "demo.mcap"
+
+
+def demo_log() -> Path:
+    """:data:`DEMO_LOG`, or a LogError that says to reinstall: the user named no path, so "check
+    the path" is no remedy for a demo log missing from the install."""
+    if not DEMO_LOG.is_file():
+        raise LogError(f"the demo log installed with sunrig ({DEMO_LOG}) is missing; {REINSTALL}, or pass a log")
+    return DEMO_LOG
 
 # The UTC offset for sources without a time zone when a caller does not pass one: set by
 # `utc_offset_default` around code that opens logs itself (training opens its logs deep inside).

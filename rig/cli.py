@@ -262,11 +262,11 @@ def paced(frames, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep, ma
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from estimator.estimator import SunEstimator
-    from replay.sources import DEMO_LOG, open_frames
+    from replay.sources import demo_log, open_frames
     from rig.offline import OfflineStats, estimate_stream
     from rig.window import SpreadWindowPolicy
 
-    log_path = args.log or str(DEMO_LOG)
+    log_path = args.log or str(demo_log())
     # The log is checked before the model is loaded: a wrong path should fail in milliseconds.
     source = open_frames(log_path, utc_offset_h=args.utc_offset)
     _refuse_overwriting([Path(log_path)], jsonl=args.jsonl)
@@ -713,7 +713,7 @@ def _source_summary(stats: dict) -> str:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from replay.sources import DEMO_LOG, open_frames
+    from replay.sources import demo_log, open_frames
 
     cfg = _effective_config(args)
     cfg["rig"]["realtime"] = not args.fast
@@ -726,8 +726,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if out["jsonl"] == "-":
             raise SunrigError("--jsonl - would mix JSON lines into the NMEA text on stdout: pass --jsonl FILE, "
                               "or --serial PORT")
-    _check_live_outputs(cfg, [Path(DEMO_LOG)], _RECORD_CONFIG_WORDS)
-    return _live(cfg, open_frames(DEMO_LOG), stop=args.stop, nmea_stdout=not cfg["output"]["serial"],
+    log_path = demo_log()
+    _check_live_outputs(cfg, [log_path], _RECORD_CONFIG_WORDS)
+    return _live(cfg, open_frames(log_path), stop=args.stop, nmea_stdout=not cfg["output"]["serial"],
                  quiet=args.quiet)
 
 

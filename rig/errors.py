@@ -6,6 +6,10 @@ else is a bug and gets a traceback only with ``--debug``.
 
 from __future__ import annotations
 
+# What to do about a damaged file that came with sunrig itself (the shipped model, the demo log).
+REINSTALL = ("reinstall sunrig (python3 -m pip install --force-reinstall --no-deps sunrig; in a source checkout, "
+             "git checkout the file)")
+
 
 class SunrigError(Exception):
     """Base of every error a user can cause or fix (bad input, wrong model, missing device)."""

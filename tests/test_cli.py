@@ -1672,3 +1672,64 @@ def test_the_sunrig_console_script_runs_the_command(tmp_path):
                           "replay", str(tmp_path / "nope.mcap")], capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and res.stderr.startswith("sunrig: error:"), res.stderr
     assert "Traceback" not in res.stderr
+
+
+def _shipped_copy(tmp_path, monkeypatch):
+    """A copy of the shipped model that sunrig takes for the installed one (its DEFAULT_MODEL_DIR)."""
+    import estimator.models
+
+    copy = tmp_path / "site-packages" / "estimator" / "default_model"
+    shutil.copytree(estimator.models.DEFAULT_MODEL_DIR, copy)
+    monkeypatch.setattr(estimator.models, "DEFAULT_MODEL_DIR", copy.resolve())
+    return copy
+
+
+@pytest.mark.parametrize("damage", ["no SHA256SUMS", "a flipped byte", "unreadable"])
+def test_a_damaged_shipped_model_says_to_reinstall_sunrig(tmp_path, monkeypatch, capsys, damage):
+    # The remedies a user's own folder gets (copy it again, re-export it from its training run)
+    # are none for the package's own files; and a shipped model with its SHA256SUMS gone ran unchecked.
+    shipped = _shipped_copy(tmp_path, monkeypatch)
+    if damage == "no SHA256SUMS":
+        (shipped / "SHA256SUMS").unlink()
+        names = "the model installed with sunrig is damaged: "
+    elif damage == "a flipped byte":
+        blob = bytearray((shipped / "backbone.onnx").read_bytes())
+        blob[len(blob) // 2] ^= 0xFF
+        (shipped / "backbone.onnx").write_bytes(bytes(blob))
+        names = "the model installed with sunrig is damaged: "
+    else:
+        real_read = Path.read_bytes
+
+        def read_bytes(path):
+            if path.name == "aggregator.onnx":
+                raise PermissionError(13, "Permission denied")
+            return real_read(path)
+
+        monkeypatch.setattr(Path, "read_bytes", read_bytes)
+        names = "aggregator.onnx: cannot read it (Permission denied)"
+    rc, captured = _main_in_process(["replay", "--jsonl", str(tmp_path / "out.jsonl"), "--quiet"], capsys)
+    _assert_one_line_error(rc, captured, names=names)
+    assert "reinstall sunrig" in captured.err and "re-export" not in captured.err
+    assert not (tmp_path / "out.jsonl").exists()
+
+
+def test_a_users_folder_without_sha256sums_still_loads_unchecked(tmp_path, monkeypatch):
+    # Required of the shipped model only: a user's copy of a folder may have lost it on the way.
+    from estimator.runtime import OnnxModel
+
+    shipped = _shipped_copy(tmp_path, monkeypatch)
+    mine = tmp_path / "mine"
+    shutil.copytree(shipped, mine)
+    (mine / "SHA256SUMS").unlink()
+    assert OnnxModel.load(mine).model_id == OnnxModel.load(shipped).model_id
+
+
+def test_a_missing_demo_log_says_to_reinstall_sunrig(tmp_path, monkeypatch, capsys):
+    # The user named no log: "check the path" is no remedy for the install's own demo log.
+    import replay.sources
+
+    monkeypatch.setattr(replay.sources, "DEMO_LOG", tmp_path / "data" / "demo.mcap")
+    for command in (["replay", "--quiet"], ["demo", "--fast", "--quiet"]):
+        rc, captured = _main_in_process(command, capsys)
+        _assert_one_line_error(rc, captured, names=f"the demo log installed with sunrig ({tmp_path}")
+        assert "reinstall sunrig" in captured.err and "check the path" not in captured.err
