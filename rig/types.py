@@ -209,25 +209,15 @@ class GnssFix:
             object.__setattr__(self, "alt_m", _finite("alt_m", self.alt_m))
 
 
-def _check_frame_fields(obj: Frame | FrameMeta, cls: str) -> None:
-    """Validate (and normalise) the fields a :class:`Frame` and its :class:`FrameMeta` share."""
-    object.__setattr__(obj, "t_mono_s", _finite("t_mono_s", obj.t_mono_s))
-    object.__setattr__(obj, "seq", _seq(f"{cls}.seq", obj.seq))
-    if not isinstance(obj.intrinsics, Intrinsics):
-        raise ValidationError(f"{cls}.intrinsics: expected Intrinsics, got {type(obj.intrinsics).__name__}")
-    if obj.attitude is not None and not isinstance(obj.attitude, Attitude):
-        raise ValidationError(f"{cls}.attitude: expected Attitude or None, got {type(obj.attitude).__name__}")
-    if obj.gnss is not None and not isinstance(obj.gnss, GnssFix):
-        raise ValidationError(f"{cls}.gnss: expected GnssFix or None, got {type(obj.gnss).__name__}")
-    if obj.utc_ns is not None:
-        object.__setattr__(obj, "utc_ns", _utc_ns(f"{cls}.utc_ns", obj.utc_ns))
-    if obj.sun_enu_truth is not None:
-        object.__setattr__(obj, "sun_enu_truth", _vector3(f"{cls}.sun_enu_truth", obj.sun_enu_truth, unit=True))
-
-
 @dataclass(frozen=True, eq=False)
-class Frame:
-    """One camera frame with everything known about it at capture. The one type every source yields.
+class FrameMeta:
+    """Everything known about a camera frame but its pixels: its time, sequence number, camera,
+    heading, UTC, position and true sun. A :class:`Frame` is one with its image.
+
+    Once the backbone has encoded a frame's crops nothing downstream reads its pixels, and the ring
+    keeps a few seconds of frames: 128 frames of a 1920 x 1080 camera are 800 MB of images, which a
+    small computer does not have to spare (``benchmarks/bench_rig.py --resolution``). So features
+    keep this (:meth:`Frame.meta`), not the frame.
 
     ``t_mono_s`` is the monotonic pipeline clock (``time.monotonic()``, DepthAI's host clock) at
     mid-exposure; ``seq`` counts frames from the source, strictly increasing.
@@ -235,7 +225,6 @@ class Frame:
 
     t_mono_s: float
     seq: int
-    image_bgr: np.ndarray
     intrinsics: Intrinsics
     attitude: Attitude | None = None
     utc_ns: int | None = None
@@ -243,7 +232,37 @@ class Frame:
     sun_enu_truth: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        _check_frame_fields(self, "Frame")
+        cls = type(self).__name__  # errors name the type the caller made: Frame.seq, FrameMeta.seq
+        object.__setattr__(self, "t_mono_s", _finite("t_mono_s", self.t_mono_s))
+        object.__setattr__(self, "seq", _seq(f"{cls}.seq", self.seq))
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise ValidationError(f"{cls}.intrinsics: expected Intrinsics, got {type(self.intrinsics).__name__}")
+        if self.attitude is not None and not isinstance(self.attitude, Attitude):
+            raise ValidationError(f"{cls}.attitude: expected Attitude or None, got {type(self.attitude).__name__}")
+        if self.gnss is not None and not isinstance(self.gnss, GnssFix):
+            raise ValidationError(f"{cls}.gnss: expected GnssFix or None, got {type(self.gnss).__name__}")
+        if self.utc_ns is not None:
+            object.__setattr__(self, "utc_ns", _utc_ns(f"{cls}.utc_ns", self.utc_ns))
+        if self.sun_enu_truth is not None:
+            object.__setattr__(self, "sun_enu_truth", _vector3(f"{cls}.sun_enu_truth", self.sun_enu_truth, unit=True))
+
+    @property
+    def heading_rad(self) -> float | None:
+        return None if self.attitude is None else self.attitude.heading_rad
+
+
+@dataclass(frozen=True, eq=False)
+class Frame(FrameMeta):
+    """One camera frame with everything known about it at capture. The one type every source yields.
+
+    The fields of :class:`FrameMeta`, and ``image_bgr`` (H, W, 3) uint8 BGR, read-only, of the
+    intrinsics' size: a keyword argument, as a subclass's field comes after its base's defaults.
+    """
+
+    image_bgr: np.ndarray = field(kw_only=True)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
         img = self.image_bgr
         if not isinstance(img, np.ndarray):
             raise ValidationError(f"Frame.image_bgr: expected a numpy array, got {type(img).__name__}")
@@ -261,40 +280,10 @@ class Frame:
             img.setflags(write=False)
             object.__setattr__(self, "image_bgr", img)
 
-    @property
-    def heading_rad(self) -> float | None:
-        return None if self.attitude is None else self.attitude.heading_rad
-
     def meta(self) -> FrameMeta:
         """Everything about this frame but its pixels (what the ring keeps once they are encoded)."""
         return FrameMeta(self.t_mono_s, self.seq, self.intrinsics, self.attitude, self.utc_ns, self.gnss,
                          self.sun_enu_truth)
-
-
-@dataclass(frozen=True, eq=False)
-class FrameMeta:
-    """A :class:`Frame` without its image: its time, sequence number, camera, heading, UTC,
-    position and true sun, with the same names and checks.
-
-    Once the backbone has encoded a frame's crops nothing downstream reads its pixels, and the ring
-    keeps a few seconds of frames: 128 frames of a 1920 x 1080 camera are 800 MB of images, which a
-    small computer does not have to spare (``benchmarks/bench_rig.py --resolution``).
-    """
-
-    t_mono_s: float
-    seq: int
-    intrinsics: Intrinsics
-    attitude: Attitude | None = None
-    utc_ns: int | None = None
-    gnss: GnssFix | None = None
-    sun_enu_truth: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        _check_frame_fields(self, "FrameMeta")
-
-    @property
-    def heading_rad(self) -> float | None:
-        return None if self.attitude is None else self.attitude.heading_rad
 
 
 @dataclass(frozen=True, eq=False)

@@ -25,7 +25,7 @@ def sample(t: float, heading_deg: float, ref=HeadingRef.TRUE, pitch_deg=None, ro
 
 
 def frame(t: float, seq: int) -> Frame:
-    return Frame(t, seq, np.zeros((6, 8, 3), np.uint8), INTR)
+    return Frame(t, seq, INTR, image_bgr=np.zeros((6, 8, 3), np.uint8))
 
 
 def deg(attitude) -> float:

@@ -229,7 +229,7 @@ def drive_frames(seed: int, first: int, last: int) -> list[Frame]:
         pose = drive.poses[k]
         from rig.types import Attitude
 
-        frames.append(Frame(k / drive.fps, k, drive.render_frame(k, camera), intr,
+        frames.append(Frame(k / drive.fps, k, intr, image_bgr=drive.render_frame(k, camera),
                             attitude=Attitude(pose.heading_rad, HeadingRef.TRUE)))
     return frames
 
