@@ -866,18 +866,30 @@ def _summary(f: IO[bytes], size: int) -> Any:
     return summary if summary is not None and summary.channels else None
 
 
-def _summary_topics(summary: Any) -> dict[str, str] | None:
-    """Topic -> schema name from a summary (None: no summary)."""
+@dataclass(frozen=True)
+class _ChannelFacts:
+    """What a log says of one of its channels: its schema's name ("" when schemaless) and the
+    encoding of its messages."""
+
+    schema: str
+    encoding: str
+
+
+def _summary_topics(summary: Any) -> dict[str, _ChannelFacts] | None:
+    """Topic -> its channel's facts from a summary (None: no summary)."""
     if summary is None:
         return None
     return {
-        c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "")
+        c.topic: _ChannelFacts(
+            summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "", c.message_encoding
+        )
         for c in summary.channels.values()
     }
 
 
-def _check_image_channel(name: str, topics: dict[str, str]) -> None:
-    expected = CHANNELS[TOPIC_IMAGE].schema_name
+def _check_image_channel(name: str, topics: dict[str, _ChannelFacts]) -> None:
+    spec = CHANNELS[TOPIC_IMAGE]
+    expected = spec.schema_name
     if TOPIC_IMAGE not in topics:
         listed = ", ".join(sorted(topics)) or "none"
         if TOPIC_ESTIMATE in topics:  # sunrig's own: a `run --record` without --record-frames
@@ -889,10 +901,19 @@ def _check_image_channel(name: str, topics: dict[str, str]) -> None:
             f"{name} is an MCAP log but not a sunrig log: it has no {TOPIC_IMAGE} channel "
             f"(channels: {listed}); {_HINT}"
         )
-    if topics[TOPIC_IMAGE] != expected:
+    image = topics[TOPIC_IMAGE]
+    if image.schema != expected:
         raise LogError(
-            f"{name} has {TOPIC_IMAGE} as {topics[TOPIC_IMAGE] or 'schemaless'}, "
+            f"{name} has {TOPIC_IMAGE} as {image.schema or 'schemaless'}, "
             f"expected {expected}; {_HINT}"
+        )
+    if image.encoding != spec.message_encoding:
+        # Foxglove's schemas also come in JSON and other encodings; the reader passes over a
+        # channel in an encoding it cannot decode, so without this every image went unread.
+        raise LogError(
+            f"{name} has {TOPIC_IMAGE} as {expected} in {image.encoding or 'no'} encoding, and sunrig "
+            f"reads it in {spec.message_encoding} encoding; write its images as {spec.message_encoding} "
+            f"(Foxglove's protobuf schemas), or {_HINT}"
         )
 
 
@@ -908,7 +929,7 @@ def _inspect(path: Path) -> _LogInfo:
         if topics is not None:
             _check_image_channel(name, topics)
         schemas: dict[int, str] = {}
-        seen: dict[str, str] = {}
+        seen: dict[str, _ChannelFacts] = {}
         stats = LogStats(bytes_total=size)
         for record in _records(f, stats, name, warn=False):
             if isinstance(record, Header):
@@ -930,7 +951,7 @@ def _inspect(path: Path) -> _LogInfo:
             elif isinstance(record, Schema):
                 schemas[record.id] = record.name
             elif isinstance(record, Channel):
-                seen[record.topic] = schemas.get(record.schema_id, "")
+                seen[record.topic] = _ChannelFacts(schemas.get(record.schema_id, ""), record.message_encoding)
                 if record.topic == TOPIC_IMAGE:
                     _check_image_channel(name, seen)
                     return info  # the first chunk of a sunrig log: no need to read further

@@ -8,6 +8,7 @@ round-trips exactly, except degrees <-> radians (EXACT_F64) and seconds <-> inte
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import io
 import json
@@ -911,6 +912,78 @@ def test_camera_image_channel_of_another_type_is_refused(tmp_path):
     _foreign_mcap(path, finish=True, topic=TOPIC_IMAGE, schema_name="sensor_msgs/msg/Image")
     with pytest.raises(LogError, match="expected foxglove.CompressedImage"):
         open_log(path)
+
+
+def _camera_mcap(path: Path, channels: dict[str, tuple[str, str, str]], *, finish: bool = True) -> None:
+    """A camera recording by another tool (Foxglove's SDK, say): five images at wall-clock times,
+    a calibration before the first when ``channels`` has one. ``channels``: topic -> (schema name,
+    schema encoding, message encoding); messages are written in that encoding."""
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="someone-else")
+        ids = {}
+        for topic, (schema_name, schema_encoding, message_encoding) in channels.items():
+            spec = native.CHANNELS.get(topic)
+            data = spec.schema_bytes() if spec is not None and schema_encoding == spec.schema_encoding else b"{}"
+            sid = w.register_schema(schema_name, schema_encoding, data)
+            ids[topic] = (w.register_channel(topic, message_encoding, sid), message_encoding)
+        t0 = 1_700_000_000 * 10**9
+        jpeg = cv2.imencode(".jpg", make_image(0, np.random.default_rng(0)))[1].tobytes()
+        for i in range(5):
+            t = t0 + i * 100_000_000
+            stamp = {"sec": t // 10**9, "nsec": t % 10**9}
+            messages = {
+                TOPIC_CALIBRATION: (
+                    encode_calibration(INTR, t),
+                    {"timestamp": stamp, "frame_id": "camera", "width": W, "height": H, "distortion_model": "plumb_bob",
+                     "D": [0.0] * 5, "K": [50.0, 0, 31.5, 0, 51.0, 24.25, 0, 0, 1]},
+                ),
+                TOPIC_IMAGE: (
+                    native.encode_image(make_image(i, np.random.default_rng(0)), t, 90),
+                    {"timestamp": stamp, "frame_id": "camera", "format": "jpeg",
+                     "data": base64.b64encode(jpeg).decode()},
+                ),
+            }
+            for topic in (TOPIC_CALIBRATION, TOPIC_IMAGE):
+                if topic not in ids or (topic == TOPIC_CALIBRATION and i):
+                    continue
+                cid, encoding = ids[topic]
+                pb, js = messages[topic]
+                w.add_message(cid, log_time=t, publish_time=t, sequence=i,
+                              data=pb if encoding == "protobuf" else json.dumps(js).encode())
+        if finish:
+            w.finish()
+        else:
+            w.flush()
+
+
+_PROTOBUF_CALIBRATION = ("foxglove.CameraCalibration", "protobuf", "protobuf")
+_PROTOBUF_IMAGE = ("foxglove.CompressedImage", "protobuf", "protobuf")
+
+
+@pytest.mark.parametrize("finish", [True, False])
+def test_a_foxglove_image_in_json_encoding_is_refused_by_name(tmp_path, finish):
+    # Foxglove's schemas also come as JSON (jsonschema, base64 image data). Such a file passed
+    # open_log on its schema name, then every image was passed over as another tool's channel:
+    # replay said "no frame of it could be read (the warnings above say why)" with no warning, and
+    # eval over a folder listed it among the logs it graded.
+    path = tmp_path / "fg.mcap"
+    _camera_mcap(path, {TOPIC_CALIBRATION: _PROTOBUF_CALIBRATION,
+                        TOPIC_IMAGE: ("foxglove.CompressedImage", "jsonschema", "json")}, finish=finish)
+    with pytest.raises(LogError) as info:
+        open_log(path)
+    msg = str(info.value)
+    assert f"{TOPIC_IMAGE} as foxglove.CompressedImage in json encoding" in msg
+    assert "protobuf" in msg and "fg.mcap" in msg and "\n" not in msg
+    assert not isinstance(info.value, EmptyLogError)  # eval may not leave it out as holding nothing
+
+
+def test_a_foxglove_camera_recording_in_protobuf_replays(tmp_path):
+    path = tmp_path / "fg.mcap"
+    _camera_mcap(path, {TOPIC_IMAGE: _PROTOBUF_IMAGE, TOPIC_CALIBRATION: _PROTOBUF_CALIBRATION})
+    frames = list(open_log(path))
+    assert [f.seq for f in frames] == list(range(5))
+    assert frames[0].t_mono_s == 1_700_000_000.0 and frames[0].intrinsics == INTR
 
 
 def test_newer_format_version_is_refused(tmp_path):
