@@ -917,6 +917,28 @@ def _check_image_channel(name: str, topics: dict[str, _ChannelFacts]) -> None:
         )
 
 
+def _check_calibration_channel(name: str, topics: dict[str, _ChannelFacts]) -> None:
+    """Every image needs the intrinsics before it: without a calibration sunrig can decode, each
+    would be skipped as corrupt, and a whole camera recording blamed on damage."""
+    spec = CHANNELS[TOPIC_CALIBRATION]
+    need = (f"sunrig needs the camera intrinsics for its images: write a {spec.schema_name} message "
+            f"({spec.message_encoding}) on {TOPIC_CALIBRATION} before the first image "
+            f"(docs/log-format.md), or {_HINT}")
+    calibration = topics.get(TOPIC_CALIBRATION)
+    if calibration is None:
+        raise LogError(f"{name} has no {TOPIC_CALIBRATION} channel, and {need}")
+    if (calibration.schema, calibration.encoding) != (spec.schema_name, spec.message_encoding):
+        raise LogError(
+            f"{name} has {TOPIC_CALIBRATION} as {calibration.schema or 'schemaless'} in "
+            f"{calibration.encoding or 'no'} encoding, and {need}"
+        )
+
+
+def _check_channels(name: str, topics: dict[str, _ChannelFacts]) -> None:
+    _check_image_channel(name, topics)
+    _check_calibration_channel(name, topics)
+
+
 def _inspect(path: Path) -> _LogInfo:
     """Eager checks, cheap on a sunrig log: magic, format version, a camera image channel."""
     name = _show(path)
@@ -927,7 +949,7 @@ def _inspect(path: Path) -> _LogInfo:
         # its data. A truncated one has no summary; the scan below then decides.
         topics = _summary_topics(_summary(f, size))
         if topics is not None:
-            _check_image_channel(name, topics)
+            _check_channels(name, topics)
         schemas: dict[int, str] = {}
         seen: dict[str, _ChannelFacts] = {}
         stats = LogStats(bytes_total=size)
@@ -954,13 +976,17 @@ def _inspect(path: Path) -> _LogInfo:
                 seen[record.topic] = _ChannelFacts(schemas.get(record.schema_id, ""), record.message_encoding)
                 if record.topic == TOPIC_IMAGE:
                     _check_image_channel(name, seen)
-                    return info  # the first chunk of a sunrig log: no need to read further
+                if TOPIC_IMAGE in seen and TOPIC_CALIBRATION in seen:
+                    # sunrig's writer declares the calibration before the image, in the first
+                    # chunk: no need to read further. Another writer may declare it later.
+                    _check_calibration_channel(name, seen)
+                    return info
         if stats.truncated and not seen:
             raise EmptyLogError(name, "an MCAP log cut off before its first complete chunk")
         if topics is None:  # no summary vouched for the channels: the data section must have
             if not seen and info.metadata:  # sunrig's own log, closed before its first frame came
                 raise EmptyLogError(name, "a sunrig log whose recording stopped before the first frame came")
-            _check_image_channel(name, seen)
+            _check_channels(name, seen)
     return info  # a damaged first chunk: the summary named the channels, the later chunks replay
 
 

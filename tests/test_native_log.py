@@ -978,12 +978,42 @@ def test_a_foxglove_image_in_json_encoding_is_refused_by_name(tmp_path, finish):
     assert not isinstance(info.value, EmptyLogError)  # eval may not leave it out as holding nothing
 
 
-def test_a_foxglove_camera_recording_in_protobuf_replays(tmp_path):
+@pytest.mark.parametrize("finish", [True, False])
+def test_a_foxglove_camera_recording_in_protobuf_replays(tmp_path, finish):
+    # Its calibration channel declared after the image channel, unlike sunrig's writer: without a
+    # summary, the check on opening reads on past the image channel to find it.
     path = tmp_path / "fg.mcap"
-    _camera_mcap(path, {TOPIC_IMAGE: _PROTOBUF_IMAGE, TOPIC_CALIBRATION: _PROTOBUF_CALIBRATION})
+    _camera_mcap(path, {TOPIC_IMAGE: _PROTOBUF_IMAGE, TOPIC_CALIBRATION: _PROTOBUF_CALIBRATION}, finish=finish)
     frames = list(open_log(path))
     assert [f.seq for f in frames] == list(range(5))
     assert frames[0].t_mono_s == 1_700_000_000.0 and frames[0].intrinsics == INTR
+
+
+@pytest.mark.parametrize("finish", [True, False])
+@pytest.mark.parametrize(
+    "calibration",
+    [None, ("foxglove.CameraCalibration", "jsonschema", "json"), ("sensor_msgs/msg/CameraInfo", "ros2msg", "cdr")],
+    ids=["none", "json", "ros2"],
+)
+def test_a_camera_recording_without_a_calibration_sunrig_reads_is_refused_by_name(tmp_path, calibration, finish):
+    # Foxglove CompressedImages with no calibration sunrig can read opened as a log, then every
+    # image was warned about as "a corrupt message ... image without a valid calibration before
+    # it", and replay ended with "no frame of it could be read ...; re-record this one": the
+    # images were whole, the intrinsics missing.
+    path = tmp_path / "fg.mcap"
+    channels = {TOPIC_IMAGE: _PROTOBUF_IMAGE}
+    if calibration is not None:
+        channels[TOPIC_CALIBRATION] = calibration
+    _camera_mcap(path, channels, finish=finish)
+    with pytest.raises(LogError) as info:
+        open_log(path)
+    msg = str(info.value)
+    if calibration is None:
+        assert f"has no {TOPIC_CALIBRATION} channel" in msg
+    else:
+        assert f"{TOPIC_CALIBRATION} as {calibration[0]} in {calibration[2]} encoding" in msg
+    assert "intrinsics" in msg and "foxglove.CameraCalibration" in msg and "fg.mcap" in msg and "\n" not in msg
+    assert not isinstance(info.value, EmptyLogError)
 
 
 def test_newer_format_version_is_refused(tmp_path):
