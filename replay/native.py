@@ -940,16 +940,22 @@ def _check_channels(name: str, topics: dict[str, _ChannelFacts]) -> None:
 
 
 def _inspect(path: Path) -> _LogInfo:
-    """Eager checks, cheap on a sunrig log: magic, format version, a camera image channel."""
+    """Eager checks, cheap on a sunrig log: magic, format version, the camera's channels and an
+    image on them (in a sunrig log, all in its first chunk)."""
     name = _show(path)
     f, size = _open_log_file(path)
     info = _LogInfo()
     with f:
         # A finished log lists its channels at the end: reject a foreign MCAP without decoding
         # its data. A truncated one has no summary; the scan below then decides.
-        topics = _summary_topics(_summary(f, size))
+        summary = _summary(f, size)
+        topics = _summary_topics(summary)
         if topics is not None:
             _check_channels(name, topics)
+        checked = topics is not None
+        # The channels images come on: a summary names them all, a data section as it goes.
+        image_ids = {c.id for c in summary.channels.values() if c.topic == TOPIC_IMAGE} if summary else set()
+        images = False
         schemas: dict[int, str] = {}
         seen: dict[str, _ChannelFacts] = {}
         stats = LogStats(bytes_total=size)
@@ -976,10 +982,19 @@ def _inspect(path: Path) -> _LogInfo:
                 seen[record.topic] = _ChannelFacts(schemas.get(record.schema_id, ""), record.message_encoding)
                 if record.topic == TOPIC_IMAGE:
                     _check_image_channel(name, seen)
-                if TOPIC_IMAGE in seen and TOPIC_CALIBRATION in seen:
-                    # sunrig's writer declares the calibration before the image, in the first
-                    # chunk: no need to read further. Another writer may declare it later.
+                    image_ids.add(record.id)
+                if not checked and TOPIC_IMAGE in seen and TOPIC_CALIBRATION in seen:
+                    # sunrig's writer declares the calibration before the image; another writer
+                    # may declare it later.
                     _check_calibration_channel(name, seen)
+                    checked = True
+                    if images:
+                        return info
+            elif isinstance(record, Message) and record.channel_id in image_ids:
+                images = True
+                if checked:
+                    # A sunrig log's first chunk declares its channels, then holds the first
+                    # frame: no need to read further.
                     return info
         if stats.truncated and not seen:
             raise EmptyLogError(name, "an MCAP log cut off before its first complete chunk")
@@ -987,7 +1002,11 @@ def _inspect(path: Path) -> _LogInfo:
             if not seen and info.metadata:  # sunrig's own log, closed before its first frame came
                 raise EmptyLogError(name, "a sunrig log whose recording stopped before the first frame came")
             _check_channels(name, seen)
-    return info  # a damaged first chunk: the summary named the channels, the later chunks replay
+        if not images and not stats.truncated and not stats.corrupt_skipped:
+            # Read whole and undamaged: its replay would end with no frame and no warning to say
+            # why (a recorder declared the camera's channels, and the camera sent nothing).
+            raise EmptyLogError(name, f"an MCAP log with no message on its {TOPIC_IMAGE} channel")
+    return info  # a damaged chunk: the summary named the channels, the later chunks replay
 
 
 # The records sunrig reads from a data section; others (message indexes, attachments, ...) are

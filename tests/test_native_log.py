@@ -914,10 +914,12 @@ def test_camera_image_channel_of_another_type_is_refused(tmp_path):
         open_log(path)
 
 
-def _camera_mcap(path: Path, channels: dict[str, tuple[str, str, str]], *, finish: bool = True) -> None:
-    """A camera recording by another tool (Foxglove's SDK, say): five images at wall-clock times,
-    a calibration before the first when ``channels`` has one. ``channels``: topic -> (schema name,
-    schema encoding, message encoding); messages are written in that encoding."""
+def _camera_mcap(path: Path, channels: dict[str, tuple[str, str, str]], *, finish: bool = True,
+                 images: bool = True) -> None:
+    """A camera recording by another tool (Foxglove's SDK, say): five images at wall-clock times
+    (none without ``images``), a calibration before the first when ``channels`` has one.
+    ``channels``: topic -> (schema name, schema encoding, message encoding); messages are written
+    in that encoding."""
     with open(path, "wb") as f:
         w = McapWriter(f)
         w.start(profile="", library="someone-else")
@@ -945,7 +947,7 @@ def _camera_mcap(path: Path, channels: dict[str, tuple[str, str, str]], *, finis
                 ),
             }
             for topic in (TOPIC_CALIBRATION, TOPIC_IMAGE):
-                if topic not in ids or (topic == TOPIC_CALIBRATION and i):
+                if topic not in ids or (topic == TOPIC_CALIBRATION and i) or (topic == TOPIC_IMAGE and not images):
                     continue
                 cid, encoding = ids[topic]
                 pb, js = messages[topic]
@@ -1144,3 +1146,27 @@ def test_summary_reads_stop_at_the_end_of_the_file(tmp_path):
         assert bounded.read(5) == b"" and bounded.tell() == size
         bounded.seek(0)
         assert bounded.read(8) == native.MCAP_MAGIC
+
+
+@pytest.mark.parametrize("damaged", [False, True])
+def test_a_finished_recording_whose_camera_sent_nothing_holds_no_frames(tmp_path, caplog, damaged):
+    # A recorder that declared the camera's channels, and the camera never sent an image: replay
+    # said "no frame of it could be read (the warnings above say why)" with no warning, and eval
+    # over a folder listed it among the logs it graded instead of leaving it out.
+    path = tmp_path / "fg.mcap"
+    _camera_mcap(path, {TOPIC_CALIBRATION: _PROTOBUF_CALIBRATION, TOPIC_IMAGE: _PROTOBUF_IMAGE}, images=False)
+    if not damaged:
+        with pytest.raises(EmptyLogError, match=f"no message on its {TOPIC_IMAGE} channel") as info:
+            open_log(path)
+        assert "fg.mcap" in str(info.value) and "\n" not in str(info.value)
+        return
+    # A damaged chunk may have held its frames: the log opens, and its replay warns of the damage.
+    with open(path, "rb") as f:
+        (chunk,) = make_reader(f).get_summary().chunk_indexes
+    data = bytearray(path.read_bytes())
+    data[chunk.chunk_start_offset + chunk.chunk_length - 2] ^= 0xFF  # in its compressed records
+    path.write_bytes(bytes(data))
+    source = open_log(path)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        assert list(source) == []
+    assert source.stats.corrupt_skipped == 1 and caplog.records
