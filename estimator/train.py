@@ -70,7 +70,7 @@ from estimator.contract import (
 from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
-from rig.files import write_replacing
+from rig.files import make_output_folder, write_replacing
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.ring import DEFAULT_MAX_AGE_S, UTC_DISAGREEMENT_TOLERANCE_S
 from rig.types import Frame, HeadingRef
@@ -1166,9 +1166,13 @@ def _run_finished(state: dict[str, Any], cfg: TrainConfig) -> bool:
 
 def _exported_step(out_dir: Path) -> int | None:
     """The step of the model exported in ``out_dir`` (its contract's), or None if there is none
-    that loads: a finished run whose export is missing, stale or broken is exported again."""
+    that loads: a finished run whose export is missing, stale or broken is exported again. So is
+    one without ``weights.npz``: an export cut short (a kill, a full disk) by a sunrig that wrote
+    the graphs before it."""
     from estimator.runtime import OnnxModel
 
+    if not (out_dir / WEIGHTS_FILE).is_file():
+        return None
     try:
         steps = OnnxModel.load(out_dir).contract.training.get("steps")
         return None if steps is None else int(steps)
@@ -1205,9 +1209,12 @@ def _export(backbone: Any, aggregator: Any, cfg: TrainConfig, state: dict[str, A
     contract = net_config(cfg).contract(
         crops_per_frame=run_crops_per_frame or cfg.crops_per_frame, frames_per_window=cfg.frames_per_window,
         crop_fov_deg=list(fovs_deg(cfg.crop_fov_deg)), mirror_windows=run_mirror_windows, training=training)
-    out = export_model(backbone, aggregator, contract, out_dir)
-    save_weights(backbone, aggregator, out)
-    return out
+    # The weights first, the graphs last: the graphs' contract names the step, which is how a run
+    # knows it was exported (_exported_step), so a kill or a full disk between the two leaves a
+    # folder the same command exports again rather than graphs whose weights.npz is missing or
+    # an earlier export's.
+    save_weights(backbone, aggregator, make_output_folder(out_dir, what="model folder", holds="a model is a folder"))
+    return export_model(backbone, aggregator, contract, out_dir)
 
 
 def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:

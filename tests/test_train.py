@@ -1423,3 +1423,32 @@ def test_a_log_whose_camera_changes_trains_as_one_drive_per_camera(tmp_path, cap
         scale = view.images.shape[2] / k.width
         assert view.cx == pytest.approx(k.cx * scale, rel=0.02) and view.fx == pytest.approx(k.fx * scale, rel=0.02)
     assert "its camera changes 1 time (at seq 8); trained as 2 drives" in caplog.text
+
+
+# ------------------------------------------------------------------------------------------
+# Durability: a kill, a power loss or a full disk at any moment, and two runs on one folder.
+
+
+def test_an_export_cut_short_before_its_weights_is_made_again_by_the_same_command(logs, tmp_path, monkeypatch):
+    # The graphs were written first and weights.npz after: a full disk (or a kill) between the two
+    # left graphs that say the run reached its end, so the same command said "nothing to train"
+    # forever, and weights.npz, what --init starts from, was never written.
+    import errno
+
+    from estimator.train import net_config
+
+    out = tmp_path / "m"
+    cfg = TrainConfig(preset="tiny", max_steps=2, batch_windows=1, command="test")
+
+    def disk_full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", disk_full)
+    with pytest.raises(OSError):
+        train(logs, out, cfg)
+    monkeypatch.undo()
+    events = []
+    train(logs, out, cfg, progress=events.append)  # the same command, once there is space
+    assert not any(e["phase"] == "finished" for e in events)
+    backbone, aggregator = net_config(cfg).build()
+    load_weights(out, net_config(cfg), backbone, aggregator)  # there, and whole
