@@ -724,11 +724,25 @@ class _FrameAssembler:
     def __init__(self) -> None:
         self.intrinsics: Intrinsics | None = None
         self._pending: dict[str, tuple[int, Any]] = {}
+        # Per-frame messages dropped for a sequence no image after them had, by topic. None in a
+        # sunrig log that lost nothing; in another writer's, the sign of a layout sunrig cannot
+        # pair (a heading after its image, or a sequence counted per channel).
+        self.unmatched: dict[str, int] = {}
 
     def gap(self) -> None:
         """Messages were lost (a skipped chunk): forget state that may no longer be current."""
         self.intrinsics = None
         self._pending.clear()
+
+    def end(self) -> None:
+        """The log ended: per-frame messages still waiting had no image after them."""
+        self._drop_unmatched(self._pending, None)
+        self._pending = {}
+
+    def _drop_unmatched(self, pending: dict[str, tuple[int, Any]], seq: int | None) -> None:
+        for topic, (s, _) in pending.items():
+            if s != seq:
+                self.unmatched[topic] = self.unmatched.get(topic, 0) + 1
 
     def feed(self, topic: str, seq: int, log_time_ns: int, data: bytes) -> Frame | None:
         if topic == TOPIC_CALIBRATION:
@@ -749,6 +763,7 @@ class _FrameAssembler:
         if topic != TOPIC_IMAGE:
             return None
         pending, self._pending = self._pending, {}
+        self._drop_unmatched(pending, seq)
         if self.intrinsics is None:
             raise _CorruptMessage("image without a valid calibration before it")
         try:
@@ -1186,6 +1201,14 @@ class NativeLogSource:
                 if frame is not None:
                     stats.frames_read += 1
                     yield frame
+        assembler.end()
+        if assembler.unmatched:
+            logger.warning(
+                "%s: dropped %s that matched no image, and its frames replay without them: a frame's "
+                "messages carry its image's MCAP sequence and come before the image (docs/log-format.md)",
+                name,
+                ", ".join(f"{n} {topic} messages" for topic, n in sorted(assembler.unmatched.items())),
+            )
         if stats.corrupt_skipped > warned:
             logger.warning(
                 "%s: %d corrupt messages or chunks skipped in all", name, stats.corrupt_skipped

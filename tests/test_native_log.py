@@ -1170,3 +1170,47 @@ def test_a_finished_recording_whose_camera_sent_nothing_holds_no_frames(tmp_path
     with caplog.at_level(logging.WARNING, logger="replay.native"):
         assert list(source) == []
     assert source.stats.corrupt_skipped == 1 and caplog.records
+
+
+@pytest.mark.parametrize("layout", ["heading_after_image", "heading_counts_its_own_sequence"])
+def test_per_frame_messages_that_match_no_image_are_warned_about(tmp_path, caplog, layout):
+    # Another writer's /heading: after its image (MCAP orders by time, not within a time), or
+    # with a sequence counted per channel (as publishers number their messages) rather than the
+    # image's. Every heading was dropped without a word, and replay then told the user to record
+    # with a heading source, of a log that has one.
+    frames = make_frames(4, seed=3)
+    path = tmp_path / "other.mcap"
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="someone-else")
+        ids = {}
+        for topic in (TOPIC_CALIBRATION, TOPIC_IMAGE, TOPIC_HEADING):
+            spec = native.CHANNELS[topic]
+            sid = w.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_bytes())
+            ids[topic] = w.register_channel(topic, spec.message_encoding, sid)
+        for i, fr in enumerate(frames):
+            t = native.ns_from_s(fr.t_mono_s)
+            heading_seq = i if layout == "heading_counts_its_own_sequence" else fr.seq
+            messages = [(TOPIC_IMAGE, fr.seq, native.encode_image(fr.image_bgr, t, 90)),
+                        (TOPIC_HEADING, heading_seq, native.encode_attitude(fr.attitude, heading_seq))]
+            if layout == "heading_counts_its_own_sequence":
+                messages.reverse()
+            if i == 0:
+                messages.insert(0, (TOPIC_CALIBRATION, fr.seq, encode_calibration(INTR, t)))
+            for topic, seq, data in messages:
+                w.add_message(ids[topic], log_time=t, publish_time=t, data=data, sequence=seq)
+        w.finish()
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        got = list(open_log(path))
+    assert [g.seq for g in got] == [fr.seq for fr in frames]
+    assert all(g.attitude is None for g in got)
+    warned = [r.getMessage() for r in caplog.records if "matched no image" in r.getMessage()]
+    assert len(warned) == 1, [r.getMessage() for r in caplog.records]
+    assert "other.mcap" in warned[0] and TOPIC_HEADING in warned[0] and "sequence" in warned[0]
+
+
+def test_a_sunrig_log_warns_of_no_unmatched_message(tmp_path, caplog):
+    path = write_log(tmp_path / "l.mcap", make_frames(5, seed=4))
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        assert len(list(open_log(path))) == 5
+    assert not caplog.records
