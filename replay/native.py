@@ -724,7 +724,7 @@ class _FrameAssembler:
     def __init__(self) -> None:
         self.intrinsics: Intrinsics | None = None
         self._pending: dict[str, tuple[int, Any]] = {}
-        # Per-frame messages dropped for a sequence no image after them had, by topic. None in a
+        # Per-frame messages dropped for a sequence no image after them had, by topic: empty for a
         # sunrig log that lost nothing; in another writer's, the sign of a layout sunrig cannot
         # pair (a heading after its image, or a sequence counted per channel).
         self.unmatched: dict[str, int] = {}
