@@ -29,12 +29,14 @@ calibrated by each frame's yaw, and L = cosine + norm + hemisphere. What differs
 
 Checkpoints (``checkpoint.pt`` in the output folder, written atomically every few minutes and at
 the end) hold weights, optimiser, step and random state: a run that is killed resumes where it
-stopped when started again with the same ``--out``. The final model is exported as the two ONNX
+stopped when started again with the same ``--out``. While a run trains it holds its folder
+(:func:`run_lock`): a second process on it is refused. The final model is exported as the two ONNX
 graphs with the contract, including the command and data that produced it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import json
@@ -46,7 +48,7 @@ import tempfile
 import time
 import zipfile
 import zlib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -813,9 +815,19 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
                               f"more), got {cfg.crops_per_frame}")
     net_cfg = net_config(cfg)
     out_dir = Path(out_dir)
-    ckpt_path = out_dir / CHECKPOINT
-    state = _resumable_state(out_dir, cfg)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValidationError(f"--out {out_dir} is a file; pass a folder for the model (it is made if missing)")
     _check_out_writable(out_dir)
+    with run_lock(out_dir):  # held to the end of the export: one process writes a run's folder
+        return _train_locked(log_paths, out_dir, cfg, net_cfg, progress)
+
+
+def _train_locked(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig, net_cfg: nets.NetConfig,
+                  progress: Callable[[dict[str, Any]], None] | None) -> Path:
+    """:func:`train`, once its settings are checked and it holds ``out_dir`` (:func:`run_lock`)."""
+    ckpt_path = out_dir / CHECKPOINT
+    fovs = fovs_deg(cfg.crop_fov_deg)
+    state = _resumable_state(out_dir, cfg)
     _check_batch_fits(cfg.batch_windows, cfg.frames_per_window,
                       int(state["config"]["crops_per_frame"]) if state is not None  # saved resolved, never 0
                       else cfg.crops_per_frame or PAPER_CROPS_PER_FRAME, net_cfg.crop_size)
@@ -924,7 +936,6 @@ def train(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig,
     est_total = cfg.max_steps or unknown_total
     backbone.train()
     aggregator.train()
-    out_dir.mkdir(parents=True, exist_ok=True)  # only now: a run refused or stopped while loading leaves no folder
     if state is None:
         (out_dir / METRICS).unlink(missing_ok=True)  # a killed run's, from before its first checkpoint
     start = time.monotonic() - elapsed_s
@@ -1116,12 +1127,88 @@ def _check_out_writable(out_dir: Path) -> None:
                               "you can write to") from None
 
 
+RUN_LOCK = ".train.lock"  # hidden, like every file a run keeps beside its own (_resumable_state)
+
+
+@contextlib.contextmanager
+def run_lock(out_dir: Path) -> Iterator[None]:
+    """Hold ``out_dir`` for one process: a second ``sunrig train`` (or an ``--export-only`` into
+    the run's folder) is refused in one line while it is held, instead of resuming the same
+    checkpoint and writing the folder's files through the same temporary names.
+
+    The folder is made if missing (the lock lives in it) and removed again, with the parents made
+    for it, if the run leaves nothing in it (one refused or stopped while loading). The lock is the
+    kernel's (``flock``), so a run killed by any means frees the folder with it; the lock file
+    holds the holder's pid, for the refusal to name, and is removed at the end. Where the OS or the
+    file system has no ``flock`` (Windows; some network mounts), runs go unguarded, with a warning
+    on such a mount."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    made = []
+    where = out_dir
+    while not where.exists() and where != where.parent:
+        made.append(where)
+        where = where.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / RUN_LOCK
+    try:
+        fd = _take_lock(path, fcntl)
+        try:
+            yield
+        finally:
+            if fd is not None:
+                path.unlink(missing_ok=True)  # before the lock goes: whoever opens the path next makes a new file
+                os.close(fd)
+    finally:
+        for folder in made:  # innermost first; one that holds anything stays
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+def _take_lock(path: Path, fcntl: Any) -> int | None:
+    """The open, locked ``path`` (see :func:`run_lock`); None where the file system has no locks."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+            os.close(fd)
+            pid = f" (pid {holder})" if holder.isdigit() else ""
+            raise ValidationError(
+                f"--out {path.parent} is in use by another sunrig train{pid}; "
+                "wait for it to end (or stop it) and run the command again, or pass another --out") from None
+        except OSError as exc:
+            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                os.close(fd)
+                raise
+            log.warning("%s: this file system has no file locks; make sure no other sunrig train uses this folder",
+                        path.parent)
+            os.close(fd)
+            return None
+        # A run that ended between our open and our lock removed the file we hold: a lock on it
+        # guards nothing, so take the one at the path as it is now.
+        try:
+            held, now = os.fstat(fd), os.stat(path)
+            if (held.st_dev, held.st_ino) == (now.st_dev, now.st_ino):
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode("ascii"))
+    return fd
+
+
 def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
     """The checkpoint of the run in ``out_dir`` when ``cfg`` resumes it; None for a new run in a
     new or empty folder. Anything else is refused before data loads: a folder holding another
     run, a model or logs would be overwritten or mixed with this run."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ValidationError(f"--out {out_dir} is a file; pass a folder for the model (it is made if missing)")
     ckpt_path = out_dir / CHECKPOINT
     if not ckpt_path.is_file():
         # Not held: a killed run's metrics, or the hidden sibling of a checkpoint it was writing.
@@ -1366,8 +1453,11 @@ def export_checkpoint(checkpoint_dir: Path, out_dir: Path, run_crops_per_frame: 
             counts["sun_elevation_deg"] = sun_elevation_range_deg(_truth_enu(p) for p in log_paths)
     # A run with --ema-decay exports its average, as it does when it ends.
     backbone, aggregator = modules_from(net_config(cfg), state.get("weight_average") or state)
-    return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command,
-                   run_mirror_windows)
+    # Into the run's own folder, only while no run trains there: its export writes the same files.
+    own = Path(out_dir).is_dir() and Path(out_dir).resolve() == Path(checkpoint_dir).resolve()
+    with run_lock(Path(out_dir)) if own else contextlib.nullcontext():
+        return _export(backbone, aggregator, cfg, state, Path(out_dir), run_crops_per_frame, export_command,
+                       run_mirror_windows)
 
 
 def _refuse_export_over_others(out_dir: Path, checkpoint_dir: Path) -> None:

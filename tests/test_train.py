@@ -1452,3 +1452,44 @@ def test_an_export_cut_short_before_its_weights_is_made_again_by_the_same_comman
     assert not any(e["phase"] == "finished" for e in events)
     backbone, aggregator = net_config(cfg).build()
     load_weights(out, net_config(cfg), backbone, aggregator)  # there, and whole
+
+
+def test_a_second_run_on_a_folder_whose_run_is_training_is_refused_in_one_line(logs, tmp_path):
+    # Nothing kept two processes off one --out: the second resumed the first's checkpoint and both
+    # trained, writing checkpoint.pt through the same temporary name and the metrics file together.
+    # A real second process holds the folder here; a kill -9 of it frees the folder.
+    import subprocess
+    import sys
+    import textwrap
+    from pathlib import Path
+
+    from estimator.train import export_checkpoint
+
+    out = tmp_path / "m"
+    first = textwrap.dedent("""
+        import sys
+        from pathlib import Path
+        from estimator.train import TrainConfig, train
+        def said(p):
+            if p["phase"] == "train" and p["step"] == 2:
+                print("training", flush=True)
+        train([Path(p) for p in sys.argv[2:]], Path(sys.argv[1]),
+              TrainConfig(preset="tiny", max_steps=10**6, batch_windows=1, checkpoint_every_s=0.0, command="test"),
+              progress=said)
+    """)
+    cfg = TrainConfig(preset="tiny", max_steps=3, batch_windows=1, checkpoint_every_s=0.0, command="test")
+    with open(tmp_path / "first.err", "wb") as err:
+        proc = subprocess.Popen([sys.executable, "-c", first, str(out), *map(str, logs)], stdout=subprocess.PIPE,
+                                stderr=err, cwd=Path(__file__).resolve().parents[1])
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == b"training\n", (tmp_path / "first.err").read_text()
+        with pytest.raises(ValidationError) as info:
+            train(logs, out, cfg)
+        said = str(info.value)
+        assert "\n" not in said and f"--out {out} is in use by another sunrig train (pid {proc.pid})" in said, said
+        with pytest.raises(ValidationError, match="is in use by another sunrig train"):
+            export_checkpoint(out, out)  # its graphs and weights.npz, written beside the run's own
+    finally:
+        proc.kill()  # SIGKILL: the kernel drops its lock with it
+        proc.wait()
+    assert train(logs, out, cfg) == out  # the folder is free again: the same command resumes its run
