@@ -828,6 +828,8 @@ def _train_locked(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig, ne
     ckpt_path = out_dir / CHECKPOINT
     fovs = fovs_deg(cfg.crop_fov_deg)
     state = _resumable_state(out_dir, cfg)
+    if state is not None:
+        cfg = _with_own_unflagged(cfg, state["config"])
     _check_batch_fits(cfg.batch_windows, cfg.frames_per_window,
                       int(state["config"]["crops_per_frame"]) if state is not None  # saved resolved, never 0
                       else cfg.crops_per_frame or PAPER_CROPS_PER_FRAME, net_cfg.crop_size)
@@ -1106,6 +1108,22 @@ _RUN_OWN_WHEN_ZERO: dict[str, tuple[str, Any, Callable[[Any], Any], Callable[[An
     "crops_per_frame": ("--crops", PAPER_CROPS_PER_FRAME, int, str),
     "crop_fov_deg": ("--crop-fov", PAPER_CROP_FOV_DEG, fovs_deg, format_fovs_deg),
 }
+
+
+# Settings no flag sets: a command passes this sunrig's defaults, so a resume takes its run's own
+# (a default changed since the run began must not change the rest of the run, nor the contract's
+# account of it; frames_per_window is the model's window length).
+_RUN_OWN_UNFLAGGED = ("weight_decay", "warmup_steps", "subset_prob", "frames_per_window")
+
+
+def _with_own_unflagged(cfg: TrainConfig, ran: dict[str, Any]) -> TrainConfig:
+    """``cfg`` with the :data:`_RUN_OWN_UNFLAGGED` settings its checkpoint's run recorded (``ran``)."""
+    own = {key: ran[key] for key in _RUN_OWN_UNFLAGGED if key in ran and ran[key] != getattr(cfg, key)}
+    if own:
+        log.info("resuming with the run's own %s (not this sunrig's %s)",
+                 ", ".join(f"{key} {value!r}" for key, value in own.items()),
+                 ", ".join(f"{getattr(cfg, key)!r}" for key in own))
+    return replace(cfg, **own)
 
 
 def _check_out_writable(out_dir: Path) -> None:

@@ -1493,3 +1493,21 @@ def test_a_second_run_on_a_folder_whose_run_is_training_is_refused_in_one_line(l
         proc.kill()  # SIGKILL: the kernel drops its lock with it
         proc.wait()
     assert train(logs, out, cfg) == out  # the folder is free again: the same command resumes its run
+
+
+def test_a_resume_keeps_the_settings_without_a_flag_that_its_run_began_with(logs, tmp_path):
+    # Weight decay, warmup, subset share and window length have no flag: the same command passes
+    # whatever this sunrig's defaults are, and a resume trained on with those, under a contract
+    # naming them for the whole run (the window length is the model's, the warmup moved the rate).
+    out = tmp_path / "m"
+    cfg = TrainConfig(preset="tiny", max_steps=2, batch_windows=1, command="test")
+    train(logs, out, cfg)
+    new_defaults = {"weight_decay": 0.01, "warmup_steps": 7, "subset_prob": 0.1, "frames_per_window": 6}
+    train(logs, out, replace(cfg, max_steps=3, **new_defaults))  # the same command after the defaults changed
+    from estimator.runtime import OnnxModel
+
+    ran = torch.load(out / CHECKPOINT, weights_only=False)["config"]
+    contract = OnnxModel.load(out).contract
+    for key in new_defaults:
+        assert ran[key] == getattr(cfg, key) == contract.training["recipe"][key], key
+    assert contract.frames_per_window == cfg.frames_per_window
