@@ -648,7 +648,38 @@ def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     # pos"), an internal error at the CLI; Python's own write says ENOSPC, with what to do.
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    write_replacing(path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
+    write_synced(path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
+
+
+def write_synced(path: Path, write: Callable[[Path], object]) -> None:
+    """:func:`rig.files.write_replacing` (a kill mid-write leaves the old file), made to last a power
+    loss too: the new file is on the disk before it is renamed over the old one, and the rename is
+    on the disk (its folder synced) before this returns. Renamed with its data still in memory, a
+    file can come back empty or torn after a power loss, with the old one gone."""
+    def written(tmp: Path) -> None:
+        write(tmp)
+        if tmp.is_file():  # not a device or FIFO written in place, whose open could wait
+            _fsync(tmp)
+
+    write_replacing(path, written)
+    _fsync(Path(path).parent)
+
+
+def _fsync(path: Path) -> None:
+    """Flush a file's data, or a folder's entries, to the disk. A folder cannot be opened for that
+    on Windows, and some file systems refuse to sync one (EINVAL): its rename is then as lasting as
+    the file system makes it."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except (IsADirectoryError, PermissionError):
+        return  # Windows opens no folder
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if not (path.is_dir() and exc.errno in (errno.EINVAL, errno.EBADF, errno.ENOTSUP)):
+            raise
+    finally:
+        os.close(fd)
 
 
 # What each use of a checkpoint reads from it: an export the weights and how they were trained,
@@ -723,7 +754,7 @@ def _trim_metrics(path: Path, step: int) -> int:
         else:
             dropped += 1
     if dropped:
-        write_replacing(path, lambda tmp: tmp.write_text("".join(kept), encoding="utf-8"))
+        write_synced(path, lambda tmp: tmp.write_text("".join(kept), encoding="utf-8"))
     return dropped
 
 
@@ -1328,7 +1359,7 @@ def save_weights(backbone: Any, aggregator: Any, out_dir: Path) -> Path:
               for part, module in (("backbone", backbone), ("aggregator", aggregator))
               for k, v in module.state_dict().items()}
     path = Path(out_dir) / WEIGHTS_FILE
-    write_replacing(path, lambda tmp: np.savez_compressed(tmp, **arrays))
+    write_synced(path, lambda tmp: np.savez_compressed(tmp, **arrays))
     return path
 
 
