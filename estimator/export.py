@@ -10,6 +10,7 @@ give the same inputs, outputs, dynamic axes and metadata, and the runtime cannot
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import logging
 import math
@@ -74,7 +75,8 @@ def export_model(
 
     Both graphs are traced in eval mode (dropout off, batch-norm statistics frozen); the modules'
     own training flags are restored afterwards. Each file is checked with ``onnx.checker`` and moved
-    into place only when complete, so a failed export never leaves a half-valid folder behind.
+    into place only when complete and on the disk, so a failed export (or a power loss)
+    never leaves a half-valid folder behind.
     """
     _check_against_contract(backbone, aggregator, contract)
     out = make_output_folder(out_dir, what="model folder", holds="a model is a folder")
@@ -125,10 +127,32 @@ def export_model(
         # than passing with stale graphs.
         sums = Path(tmp) / CHECKSUMS_FILE
         sums.write_text(format_checksums(digests), encoding="utf-8")
+        # Each file on the disk before it replaces the old one, and the renames after: renamed with
+        # their data still in memory, a power loss could leave empty graphs and the old ones gone.
+        for path in (sums, *staged.values()):
+            sync_to_disk(path)
         os.replace(sums, out / CHECKSUMS_FILE)
         for name, path in staged.items():
             os.replace(path, out / name)
+        sync_to_disk(out)
     return out
+
+
+def sync_to_disk(path: Path) -> None:
+    """Flush a file's data, or a folder's entries, to the disk. A folder cannot be opened for that
+    on Windows, and some file systems refuse to sync one (EINVAL): its rename is then as lasting as
+    the file system makes it."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except (IsADirectoryError, PermissionError):
+        return  # Windows opens no folder
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if not (path.is_dir() and exc.errno in (errno.EINVAL, errno.EBADF, errno.ENOTSUP)):
+            raise
+    finally:
+        os.close(fd)
 
 
 def export_graph(

@@ -82,7 +82,7 @@ require_torch()  # a missing torch names the extra to install
 import torch  # noqa: E402  (imported, not require_torch's value, so mypy types it)
 
 from estimator import nets  # noqa: E402  (needs torch, checked just above)
-from estimator.export import export_model  # noqa: E402
+from estimator.export import export_model, sync_to_disk  # noqa: E402
 
 log = logging.getLogger(__name__)
 # The trained weights beside the exported graphs, as plain arrays (float16, no pickle, ignored by
@@ -659,27 +659,11 @@ def write_synced(path: Path, write: Callable[[Path], object]) -> None:
     def written(tmp: Path) -> None:
         write(tmp)
         if tmp.is_file():  # not a device or FIFO written in place, whose open could wait
-            _fsync(tmp)
+            sync_to_disk(tmp)
 
     write_replacing(path, written)
-    _fsync(Path(path).parent)
+    sync_to_disk(Path(path).parent)
 
-
-def _fsync(path: Path) -> None:
-    """Flush a file's data, or a folder's entries, to the disk. A folder cannot be opened for that
-    on Windows, and some file systems refuse to sync one (EINVAL): its rename is then as lasting as
-    the file system makes it."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except (IsADirectoryError, PermissionError):
-        return  # Windows opens no folder
-    try:
-        os.fsync(fd)
-    except OSError as exc:
-        if not (path.is_dir() and exc.errno in (errno.EINVAL, errno.EBADF, errno.ENOTSUP)):
-            raise
-    finally:
-        os.close(fd)
 
 
 # What each use of a checkpoint reads from it: an export the weights and how they were trained,
