@@ -587,3 +587,37 @@ def test_drives_rendered_in_parallel_are_the_drives_rendered_one_by_one(tmp_path
     assert [p.name for p in parallel] == [p.name for p in serial]
     assert [p.read_bytes() for p in parallel] == [p.read_bytes() for p in serial]
     assert not list((tmp_path / "two").glob("*.part"))
+
+
+@pytest.fixture
+def disk_events(monkeypatch):
+    """The fsyncs (by the path the descriptor names) and renames this process makes, in order."""
+    if not os.path.isdir("/proc/self/fd"):
+        pytest.skip("names an fsync's file by /proc/self/fd (Linux)")
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.path.realpath(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    def replace(src, dst):
+        events.append(("replace", os.path.realpath(src), os.path.realpath(dst)))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    return events
+
+
+def test_a_finished_drive_is_on_the_disk_before_it_takes_its_name(tmp_path, disk_events):
+    # A drive was renamed from its .part with its data still in memory: after a power loss the
+    # folder could hold the drive's name on an empty or cut file, which a resume refuses until it
+    # is deleted by hand, rather than a drive either whole or absent (rendered again).
+    from replay.synthetic import write_synthetic_logs
+
+    (path,) = write_synthetic_logs(tmp_path, drives=1, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    path = os.path.realpath(path)
+    (rename,) = [i for i, e in enumerate(disk_events) if e[0] == "replace" and e[2] == path]
+    assert ("fsync", disk_events[rename][1]) in disk_events[:rename], disk_events
+    assert ("fsync", os.path.dirname(path)) in disk_events[rename + 1:], disk_events

@@ -17,6 +17,7 @@ ambient), ``render`` (rasteriser, shading, shadows), ``camera`` (exposure, noise
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 from pathlib import Path
@@ -63,8 +64,29 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
     with LogWriter(tmp, metadata={RENDER_SCALE_KEY: repr(float(render_scale))}) as writer:
         for frame in drive.frames():
             writer.write_frame(frame)
+    # On the disk before it takes the drive's name, and the name on the disk after: renamed with
+    # its data still in memory, a power loss could leave the name on an empty or cut drive, which
+    # a resume refuses (_kept) until it is deleted by hand.
+    _sync_to_disk(tmp)
     os.replace(tmp, path)
+    _sync_to_disk(path.parent)
     return path, frames
+
+
+def _sync_to_disk(path: Path) -> None:
+    """Flush a file's data, or a folder's entries, to the disk. Windows opens no folder for it, and
+    some file systems refuse to sync one (EINVAL): its rename is then as lasting as they make it."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except (IsADirectoryError, PermissionError):
+        return
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if not (path.is_dir() and exc.errno in (errno.EINVAL, errno.EBADF, errno.ENOTSUP)):
+            raise
+    finally:
+        os.close(fd)
 
 
 def _float_or_nan(text: str) -> float:
