@@ -621,3 +621,25 @@ def test_a_finished_drive_is_on_the_disk_before_it_takes_its_name(tmp_path, disk
     (rename,) = [i for i, e in enumerate(disk_events) if e[0] == "replace" and e[2] == path]
     assert ("fsync", disk_events[rename][1]) in disk_events[:rename], disk_events
     assert ("fsync", os.path.dirname(path)) in disk_events[rename + 1:], disk_events
+
+
+def test_a_drive_that_fills_the_disk_leaves_no_part_file(tmp_path, monkeypatch):
+    # The .part of a drive that failed stayed, holding the space the user was told to free; the
+    # folder keeps only whole drives (here the one finished before).
+    import errno
+
+    from replay.native import LogWriter
+    from replay.synthetic import write_synthetic_logs
+
+    real, written = LogWriter.write_frame, []
+
+    def fills_the_disk(self, frame):
+        if len(written) == 3:  # drive 0 whole, then a frame of drive 1
+            raise OSError(errno.ENOSPC, "No space left on device")
+        written.append(frame.seq)
+        return real(self, frame)
+
+    monkeypatch.setattr(LogWriter, "write_frame", fills_the_disk)
+    with pytest.raises(OSError, match="No space left"):
+        write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["drive_9_0000.mcap"]

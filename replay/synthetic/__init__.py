@@ -61,9 +61,13 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
     tmp = path.with_name(path.name + ".part")
     drive = Drive(dseed, frames, intrinsics=intrinsics, render_scale=render_scale, fps=fps)
     # repr: the float back exactly, so a resumed run compares it with --render-scale as given.
-    with LogWriter(tmp, metadata={RENDER_SCALE_KEY: repr(float(render_scale))}) as writer:
-        for frame in drive.frames():
-            writer.write_frame(frame)
+    try:
+        with LogWriter(tmp, metadata={RENDER_SCALE_KEY: repr(float(render_scale))}) as writer:
+            for frame in drive.frames():
+                writer.write_frame(frame)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a drive cut short (a full disk, Ctrl-C) would only hold its space
+        raise
     # On the disk before it takes the drive's name, and the name on the disk after: renamed with
     # its data still in memory, a power loss could leave the name on an empty or cut drive, which
     # a resume refuses (_kept) until it is deleted by hand.
