@@ -53,6 +53,9 @@ except ImportError as exc:  # pragma: no cover - depends on the environment
     ) from exc
 
 EXPORTERS = ("dynamo", "legacy")
+# The hidden folder in the model folder where an export stages its files before they replace the
+# model's: one left behind is an export killed midway (sunrig train removes them, holding its run).
+STAGING_PREFIX = ".export-"
 # Opset 18 is what the legacy exporter and onnxruntime >= 1.17 (our floor) both support fully;
 # dynamo picks its own (>= 18) when given None.
 LEGACY_OPSET = 18
@@ -89,7 +92,7 @@ def export_model(
     mask[1, 3:] = False
     with (
         _eval_mode(backbone, aggregator),
-        tempfile.TemporaryDirectory(dir=out, prefix=".export-") as tmp,
+        tempfile.TemporaryDirectory(dir=out, prefix=STAGING_PREFIX) as tmp,
     ):
         staged = {
             BACKBONE_FILE: export_graph(

@@ -44,6 +44,7 @@ import logging
 import math
 import os
 import re
+import shutil
 import tempfile
 import time
 import zipfile
@@ -82,7 +83,7 @@ require_torch()  # a missing torch names the extra to install
 import torch  # noqa: E402  (imported, not require_torch's value, so mypy types it)
 
 from estimator import nets  # noqa: E402  (needs torch, checked just above)
-from estimator.export import export_model, sync_to_disk  # noqa: E402
+from estimator.export import STAGING_PREFIX, export_model, sync_to_disk  # noqa: E402
 
 log = logging.getLogger(__name__)
 # The trained weights beside the exported graphs, as plain arrays (float16, no pickle, ignored by
@@ -1172,9 +1173,10 @@ def run_lock(out_dir: Path) -> Iterator[None]:
     The folder is made if missing (the lock lives in it) and removed again, with the parents made
     for it, if the run leaves nothing in it (one refused or stopped while loading). The lock is the
     kernel's (``flock``), so a run killed by any means frees the folder with it; the lock file
-    holds the holder's pid, for the refusal to name, and is removed at the end. Where the OS or the
-    file system has no ``flock`` (Windows; some network mounts), runs go unguarded, with a warning
-    on such a mount."""
+    holds the holder's pid, for the refusal to name, and is removed at the end. Once it is held,
+    the staging folder of an export killed midway (graphs that never became the model) is removed.
+    Where the OS or the file system has no ``flock`` (Windows; some network mounts), runs go
+    unguarded, with a warning on such a mount."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover - Windows
@@ -1190,6 +1192,9 @@ def run_lock(out_dir: Path) -> Iterator[None]:
     try:
         fd = _take_lock(path, fcntl)
         try:
+            # What a run or an export killed midway left here (held, no process writes the folder).
+            for staged in out_dir.glob(f"{STAGING_PREFIX}*") if fd is not None else ():
+                shutil.rmtree(staged, ignore_errors=True)
             yield
         finally:
             if fd is not None:

@@ -1572,3 +1572,36 @@ def test_an_exported_model_reaches_the_disk_before_it_replaces_the_last(tmp_path
     out = build_random_model(tmp_path / "model")
     for name in (CHECKSUMS_FILE, BACKBONE_FILE, AGGREGATOR_FILE):
         assert _synced_in_order(disk_events, (out / name).resolve()), (name, disk_events)
+
+
+def test_a_run_killed_mid_export_exports_again_and_leaves_nothing_of_the_first(logs, tmp_path):
+    # kill -9 after the first graph: the same command exports again (its graphs never became the
+    # model), but the staging folder of the killed export stayed in --out for good, a graph or two
+    # in it (11 MB for the fast preset), one more each time.
+    import subprocess
+    import sys
+    import textwrap
+    from pathlib import Path
+
+    from estimator.runtime import OnnxModel
+
+    out = tmp_path / "m"
+    killed = textwrap.dedent("""
+        import os, signal, sys
+        from pathlib import Path
+        import estimator.export as export
+        from estimator.train import TrainConfig, train
+        real = export.export_graph
+        def killed_after_it(*args, **kwargs):
+            real(*args, **kwargs)
+            os.kill(os.getpid(), signal.SIGKILL)
+        export.export_graph = killed_after_it
+        train([Path(p) for p in sys.argv[2:]], Path(sys.argv[1]),
+              TrainConfig(preset="tiny", max_steps=2, batch_windows=1, command="test"))
+    """)
+    done = subprocess.run([sys.executable, "-c", killed, str(out), *map(str, logs)], capture_output=True,
+                          cwd=Path(__file__).resolve().parents[1], check=False)
+    assert done.returncode == -9 and list(out.glob(".export-*/*.onnx")), done.stderr.decode()
+    train(logs, out, TrainConfig(preset="tiny", max_steps=2, batch_windows=1, command="test"))
+    assert OnnxModel.load(out).contract.training["steps"] == 2
+    assert not list(out.glob(".export-*"))
