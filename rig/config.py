@@ -8,8 +8,11 @@ config file to start from.
 from __future__ import annotations
 
 import copy
+import errno
 import json
 import math
+import os
+import stat
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
@@ -186,22 +189,61 @@ def shown_value(value: Any) -> str:
 MAX_CONFIG_BYTES = 2**20
 
 
+class _NoWriter(Exception):
+    """A pipe (FIFO) that nothing writes to."""
+
+
+def _read_bounded(path: str | Path) -> bytes:
+    """The file's bytes, at most ``MAX_CONFIG_BYTES + 1`` of them: a rig's config is a few hundred
+    bytes, and --config /dev/zero (or a wrong file that never ends) grew by gigabytes until the
+    machine killed the command.
+
+    Opened without blocking: a FIFO that nothing writes to blocked open() for ever (a service that
+    never even failed). A pipe with a writer (``--config <(...)``) is then read to its end."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+        chunks = []
+        if stat.S_ISFIFO(mode):
+            try:
+                first = os.read(fd, MAX_CONFIG_BYTES + 1)
+            except BlockingIOError:  # a writer, that has not written yet: wait for it below
+                first = None
+            if first == b"":  # end of file at once: no writer (Linux counts one still opening)
+                raise _NoWriter
+            if first is not None:
+                chunks.append(first)
+        os.set_blocking(fd, True)
+        size = sum(map(len, chunks))
+        while size <= MAX_CONFIG_BYTES:
+            chunk = os.read(fd, MAX_CONFIG_BYTES + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
 def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     """Defaults, updated by the TOML file at ``path`` when given."""
     cfg = copy.deepcopy(DEFAULTS)
     if path is None:
         return cfg
     try:
-        with open(path, "rb") as fh:
-            # Read with a bound: a rig's config is a few hundred bytes, and --config /dev/zero (or a
-            # wrong file that never ends) grew by gigabytes until the machine killed the command.
-            data = fh.read(MAX_CONFIG_BYTES + 1)
+        data = _read_bounded(path)
         if len(data) > MAX_CONFIG_BYTES:
             raise ConfigError(f"config file {path} is over {MAX_CONFIG_BYTES // 2**20} MiB, which no config is; "
                               "pass the --config FILE.toml written for the rig (sunrig config --print makes one)")
         raw = tomllib.loads(data.decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist; pass an existing --config FILE.toml") from None
+    except _NoWriter:
+        raise ConfigError(f"config file {path} is a pipe that nothing writes to; pass the .toml file itself, "
+                          "or start its writer first") from None
     except IsADirectoryError:
         raise ConfigError(f"config file {path} is a folder; pass the .toml file in it") from None
     except UnicodeDecodeError as exc:

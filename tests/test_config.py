@@ -249,3 +249,42 @@ def test_write_replacing_writes_a_device_or_fifo_in_place_and_a_file_whole(tmp_p
         write_replacing(plain, torn)
     assert info.value.filename == str(plain) and plain.read_text() == "old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json", "pipe"]  # no torn sibling left
+
+
+def test_a_fifo_with_no_writer_is_refused_at_once_and_a_pipe_is_read(tmp_path):
+    # `--config FIFO` with nothing writing into it blocked in open() for ever: `config --print`
+    # hung, and a service never got as far as failing. A pipe that has a writer (`--config <(...)`)
+    # is still read to its end.
+    import os
+    import threading
+
+    fifo = tmp_path / "rig.toml"
+    os.mkfifo(fifo)
+    got: list = []
+
+    def load():
+        try:
+            got.append(load_config(fifo))
+        except ConfigError as exc:
+            got.append(exc)
+
+    reader = threading.Thread(target=load, daemon=True)
+    reader.start()
+    reader.join(5.0)
+    if reader.is_alive():  # unblock the open, so the thread ends
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        reader.join(5.0)
+        pytest.fail("load_config blocked on a FIFO nothing writes to")
+    assert len(got) == 1 and isinstance(got[0], ConfigError), got
+    assert str(got[0]) == (f"config file {fifo} is a pipe that nothing writes to; pass the .toml file itself, "
+                           "or start its writer first")
+    r, w = os.pipe()
+    try:
+        os.write(w, b"[window]\nspan_s = 5.0\n")
+        os.close(w)
+        w = -1
+        assert load_config(f"/dev/fd/{r}")["window"]["span_s"] == 5.0
+    finally:
+        os.close(r)
+        if w >= 0:
+            os.close(w)
