@@ -7,6 +7,7 @@ config file to start from.
 
 from __future__ import annotations
 
+import codecs
 import copy
 import errno
 import json
@@ -238,7 +239,10 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
         if len(data) > MAX_CONFIG_BYTES:
             raise ConfigError(f"config file {path} is over {MAX_CONFIG_BYTES // 2**20} MiB, which no config is; "
                               "pass the --config FILE.toml written for the rig (sunrig config --print makes one)")
-        raw = tomllib.loads(data.decode("utf-8"))
+        # A UTF-8 byte order mark (Notepad's "UTF-8 with BOM") is no part of the text; TOML took it
+        # for a character of the first line, a mistake no editor shows.
+        bom = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
+        raw = tomllib.loads(data[bom:].decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist; pass an existing --config FILE.toml") from None
     except _NoWriter:
@@ -247,7 +251,8 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     except IsADirectoryError:
         raise ConfigError(f"config file {path} is a folder; pass the .toml file in it") from None
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"config file {path} is not UTF-8 text (byte {exc.start}); save it as UTF-8 TOML") from None
+        raise ConfigError(f"config file {path} is not UTF-8 text (byte {exc.start + bom}); "
+                          "save it as UTF-8 TOML") from None
     except OSError as exc:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}; check its permissions") from None
     except tomllib.TOMLDecodeError as exc:

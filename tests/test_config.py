@@ -288,3 +288,15 @@ def test_a_fifo_with_no_writer_is_refused_at_once_and_a_pipe_is_read(tmp_path):
         os.close(r)
         if w >= 0:
             os.close(w)
+
+
+def test_a_file_saved_by_windows_notepad_loads(tmp_path):
+    # A UTF-8 byte order mark (Notepad's "UTF-8 with BOM") was "not valid TOML: Invalid statement
+    # (at line 1, column 1)", of a first line that looks right in every editor. CRLF line ends too.
+    path = tmp_path / "rig.toml"
+    path.write_bytes(b"\xef\xbb\xbf[source]\r\ncamera = \"opencv:0\"\r\n[window]\r\nspan_s = 5.0\r\n")
+    cfg = load_config(path)
+    assert cfg["source"]["camera"] == "opencv:0" and cfg["window"]["span_s"] == 5.0
+    path.write_bytes(b"\xef\xbb\xbf[window]\nspan_s = \n")  # and a mistake in it is still placed right
+    with pytest.raises(ConfigError, match=r"\(at line 2, column 10\)$"):
+        load_config(path)
