@@ -241,8 +241,9 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
                               "pass the --config FILE.toml written for the rig (sunrig config --print makes one)")
         # A UTF-8 byte order mark (Notepad's "UTF-8 with BOM") is no part of the text; TOML took it
         # for a character of the first line, a mistake no editor shows.
-        bom = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
-        raw = tomllib.loads(data[bom:].decode("utf-8"))
+        if data.startswith(codecs.BOM_UTF8):
+            data = data[len(codecs.BOM_UTF8):]
+        raw = tomllib.loads(data.decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist; pass an existing --config FILE.toml") from None
     except _NoWriter:
@@ -251,8 +252,13 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     except IsADirectoryError:
         raise ConfigError(f"config file {path} is a folder; pass the .toml file in it") from None
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"config file {path} is not UTF-8 text (byte {exc.start + bom}); "
-                          "save it as UTF-8 TOML") from None
+        # Placed by line and column, as the TOML errors are and an editor goes to: not by byte.
+        before = exc.object[:exc.start]
+        line_start = before.rfind(b"\n") + 1
+        line = before.count(b"\n") + 1
+        column = len(before[line_start:].decode("utf-8")) + 1  # in characters, as an editor counts
+        raise ConfigError(f"config file {path} is not UTF-8 text (line {line}, column {column}: "
+                          f"byte 0x{exc.object[exc.start]:02x}); save it as UTF-8 TOML") from None
     except OSError as exc:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}; check its permissions") from None
     except tomllib.TOMLDecodeError as exc:

@@ -123,7 +123,7 @@ def test_a_folder_or_non_utf8_file_is_named_with_what_to_do(tmp_path):
         load_config(tmp_path)
     latin = tmp_path / "rig.toml"
     latin.write_bytes("[source]\ncamera = 'caméra'\n".encode("latin-1"))
-    with pytest.raises(ConfigError, match=r"is not UTF-8 text \(byte 22\); save it as UTF-8 TOML$"):
+    with pytest.raises(ConfigError, match=r"is not UTF-8 text \(line 2, column 14: byte 0xe9\); save it as UTF-8"):
         load_config(latin)
 
 
@@ -299,4 +299,18 @@ def test_a_file_saved_by_windows_notepad_loads(tmp_path):
     assert cfg["source"]["camera"] == "opencv:0" and cfg["window"]["span_s"] == 5.0
     path.write_bytes(b"\xef\xbb\xbf[window]\nspan_s = \n")  # and a mistake in it is still placed right
     with pytest.raises(ConfigError, match=r"\(at line 2, column 10\)$"):
+        load_config(path)
+
+
+def test_a_byte_that_is_not_utf8_is_placed_by_line_and_column(tmp_path):
+    # "(byte 873)" sent the user counting bytes; an editor goes to a line and column, as the TOML
+    # errors give them. The column counts characters, as the editor does (é before it is one).
+    path = tmp_path / "rig.toml"
+    path.write_bytes("[source]\ncamera = 'é'\nheading = 'çam".encode() + b"\xe9ra'\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == (f"config file {path} is not UTF-8 text (line 3, column 15: byte 0xe9); "
+                               "save it as UTF-8 TOML")
+    path.write_bytes(b"\xef\xbb\xbf\xff")  # after a byte order mark: still line 1, column 1
+    with pytest.raises(ConfigError, match=r"\(line 1, column 1: byte 0xff\)"):
         load_config(path)
