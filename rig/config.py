@@ -263,6 +263,9 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}; check its permissions") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib descends once per level: `[[[[...` a few thousand deep, well under the bound
+        raise ConfigError(f"config file {path} nests arrays or tables too deeply for a config, which holds "
+                          "[sections] of strings, numbers and booleans; sunrig config --print writes one") from None
     return merge(cfg, raw, where=str(path))
 
 

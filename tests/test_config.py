@@ -314,3 +314,15 @@ def test_a_byte_that_is_not_utf8_is_placed_by_line_and_column(tmp_path):
     path.write_bytes(b"\xef\xbb\xbf\xff")  # after a byte order mark: still line 1, column 1
     with pytest.raises(ConfigError, match=r"\(line 1, column 1: byte 0xff\)"):
         load_config(path)
+
+
+@pytest.mark.parametrize("value", ["[" * 50_000 + "]" * 50_000, "{a = " * 5_000 + "1" + "}" * 5_000],
+                         ids=["arrays", "tables"])
+def test_a_value_nested_without_end_is_a_one_line_error(tmp_path, value):
+    # Well under the size bound, it was "internal error: RecursionError" (exit 1), from the parser.
+    path = tmp_path / "rig.toml"
+    path.write_text(f"[source]\ncamera = {value}\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == (f"config file {path} nests arrays or tables too deeply for a config, which holds "
+                               "[sections] of strings, numbers and booleans; sunrig config --print writes one")
