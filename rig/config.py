@@ -140,8 +140,12 @@ def check_option(section: str, key: str, value: Any) -> Any:
     """``value`` for ``[section] key``, checked against its type, choices and range (ConfigError)."""
     default = DEFAULTS[section][key]
     expected = type(default)
+    written = value  # as an error shows it
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
+        try:
+            value = written = float(value)
+        except OverflowError:  # a 400-digit integer, more than a float holds: out of range, shown as written
+            value = math.inf if value > 0 else -math.inf
     if expected is float and value is None:
         value = float("nan")
     if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
@@ -155,7 +159,7 @@ def check_option(section: str, key: str, value: Any) -> Any:
         kind = "an integer" if expected is int else "a finite number"
         if expected is int and value > INT_MAX:  # the cap is named only to one who passed it
             bounds = (bounds[0], INT_MAX, bounds[2])
-        raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {shown_value(value)}")
+        raise ConfigError(f"[{section}] {key}: expected {kind} {describe_range(*bounds)}, got {shown_value(written)}")
     narrowest = NARROWEST.get((section, key))
     if narrowest is not None and 0 < value < narrowest[0]:
         raise ConfigError(f"[{section}] {key}: expected 0 (unset) or at least {narrowest[0]:g} {narrowest[1]}, "

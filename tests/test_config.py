@@ -85,6 +85,11 @@ def test_file_then_flags(tmp_path):
         # math.isfinite() overflowed on it: an internal error, not this line.
         (f"[rig]\nqueue_size = {'9' * 400}\n",
          "[rig] queue_size: expected an integer in (0, 2147483647], got 99999999999999999999... (400 characters)"),
+        # The same for an option that takes a float: float() overflowed on it (an internal error).
+        (f"[window]\nspan_s = {'9' * 400}\n",
+         "[window] span_s: expected a finite number > 0, got 99999999999999999999... (400 characters)"),
+        (f"[source]\ndeclination_deg = -{'9' * 400}\n",
+         "[source] declination_deg: expected a finite number in [-180, 180], got -9999999999999999999... (401 "),
         # A long value of the wrong type or choice is cut too: the error stays one short line.
         (f"[rig]\nqueue_size = '{'x' * 5000}'\n",
          "[rig] queue_size: expected int, got 'xxxxxxxxxxxxxxxxxxx... (5002 characters)"),
