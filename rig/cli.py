@@ -715,8 +715,7 @@ def _source_summary(stats: dict) -> str:
 def cmd_demo(args: argparse.Namespace) -> int:
     from replay.sources import demo_log, open_frames
 
-    cfg = _effective_config(args)
-    cfg["rig"]["realtime"] = not args.fast
+    cfg = _effective_config(args)  # --fast, when given, unsets [rig] realtime there; not given, the file's stands
     cfg["rig"]["status_every_s"] = min(cfg["rig"]["status_every_s"], 1.0)
     out = cfg["output"]
     if not out["serial"]:  # stdout carries the NMEA text

@@ -1733,3 +1733,21 @@ def test_a_missing_demo_log_says_to_reinstall_sunrig(tmp_path, monkeypatch, caps
         rc, captured = _main_in_process(command, capsys)
         _assert_one_line_error(rc, captured, names=f"the demo log installed with sunrig ({tmp_path}")
         assert "reinstall sunrig" in captured.err and "check the path" not in captured.err
+
+
+def test_demo_takes_rig_realtime_from_its_config_unless_fast_is_given(tmp_path, monkeypatch, capsys):
+    # demo set [rig] realtime from --fast alone, so a config's `realtime = false` was overwritten by
+    # a flag that was not given (its help says demo reads [rig] from --config).
+    import rig.cli
+
+    seen = []
+    monkeypatch.setattr(rig.cli, "_live", lambda cfg, source, **kwargs: seen.append(cfg["rig"]["realtime"]) or 0)
+    fast = tmp_path / "fast.toml"
+    fast.write_text("[rig]\nrealtime = false\n")
+    paced = tmp_path / "paced.toml"
+    paced.write_text("[rig]\nrealtime = true\n")
+    for argv in (["demo", "--config", str(fast)], ["demo"], ["demo", "--config", str(paced), "--fast"],
+                 ["demo", "--config", str(paced)]):
+        rc, captured = _main_in_process([*argv, "--quiet"], capsys)
+        assert rc == 0, captured.err
+    assert seen == [False, True, False, True]
