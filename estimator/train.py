@@ -73,7 +73,7 @@ from estimator.contract import (
 from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
-from rig.files import make_output_folder, write_replacing
+from rig.files import folder_lock, make_output_folder, write_replacing
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.ring import DEFAULT_MAX_AGE_S, UTC_DISAGREEMENT_TOLERANCE_S
 from rig.types import Frame, HeadingRef
@@ -1166,81 +1166,16 @@ RUN_LOCK = ".train.lock"  # hidden, like every file a run keeps beside its own (
 
 @contextlib.contextmanager
 def run_lock(out_dir: Path) -> Iterator[None]:
-    """Hold ``out_dir`` for one process: a second ``sunrig train`` (or an ``--export-only`` into
-    the run's folder) is refused in one line while it is held, instead of resuming the same
-    checkpoint and writing the folder's files through the same temporary names.
-
-    The folder is made if missing (the lock lives in it) and removed again, with the parents made
-    for it, if the run leaves nothing in it (one refused or stopped while loading). The lock is the
-    kernel's (``flock``), so a run killed by any means frees the folder with it; the lock file
-    holds the holder's pid, for the refusal to name, and is removed at the end. Once it is held,
-    the staging folder of an export killed midway (graphs that never became the model) is removed.
-    Where the OS or the file system has no ``flock`` (Windows; some network mounts), runs go
-    unguarded, with a warning on such a mount."""
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - Windows
+    """Hold ``out_dir`` for one process (:func:`rig.files.folder_lock`): a second ``sunrig train``
+    (or an ``--export-only`` into the run's folder) is refused in one line naming the holder's pid
+    while it is held, instead of resuming the same checkpoint and writing the folder's files
+    through the same temporary names. A run killed by any means frees the folder. Once it is held,
+    the staging folder of an export killed midway (graphs that never became the model) is removed."""
+    with folder_lock(out_dir, name=RUN_LOCK, command="sunrig train", flag="--out") as held:
+        # What a run or an export killed midway left here (held, no process writes the folder).
+        for staged in out_dir.glob(f"{STAGING_PREFIX}*") if held else ():
+            shutil.rmtree(staged, ignore_errors=True)
         yield
-        return
-    made = []
-    where = out_dir
-    while not where.exists() and where != where.parent:
-        made.append(where)
-        where = where.parent
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / RUN_LOCK
-    try:
-        fd = _take_lock(path, fcntl)
-        try:
-            # What a run or an export killed midway left here (held, no process writes the folder).
-            for staged in out_dir.glob(f"{STAGING_PREFIX}*") if fd is not None else ():
-                shutil.rmtree(staged, ignore_errors=True)
-            yield
-        finally:
-            if fd is not None:
-                path.unlink(missing_ok=True)  # before the lock goes: whoever opens the path next makes a new file
-                os.close(fd)
-    finally:
-        for folder in made:  # innermost first; one that holds anything stays
-            try:
-                folder.rmdir()
-            except OSError:
-                break
-
-
-def _take_lock(path: Path, fcntl: Any) -> int | None:
-    """The open, locked ``path`` (see :func:`run_lock`); None where the file system has no locks."""
-    while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
-            os.close(fd)
-            pid = f" (pid {holder})" if holder.isdigit() else ""
-            raise ValidationError(
-                f"--out {path.parent} is in use by another sunrig train{pid}; "
-                "wait for it to end (or stop it) and run the command again, or pass another --out") from None
-        except OSError as exc:
-            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
-                os.close(fd)
-                raise
-            log.warning("%s: this file system has no file locks; make sure no other sunrig train uses this folder",
-                        path.parent)
-            os.close(fd)
-            return None
-        # A run that ended between our open and our lock removed the file we hold: a lock on it
-        # guards nothing, so take the one at the path as it is now.
-        try:
-            held, now = os.fstat(fd), os.stat(path)
-            if (held.st_dev, held.st_ino) == (now.st_dev, now.st_ino):
-                break
-        except FileNotFoundError:
-            pass
-        os.close(fd)
-    os.ftruncate(fd, 0)
-    os.write(fd, f"{os.getpid()}\n".encode("ascii"))
-    return fd
 
 
 def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:

@@ -1,12 +1,15 @@
-"""Output folders: made when missing, refused in one line when they cannot be; output files
-replaced whole or not at all; stream files touched only by their first write."""
+"""Output folders: made when missing, refused in one line when they cannot be, held by one process
+at a time; output files replaced whole or not at all; stream files touched only by their first write."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from rig.errors import ValidationError
 
@@ -23,6 +26,86 @@ def make_output_folder(path: str | os.PathLike[str], *, what: str, holds: str) -
     except OSError as exc:
         raise ValidationError(f"cannot make the {what} {out}: {exc.strerror}; pass another path") from None
     return out
+
+
+log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path, *, name: str, command: str, flag: str) -> Iterator[bool]:
+    """Hold ``folder`` for one process: another process asking for it while it is held (a second
+    ``command`` on the same folder, started twice or resumed while the first runs) is refused in
+    one line naming ``flag`` (how the command names the folder) and the holder's pid, instead of
+    doing the same work into the same files through the same temporary names.
+
+    The folder is made if missing (the lock lives in it, in a hidden file ``name``) and removed
+    again, with the parents made for it, if the holder leaves nothing in it (one refused or stopped
+    early). The lock is the kernel's (``flock``), so a holder killed by any means frees the folder
+    with it; the lock file holds the holder's pid, for the refusal to name, and is removed at the
+    end. Yields whether the folder is held: where the OS or the file system has no ``flock``
+    (Windows; some network mounts), False, and processes go unguarded, with a warning on such a
+    mount."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield False
+        return
+    made = []
+    where = folder
+    while not where.exists() and where != where.parent:
+        made.append(where)
+        where = where.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    try:
+        fd = _take_lock(path, fcntl, command=command, flag=flag)
+        try:
+            yield fd is not None
+        finally:
+            if fd is not None:
+                path.unlink(missing_ok=True)  # before the lock goes: whoever opens the path next makes a new file
+                os.close(fd)
+    finally:
+        for made_folder in made:  # innermost first; one that holds anything stays
+            try:
+                made_folder.rmdir()
+            except OSError:
+                break
+
+
+def _take_lock(path: Path, fcntl: Any, *, command: str, flag: str) -> int | None:
+    """The open, locked ``path`` (see :func:`folder_lock`); None where the file system has no locks."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+            os.close(fd)
+            pid = f" (pid {holder})" if holder.isdigit() else ""
+            raise ValidationError(
+                f"{flag} {path.parent} is in use by another {command}{pid}; "
+                f"wait for it to end (or stop it) and run the command again, or pass another {flag}") from None
+        except OSError as exc:
+            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                os.close(fd)
+                raise
+            log.warning("%s: this file system has no file locks; make sure no other %s uses this folder",
+                        path.parent, command)
+            os.close(fd)
+            return None
+        # A holder that ended between our open and our lock removed the file we hold: a lock on it
+        # guards nothing, so take the one at the path as it is now.
+        try:
+            held, now = os.fstat(fd), os.stat(path)
+            if (held.st_dev, held.st_ino) == (now.st_dev, now.st_ino):
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode("ascii"))
+    return fd
 
 
 def write_replacing(path: str | os.PathLike[str], write: Callable[[Path], object]) -> None:

@@ -643,3 +643,47 @@ def test_a_drive_that_fills_the_disk_leaves_no_part_file(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="No space left"):
         write_synthetic_logs(tmp_path, drives=2, frames=2, seed=9, intrinsics=SMALL, progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drive_9_0000.mcap"]
+
+
+def _synth(out, *args):
+    import sys
+
+    return [sys.executable, "-m", "rig.cli", "synth", str(out), "--render-scale", "0.1", "--quiet", *args]
+
+
+def _wait_for(what, timeout_s=20.0):
+    import time
+
+    end = time.monotonic() + timeout_s
+    while not what():
+        assert time.monotonic() < end, "waited too long"
+        time.sleep(0.02)
+
+
+def test_a_second_synth_on_a_folder_being_written_is_refused_in_one_line(tmp_path):
+    # Nothing kept two processes off one OUT: the second rendered the first's drive into the same
+    # .part (truncating it under the first's writes), so a kill of the second left the first a
+    # drive named whole that starts with zeros, and its Ctrl-C deleted the first's .part.
+    import signal
+    import subprocess
+    from pathlib import Path
+
+    out = tmp_path / "synth"
+    root = Path(__file__).resolve().parents[1]
+    cmd = _synth(out, "--drives", "1", "--frames", "5000")
+    first = subprocess.Popen(cmd, stderr=subprocess.PIPE, cwd=root)
+    try:
+        _wait_for(lambda: (out / "drive_0_0000.mcap.part").exists())
+        try:
+            second = subprocess.run(cmd, capture_output=True, text=True, timeout=10, cwd=root)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the second synth rendered the first's drive beside it instead of being refused")
+        assert second.returncode == 2 and second.stderr.count("\n") == 1, second.stderr
+        assert second.stderr.startswith(f"sunrig: error: OUT {out} is in use by another sunrig synth "
+                                        f"(pid {first.pid}); "), second.stderr
+        first.send_signal(signal.SIGTERM)  # stopped, the first leaves neither its .part nor its lock
+        assert first.wait(10) == 128 + signal.SIGTERM, first.stderr.read() if first.stderr else ""
+        assert list(out.iterdir()) == []
+    finally:
+        first.kill()
+        first.wait()

@@ -27,7 +27,7 @@ import numpy as np
 from replay.synthetic.camera import CameraEffects
 from replay.synthetic.drive import KITTI_INTRINSICS, Drive, DriveParams, kitti_intrinsics, plan_drive, synth_drive
 from rig.errors import ValidationError
-from rig.files import make_output_folder
+from rig.files import folder_lock, make_output_folder
 from rig.progress import Progress
 from rig.types import Intrinsics
 
@@ -46,6 +46,8 @@ __all__ = [
 
 # The key of a synthetic drive's render scale in its log's ``sunrig`` metadata (docs/log-format.md).
 RENDER_SCALE_KEY = "render_scale"
+# The lock file of a folder being written (rig.files.folder_lock): hidden, and no *.mcap a reader takes.
+SYNTH_LOCK = ".synth.lock"
 
 
 def drive_seed(seed: int, index: int) -> int:
@@ -143,7 +145,8 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
 
     Drive i uses :func:`drive_seed` (seed, i), so any one log can be remade alone, and a drive
     whose log already exists is not rendered again: an interrupted run resumes (one whose
-    frame count, rate or render scale differs is refused). ``jobs`` drives
+    frame count, rate or render scale differs is refused). While it runs, the process holds
+    ``out_dir``: a second one on it is refused naming this one's pid. ``jobs`` drives
     render in parallel processes. Returns the paths in order. Images go through the log
     writer's JPEG encoder.
     """
@@ -152,6 +155,17 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
             f"synthetic logs: expected drives >= 0, frames >= 1 and jobs >= 1, got {drives}, {frames}, {jobs}"
         )
     out = make_output_folder(out_dir, what="folder", holds="OUT is the folder the drives are written to")
+    # Held to the end: a second synth on the folder (started twice, or resumed while the first
+    # runs) rendered the same drives into the same .part files, where a kill of either left the
+    # other's drive damaged under its whole name, or deleted its .part.
+    with folder_lock(out, name=SYNTH_LOCK, command="sunrig synth", flag="OUT"):
+        return _write_held(out, drives=drives, frames=frames, seed=seed, intrinsics=intrinsics, progress=progress,
+                           render_scale=render_scale, fps=fps, jobs=jobs)
+
+
+def _write_held(out: Path, *, drives: int, frames: int, seed: int, intrinsics: Intrinsics | None, progress: bool,
+                render_scale: float, fps: float, jobs: int) -> list[Path]:
+    """:func:`write_synthetic_logs` into ``out``, which this process holds (:func:`folder_lock`)."""
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
     kept = _kept(paths, frames, fps, render_scale)
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
