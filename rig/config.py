@@ -270,7 +270,39 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     except RecursionError:  # tomllib descends once per level: `[[[[...` a few thousand deep, well under the bound
         raise ConfigError(f"config file {path} nests arrays or tables too deeply for a config, which holds "
                           "[sections] of strings, numbers and booleans; sunrig config --print writes one") from None
-    return merge(cfg, raw, where=str(path))
+    cfg = merge(cfg, raw, where=str(path))
+    # The folder the file really is in (--config /dev/stdin < rig.toml included); a pipe has none.
+    real = os.path.realpath(path)
+    folder = os.path.dirname(real) if os.path.isfile(real) else os.getcwd()
+    for section, key in PATH_OPTIONS:
+        if key in raw.get(section, {}):
+            cfg[section][key] = _in_folder(key, cfg[section][key], folder)
+    return cfg
+
+
+# The options that name a file or folder. Relative in a config file, they are relative to the
+# file's folder: a service's working directory is / (systemd), so `calibration = "camera.yaml"`
+# beside /etc/sunrig/rig.toml was /camera.yaml there, after `config --print` had passed in
+# /etc/sunrig. They are made absolute as the file is read, so `config --print` writes them in
+# full and its output reads back the same from anywhere. Ports (serial, nmea:) and URLs are
+# taken as written.
+PATH_OPTIONS = (("source", "camera"), ("source", "calibration"), ("estimator", "model"),
+                ("output", "jsonl"), ("output", "record"))
+
+
+def _in_folder(key: str, value: str, folder: str) -> str:
+    """``value`` of option ``key`` with a relative path in it joined to ``folder``."""
+    prefix = ""
+    if key == "camera":  # file:LOG, or opencv:VIDEO (not an index, URL or GStreamer pipeline)
+        kind, _, target = value.partition(":")
+        is_file = kind == "file" or (kind == "opencv" and not target.isdigit() and "://" not in target
+                                     and "!" not in target)
+        if not is_file:
+            return value
+        prefix, value = f"{kind}:", target
+    if not value or value == "-" or os.path.isabs(value):  # unset, stdout (jsonl), or in full already
+        return prefix + value
+    return prefix + os.path.join(folder, value)
 
 
 def merge(cfg: dict[str, dict[str, Any]], raw: Mapping[str, Any], where: str = "config") -> dict:

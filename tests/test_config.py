@@ -331,3 +331,47 @@ def test_a_value_nested_without_end_is_a_one_line_error(tmp_path, value):
         load_config(path)
     assert str(info.value) == (f"config file {path} nests arrays or tables too deeply for a config, which holds "
                                "[sections] of strings, numbers and booleans; sunrig config --print writes one")
+
+
+def test_relative_paths_in_a_config_file_are_relative_to_its_folder(tmp_path, monkeypatch):
+    # A service's working directory is / (systemd): `calibration = "camera.yaml"` beside
+    # /etc/sunrig/rig.toml was looked for as /camera.yaml, and `jsonl = "est.jsonl"` written to
+    # /, after `sunrig config --print` had passed in /etc/sunrig. Ports and URLs are as written.
+    etc = tmp_path / "etc sunrig"
+    etc.mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    path = etc / "rig.toml"
+    path.write_text('[source]\ncamera = "file:drives/d1.mcap"\ncalibration = "camera.yaml"\n'
+                    'heading = "nmea:socket://10.0.0.5:2000"\n'
+                    '[estimator]\nmodel = "../models/m1"\n'
+                    '[output]\njsonl = "est.jsonl"\nrecord = "/var/lib/sunrig/{start}.mcap"\nserial = "/dev/ttyUSB1"\n')
+    cfg = load_config(path)
+    assert cfg["source"]["camera"] == f"file:{etc}/drives/d1.mcap"
+    assert cfg["source"]["calibration"] == f"{etc}/camera.yaml"
+    assert cfg["estimator"]["model"] == f"{etc}/../models/m1"
+    assert cfg["output"]["jsonl"] == f"{etc}/est.jsonl"
+    assert cfg["output"]["record"] == "/var/lib/sunrig/{start}.mcap"  # in full already
+    assert cfg["source"]["heading"] == "nmea:socket://10.0.0.5:2000" and cfg["output"]["serial"] == "/dev/ttyUSB1"
+    # A device index, a stream URL or a pipeline is no path; stdout (-) and "unset" ("") stay.
+    for camera in ("opencv:0", "opencv:rtsp://cam/live", "opencv:v4l2src ! appsink", "oak"):
+        path.write_text(f'[source]\ncamera = "{camera}"\n[output]\njsonl = "-"\n')
+        cfg = load_config(path)
+        assert (cfg["source"]["camera"], cfg["output"]["jsonl"], cfg["source"]["calibration"]) == (camera, "-", "")
+    path.write_text('[source]\ncamera = "opencv:videos/drive.mp4"\n')
+    assert load_config(path)["source"]["camera"] == f"opencv:{etc}/videos/drive.mp4"
+    # What config --print writes reads back the same from any folder (the paths are in full).
+    path.write_text('[source]\ncalibration = "camera.yaml"\n[output]\njsonl = "est.jsonl"\n')
+    printed = tmp_path / "elsewhere" / "printed.toml"
+    printed.write_text(dump_toml(load_config(path)))
+    assert _same(load_config(printed), load_config(path))
+    # A config from a pipe (--config <(...)) has no folder: its paths are the working directory's.
+    import os
+
+    r, w = os.pipe()
+    try:
+        os.write(w, b'[output]\njsonl = "est.jsonl"\n')
+        os.close(w)
+        assert load_config(f"/dev/fd/{r}")["output"]["jsonl"] == str(tmp_path / "elsewhere" / "est.jsonl")
+    finally:
+        os.close(r)
