@@ -149,6 +149,16 @@ def _path(text: str) -> str:
     return text
 
 
+def _source_spec(text: str) -> str:
+    """An argparse type for --camera and --heading: not empty. ``""`` (``--camera "$CAMERA"`` with the
+    variable unset) replaced the config file's [source] option, and the error then said to set it
+    there, where it was set."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a source, got an empty string (leave the flag out to use "
+                                         "the config's)")
+    return text
+
+
 _positive_int = _int_in(1)
 _nonneg_int = _int_in(0)
 _positive_float = _float_in(0.0)
@@ -1184,9 +1194,9 @@ def cmd_sun(args: argparse.Namespace) -> int:
 
 def _source_flags(p: argparse.ArgumentParser) -> None:
     """--camera / --heading and the options of the sources (docs/drivers.md)."""
-    p.add_argument("--camera", metavar="SOURCE",
+    p.add_argument("--camera", type=_source_spec, metavar="SOURCE",
                    help="oak[:ID], opencv:N, opencv:rtsp://..., opencv:VIDEO or file:LOG (a log through the live path)")
-    p.add_argument("--heading", metavar="SOURCE",
+    p.add_argument("--heading", type=_source_spec, metavar="SOURCE",
                    help="oak-imu, nmea:PORT (GNSS compass / INS), visual (from the images, relative), none, "
                         "or log (a file: camera's own)")
     g = p.add_argument_group("source options")

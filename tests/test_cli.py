@@ -1751,3 +1751,17 @@ def test_demo_takes_rig_realtime_from_its_config_unless_fast_is_given(tmp_path, 
         rc, captured = _main_in_process([*argv, "--quiet"], capsys)
         assert rc == 0, captured.err
     assert seen == [False, True, False, True]
+
+
+@pytest.mark.parametrize("flag", ["--camera", "--heading"])
+def test_an_empty_source_flag_is_a_usage_error_not_an_override_of_the_config(tmp_path, capsys, flag):
+    # `--camera "$CAMERA"` with the variable unset replaced the config's [source] camera with "",
+    # and the error then said to set [source] camera in --config, which was set.
+    config = tmp_path / "rig.toml"
+    config.write_text('[source]\ncamera = "opencv:0"\nheading = "nmea:/dev/ttyUSB0"\n')
+    for command in (["run"], ["record", "--out", str(tmp_path / "o.mcap")]):
+        rc, captured = _main_in_process([*command, "--config", str(config), flag, ""], capsys)
+        assert rc == 2 and captured.out == "", captured.err
+        (said,) = captured.err.strip().splitlines()
+        assert said.startswith(f"sunrig {command[0]}: error: argument {flag}: expected a source, got an empty "
+                               "string (leave the flag out to use the config's)"), said
