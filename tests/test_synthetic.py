@@ -687,3 +687,63 @@ def test_a_second_synth_on_a_folder_being_written_is_refused_in_one_line(tmp_pat
     finally:
         first.kill()
         first.wait()
+
+
+def _children(pid):
+    """The pids of ``pid``'s living children (Linux /proc)."""
+    kids = []
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                state, ppid = f.read().rsplit(")", 1)[1].split()[:2]
+        except (OSError, ValueError):
+            continue
+        if int(ppid) == pid and state != "Z":
+            kids.append(int(entry))
+    return kids
+
+
+def _alive(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize(("signame", "group"), [("SIGKILL", False), ("SIGTERM", False), ("SIGINT", False),
+                                                ("SIGINT", True)])
+def test_synth_with_jobs_stopped_or_killed_leaves_no_worker_rendering_and_no_part_file(tmp_path, signame, group):
+    # Killed with -9, the parent left its workers rendering the drives in hand to their end (the
+    # CPU taken, a rerun rendering the same drives into the same .part files), each then dying on
+    # a traceback; stopped (SIGTERM, Ctrl-C), the pool killed its workers with their .part files.
+    import signal
+    import subprocess
+    from pathlib import Path
+
+    if not os.path.isdir("/proc/self"):
+        pytest.skip("finds the workers in /proc (Linux)")
+    sig = getattr(signal, signame)
+    out = tmp_path / "synth"
+    parent = subprocess.Popen(_synth(out, "--drives", "4", "--frames", "1000", "--jobs", "2"), stderr=subprocess.PIPE,
+                              cwd=Path(__file__).resolve().parents[1], start_new_session=True)
+    workers = []
+    try:
+        _wait_for(lambda: len(list(out.glob("*.part"))) == 2)  # both workers are rendering
+        workers = _children(parent.pid)
+        if group:
+            os.killpg(parent.pid, sig)  # Ctrl-C in a terminal
+        else:
+            parent.send_signal(sig)
+        assert parent.wait(10) == (-sig if sig == signal.SIGKILL else 128 + sig)
+        _wait_for(lambda: not any(map(_alive, workers)), timeout_s=5.0)
+        assert list(out.glob("*.part")) == []
+        said = parent.stderr.read().decode() if parent.stderr else ""
+        assert "Traceback" not in said, said
+    finally:
+        workers += _children(parent.pid)  # those of a test that failed before it looked
+        parent.kill()
+        parent.wait()
+        for pid in workers:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)

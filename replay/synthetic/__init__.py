@@ -20,7 +20,12 @@ from __future__ import annotations
 import errno
 import math
 import os
+import signal
+import threading
+import time
 from pathlib import Path
+from types import FrameType
+from typing import NoReturn
 
 import numpy as np
 
@@ -67,16 +72,52 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
         with LogWriter(tmp, metadata={RENDER_SCALE_KEY: repr(float(render_scale))}) as writer:
             for frame in drive.frames():
                 writer.write_frame(frame)
+        # On the disk before it takes the drive's name, and the name on the disk after: renamed
+        # with its data still in memory, a power loss could leave the name on an empty or cut
+        # drive, which a resume refuses (_kept) until it is deleted by hand.
+        _sync_to_disk(tmp)
+        os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)  # a drive cut short (a full disk, Ctrl-C) would only hold its space
+        # A drive cut short (a full disk, Ctrl-C, a worker stopped) would only hold its space.
+        tmp.unlink(missing_ok=True)
         raise
-    # On the disk before it takes the drive's name, and the name on the disk after: renamed with
-    # its data still in memory, a power loss could leave the name on an empty or cut drive, which
-    # a resume refuses (_kept) until it is deleted by hand.
-    _sync_to_disk(tmp)
-    os.replace(tmp, path)
     _sync_to_disk(path.parent)
     return path, frames
+
+
+# How often a worker looks whether the run that started it is still there (_watch_parent).
+PARENT_POLL_S = 0.2
+
+
+def _start_worker(parent_pid: int) -> None:
+    """The initializer of a ``jobs`` worker of :func:`write_synthetic_logs`: it renders only while
+    the run that started it (``parent_pid``) runs, and a drive it is stopped in leaves no .part."""
+    # The pool stops its workers with SIGTERM (terminate, on the run's Ctrl-C or SIGTERM), whose
+    # default action ended a worker at once with its .part left: an exception instead, which
+    # _write_one cleans up after.
+    signal.signal(signal.SIGTERM, _exit_on_signal)
+    # Ctrl-C reaches the whole process group and a hang-up the session: the run stops its workers
+    # itself (above), rather than each worker printing a KeyboardInterrupt traceback of its own.
+    for name in ("SIGINT", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
+    threading.Thread(target=_watch_parent, args=(parent_pid,), name="synth-parent", daemon=True).start()
+
+
+def _exit_on_signal(signum: int, frame: FrameType | None) -> NoReturn:
+    signal.signal(signum, signal.SIG_IGN)  # once: a second signal must not cut the clean-up short
+    # SystemExit ends a multiprocessing worker without a traceback; Exception would be sent back.
+    raise SystemExit(128 + signum)
+
+
+def _watch_parent(parent_pid: int) -> None:
+    """Stop this worker (as the pool would, SIGTERM) once its parent is gone: a run killed with -9
+    cannot stop its workers, which rendered their drives to the end (the CPU taken for minutes,
+    and a rerun, the folder free again, rendering the same drives into the same .part files) and
+    then died on a traceback sending their result. A daemon: it ends with its worker."""
+    while os.getppid() == parent_pid:  # a parent that dies gives its children another
+        time.sleep(PARENT_POLL_S)
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
 def _sync_to_disk(path: Path) -> None:
@@ -147,7 +188,8 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     whose log already exists is not rendered again: an interrupted run resumes (one whose
     frame count, rate or render scale differs is refused). While it runs, the process holds
     ``out_dir``: a second one on it is refused naming this one's pid. ``jobs`` drives
-    render in parallel processes. Returns the paths in order. Images go through the log
+    render in parallel processes, which stop with this one (:func:`_start_worker`), even killed
+    with -9, and leave no .part. Returns the paths in order. Images go through the log
     writer's JPEG encoder.
     """
     if drives < 0 or frames < 1 or jobs < 1:
@@ -179,7 +221,7 @@ def _write_held(out: Path, *, drives: int, frames: int, seed: int, intrinsics: I
         else:
             import multiprocessing
 
-            with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+            with multiprocessing.get_context("spawn").Pool(jobs, _start_worker, (os.getpid(),)) as pool:
                 for _, n in pool.imap_unordered(_write_one, todo):
                     bar.advance(n)
     finally:
