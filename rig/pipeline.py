@@ -216,6 +216,7 @@ class RigPipeline:
         ]
         next_status = self.clock() + self.config.status_every_s
         deadline = None if timeout_s is None else self.clock() + timeout_s
+        interrupted = False
         try:
             # Started inside the try: a Ctrl-C landing between two starts once left the started
             # stages running ONNX Runtime while the interpreter exited (SIGABRT, a core dump).
@@ -233,17 +234,9 @@ class RigPipeline:
                 if self._stop.is_set():
                     break
         except KeyboardInterrupt:
-            self._stop.set()
+            interrupted = True
         finally:
-            self._stop.set()
-            self._frames.close()
-            self._mailbox.close()
-            for t, done in zip(threads, stages.values(), strict=True):
-                if t.ident is None:  # never started (the stop came first): nothing to wait for
-                    done.set()
-            end = time.monotonic() + _JOIN_S
-            for done in stages.values():
-                done.wait(max(0.0, end - time.monotonic()))
+            self._stop_stages(threads, stages, interrupted)
             # A stop (Ctrl-C, a timeout) leaves what was queued for a stage that has ended: counted
             # as dropped, so that every frame captured and every frame encoded is accounted for.
             if self._encode_done.is_set():
@@ -259,6 +252,33 @@ class RigPipeline:
             stage, exc = self._failure
             raise PipelineError(f"{stage} stage failed: {type(exc).__name__}: {exc}") from exc
         return self.stats
+
+    def _stop_stages(self, threads: list[threading.Thread], stages: dict[str, threading.Event],
+                     interrupted: bool) -> None:
+        """Stop every stage and wait for each to end, at most ``_JOIN_S`` in all.
+
+        A stop signal (``KeyboardInterrupt``) landing in this wait, when the rig was already stopping
+        for a reason of its own (its timeout, every output gone, a failed stage), asks for what is
+        under way: it is held until the stages have ended, as one landing in the run is, so the
+        outputs are never closed under a stage still publishing. It once escaped at once, with no
+        statistics. Only another one after it (``interrupted``: the run already took one) means
+        quit at once, and is let through."""
+        end = time.monotonic() + _JOIN_S
+        while True:
+            try:
+                self._stop.set()
+                self._frames.close()
+                self._mailbox.close()
+                for t, done in zip(threads, stages.values(), strict=True):
+                    if t.ident is None:  # never started (the stop came first): nothing to wait for
+                        done.set()
+                for done in stages.values():
+                    done.wait(max(0.0, end - time.monotonic()))
+                return
+            except KeyboardInterrupt:
+                if interrupted:
+                    raise
+                interrupted = True  # and wait on, within the same bound: every step above can be repeated
 
     def _collect_publisher_stats(self) -> None:
         self.stats.publish_errors = sum(raised.count for raised in self._raised)

@@ -488,3 +488,76 @@ def test_a_stop_between_the_stage_starts_leaves_no_stage_running(model, monkeypa
     monkeypatch.undo()
     assert not [t.name for t in threading.enumerate() if t.name.startswith("sunrig-") and t.is_alive()]
     assert stats.frames_encoded == 0 and stats.ended_s is not None
+
+
+def test_a_stop_signal_while_run_winds_down_still_waits_for_the_stages(model):
+    # The rig stops for a reason of its own (here its estimate stage calls stop(), as when every
+    # output's reader is gone; also a timeout or a failed stage), and a Ctrl-C or SIGTERM lands
+    # while run() waits for its stages to end. It escaped run() at once: no statistics, and the CLI
+    # closed the outputs under an estimate stage still about to publish. (The KeyboardInterrupt
+    # is raised where the signal handler raises it, in the wait: a real signal can reach that wait
+    # only after its 2-s bound, when it lands between the GIL's release and the semaphore's wait.)
+    stopping, interrupted = threading.Event(), threading.Event()
+
+    class InterruptedOnce(threading.Event):
+        def wait(self, timeout=None):
+            if stopping.is_set() and not interrupted.is_set():
+                interrupted.set()
+                raise KeyboardInterrupt
+            return super().wait(timeout)
+
+    class StopsThenWaits(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            est = super().estimate(window, aggregator)
+            stopping.set()
+            pipe.stop()
+            interrupted.wait(10.0)  # still estimating when the signal comes
+            return est
+
+    out = Collect()
+    pipe = RigPipeline(frames(20), StopsThenWaits(model), SpreadWindowPolicy(8, 4.0), [out], config=RigConfig())
+    pipe._capture_done = InterruptedOnce()  # the first stage run() waits for once it stops
+    try:
+        stats = pipe.run(timeout_s=30.0)
+    except KeyboardInterrupt:
+        pytest.fail(f"run() let the stop signal through with {len(out.estimates)} estimates published and its "
+                    "estimate stage still running")
+    finally:
+        interrupted.set()
+    assert len(out.estimates) == stats.estimates == 1  # published before run() returned
+    assert stats.publishers["Collect"]["published"] == 1 and stats.ended_s >= stats.started_s
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("sunrig-") and t.is_alive()]
+
+
+def test_a_second_stop_signal_while_run_winds_down_quits_at_once(model):
+    # The other half of the rule above: after a Ctrl-C that stopped the run, the next one (the
+    # third signal under rig.stopping, after "signal once more to quit at once") is let through
+    # at once, not held for the stages.
+    release, signals = threading.Event(), []
+
+    class InterruptedInStop(threading.Event):
+        def wait(self, timeout=None):
+            if signals and len(signals) < 2:
+                signals.append("quit at once")
+                raise KeyboardInterrupt
+            return super().wait(timeout)
+
+    class Slow(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            release.wait(10.0)
+            return super().estimate(window, aggregator)
+
+    def ctrl_c(line):
+        if not signals:
+            signals.append("stop")
+            raise KeyboardInterrupt
+
+    pipe = RigPipeline(frames(20), Slow(model), SpreadWindowPolicy(8, 4.0), [Collect()],
+                       config=RigConfig(status_every_s=0.01), on_status=ctrl_c)
+    pipe._capture_done = InterruptedInStop()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            pipe.run(timeout_s=30.0)
+    finally:
+        release.set()
+    assert signals == ["stop", "quit at once"]
