@@ -104,6 +104,7 @@ class RigStats:
     estimates: int = 0
     estimates_failed: int = 0
     publish_errors: int = 0  # estimates a publisher raised on, all outputs (each counts its own)
+    status_errors: int = 0  # status lines on_status raised on (stderr on a full disk): not written, the rig goes on
     started_s: float = 0.0
     ended_s: float = 0.0
     latency: _Latency = field(default_factory=_Latency)
@@ -122,11 +123,12 @@ class RigStats:
         rate = self.estimates / max(now_s - self.started_s, 1e-9)
         lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
         pub_drops, pub_errors = publisher_losses(self.publishers.values())
+        status = f" | status errors {self.status_errors}" if self.status_errors else ""
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
                 f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}, out of order "
                 f"{self.frames_out_of_order}, clock jumps {self.clock_jumps}) | estimates "
                 f"{self.estimates} at {rate:.1f} Hz, skipped {self.windows_skipped}, failed "
-                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}, errors {pub_errors}")
+                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}, errors {pub_errors}{status}")
 
 
 def publisher_losses(stats: Iterable[dict]) -> tuple[int, int]:
@@ -167,6 +169,7 @@ class RigPipeline:
         self._failure_lock = threading.Lock()
         self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
         self._warned_sparse = False  # said that windows cannot fill (_warn_if_sparse), until they do again
+        self._status_error: str | None = None  # what the last status line that failed raised
         # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
         # what its publish() raised on, and whether its reader is gone.
         self._names: list[str] = []
@@ -227,7 +230,7 @@ class RigPipeline:
                 now = self.clock()
                 if self.on_status and now >= next_status:
                     self._collect_publisher_stats()
-                    self.on_status(self.stats.status_line(now))
+                    self._report_status(self.on_status, self.stats.status_line(now))
                     next_status = now + self.config.status_every_s
                 if deadline is not None and now >= deadline:
                     self._stop.set()
@@ -279,6 +282,19 @@ class RigPipeline:
                 if interrupted:
                     raise
                 interrupted = True  # and wait on, within the same bound: every step above can be repeated
+
+    def _report_status(self, on_status: Callable[[str], None], line: str) -> None:
+        # A status line is not an output: one that cannot be written (stderr on a full disk, a
+        # terminal gone) is counted and said once per kind of error, and the outputs go on. Its
+        # error once left run() and stopped the rig, the controller's serial output with it.
+        try:
+            on_status(line)
+        except Exception as exc:  # noqa: BLE001 - a status line must never stop the rig
+            self.stats.status_errors += 1
+            text = f"{type(exc).__name__}: {exc}"
+            if text != self._status_error:
+                log.warning("the status line could not be written (%s): counted, and the rig goes on", text)
+            self._status_error = text
 
     def _collect_publisher_stats(self) -> None:
         self.stats.publish_errors = sum(raised.count for raised in self._raised)

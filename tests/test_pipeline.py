@@ -561,3 +561,32 @@ def test_a_second_stop_signal_while_run_winds_down_quits_at_once(model):
     finally:
         release.set()
     assert signals == ["stop", "quit at once"]
+
+
+def test_a_status_line_that_cannot_be_written_is_counted_and_the_rig_goes_on(model, caplog):
+    # stderr on a full disk (a log file under systemd or nohup), or a terminal gone: the status
+    # line's write raised out of run() and stopped the rig, the controller's output with it,
+    # where a failing output only loses its own writes.
+    import errno
+
+    said = threading.Event()
+
+    def full_disk(line):
+        said.set()
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def source():
+        for f in frames(20):
+            if f.seq == 10:
+                said.wait(10.0)  # the rest only once the status line has failed
+            yield f
+
+    out = Collect()
+    pipe = RigPipeline(source(), SunEstimator(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100, status_every_s=0.01), on_status=full_disk)
+    with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
+        stats = pipe.run(timeout_s=30.0)
+    assert said.is_set() and out.estimates[-1].seq == 19  # the last frame is always estimated
+    assert stats.status_errors >= 1 and "status errors" in stats.status_line(stats.ended_s)
+    warned = [r.getMessage() for r in caplog.records if "status line" in r.getMessage()]
+    assert len(warned) == 1 and "No space left on device" in warned[0]  # once, not every status_every_s
