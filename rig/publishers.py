@@ -628,10 +628,17 @@ class QueuedWriter(Generic[T]):
         """The reader went away (a broken pipe): nothing more can be written."""
         return self._gone.is_set()
 
-    def put(self, item: T) -> None:
-        """Queue ``item``; once closed, nothing is queued: no writer would take it."""
-        if not self._stop.is_set():
+    def put(self, item: T) -> bool:
+        """Queue ``item``; False once closed: nothing is queued, no writer would take it.
+
+        The check and the queuing hold the lock :meth:`close` sets the stop under: an item put while
+        closing is queued before the stop, and written, or refused. Checked apart, a close landing in
+        between left the item in a queue nobody reads, or dropped it with its caller told nothing."""
+        with self._lock:
+            if self._stop.is_set():
+                return False
             self._queue.put(item)
+            return True
 
     def stats(self) -> dict[str, Any]:
         return {"dropped": self._queue.dropped, "pending": len(self._queue), "errors": self._errors.count,
@@ -719,13 +726,12 @@ class BackgroundPublisher:
                                                                max_pending=max_pending)
 
     def publish(self, est: SunEstimate) -> None:
-        if self._worker.closed:
-            raise PublishError(f"publish() on the closed background {type(self.inner).__name__}; make a new one")
         if self._worker.gone:
             # As the inner publisher would raise in the caller's thread: the caller (the pipeline)
             # takes a broken pipe as "this output has ended", not as an error.
             raise BrokenPipeError(f"the reader of {type(self.inner).__name__}'s stream went away")
-        self._worker.put(est)
+        if not self._worker.put(est):  # closed, before this call or during it: said, so it is counted
+            raise PublishError(f"publish() on the closed background {type(self.inner).__name__}; make a new one")
 
     def stats(self) -> dict[str, Any]:
         return {**self.inner.stats(), **self._worker.stats()}

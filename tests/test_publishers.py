@@ -1065,3 +1065,48 @@ def test_a_transport_raising_something_unforeseen_is_a_write_error_and_the_write
         assert pub.stats()["writer_alive"]
     finally:
         within(5.0, pub.close)
+
+
+@pytest.mark.parametrize("preempted_in", ["publish", "put"])
+def test_a_publish_racing_a_close_is_written_or_refused_never_lost_unsaid(preempted_in):
+    # The estimate thread checks that the background output is open, is descheduled, and close()
+    # runs to its end before it queues the estimate: publish() returned as if the estimate were
+    # taken, and it was neither written nor counted (dropped before it was queued, or left in a
+    # queue no writer reads). It lands after the first check the publishing thread makes, or
+    # after the one inside QueuedWriter.put.
+    import sys
+
+    preempted, closed = threading.Event(), threading.Event()
+    publishing: list[threading.Thread] = []
+
+    class PreemptedAfterTheCheck(threading.Event):
+        def is_set(self) -> bool:
+            seen = super().is_set()
+            if (publishing and threading.current_thread() is publishing[0] and not preempted.is_set()
+                    and (preempted_in == "publish" or sys._getframe(1).f_code.co_name == "put")):
+                preempted.set()
+                closed.wait(1.0)  # close() runs meanwhile; bounded, for a close() that must wait for this
+            return seen
+
+    text = io.StringIO()
+    inner = JsonlPublisher(text)
+    bg = BackgroundPublisher(inner)
+    bg._worker._stop = PreemptedAfterTheCheck()
+    outcome: list[str] = []
+
+    def publish() -> None:
+        try:
+            bg.publish(make_estimate(10.0, 20.0, seq=7))
+            outcome.append("taken")
+        except PublishError:
+            outcome.append("refused")
+
+    publishing.append(threading.Thread(target=publish))
+    publishing[0].start()
+    assert preempted.wait(HANG_GUARD_S)
+    within(HANG_GUARD_S, bg.close)
+    closed.set()
+    publishing[0].join(HANG_GUARD_S)
+    assert outcome == ["refused"] or (outcome == ["taken"] and inner.stats()["written"] == 1), (
+        f"publish() said {outcome}, and {inner.stats()['written']} written, {bg.stats()['pending']} left pending "
+        f"after close")
