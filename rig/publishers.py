@@ -687,8 +687,11 @@ class QueuedWriter(Generic[T]):
         while True:
             item = self._queue.get(0.5)
             if item is None:
-                if self._stop.is_set():
-                    return  # closed, and nothing left: get() returns at once once closed
+                # Closed, and nothing left (get() returns at once once closed). Empty is looked at
+                # after the stop: an item queued after this wait ended and before close() set the
+                # stop (put() refuses none after) was once left in the queue, never written.
+                if self._stop.is_set() and not len(self._queue):
+                    return
                 continue
             try:
                 self._write(item)

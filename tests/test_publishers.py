@@ -1110,3 +1110,27 @@ def test_a_publish_racing_a_close_is_written_or_refused_never_lost_unsaid(preemp
     assert outcome == ["refused"] or (outcome == ["taken"] and inner.stats()["written"] == 1), (
         f"publish() said {outcome}, and {inner.stats()['written']} written, {bg.stats()['pending']} left pending "
         f"after close")
+
+
+def test_an_item_queued_just_before_close_is_written_not_left_in_the_queue():
+    # The writer's wait for an item ends empty-handed (its 0.5-s poll), and before it looks at the
+    # stop an item is queued and close() sets it: the writer took the stop as "nothing left" and
+    # ended, and the item, queued while the output was open, was never written.
+    written, finished = [], []
+    w = QueuedWriter(written.append, lambda: finished.append(list(written)), what="test output", max_pending=8)
+    waiting = threading.Event()
+    real_get = w._queue.get
+
+    def get_that_comes_back_empty_as_the_item_arrives(timeout: float):
+        if waiting.is_set():
+            return real_get(timeout)
+        waiting.set()
+        w._stop.wait(HANG_GUARD_S)  # its wait ended; it looks at the stop only once close() set it
+        return None
+
+    w._queue.get = get_that_comes_back_empty_as_the_item_arrives
+    assert waiting.wait(HANG_GUARD_S)  # (after the 0.5-s poll it was in when patched, if it was)
+    assert w.put(make_estimate(10.0, 20.0, seq=3))
+    assert within(HANG_GUARD_S, lambda: w.close(HANG_GUARD_S))
+    assert [e.seq for e in written] == [3] and finished == [written], (
+        f"{len(w._queue)} left in the queue, {len(written)} written")
