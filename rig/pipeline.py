@@ -111,7 +111,10 @@ class RigStats:
     publishers: dict[str, dict] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        d = {k: v for k, v in self.__dict__.items() if k not in ("latency", "started_s", "ended_s")}
+        """The counters as they are now, a copy: taken while the rig runs, it stays what it was."""
+        d = {k: v for k, v in self.__dict__.items() if k not in ("latency", "started_s", "ended_s", "publishers")}
+        # Copied: run() goes on replacing each publisher's statistics in this table.
+        d["publishers"] = {name: dict(st) for name, st in self.publishers.items()}
         d["latency"] = self.latency.summary_ms()
         span = max(self.ended_s - self.started_s, 1e-9)
         d["update_hz"] = self.estimates / span

@@ -590,3 +590,32 @@ def test_a_status_line_that_cannot_be_written_is_counted_and_the_rig_goes_on(mod
     assert stats.status_errors >= 1 and "status errors" in stats.status_line(stats.ended_s)
     warned = [r.getMessage() for r in caplog.records if "status line" in r.getMessage()]
     assert len(warned) == 1 and "No space left on device" in warned[0]  # once, not every status_every_s
+
+
+def test_a_summary_taken_while_the_rig_runs_stays_what_it_was(model):
+    # as_dict() while the stages run (a status report, a benchmark's sample) handed out the live
+    # per-publisher statistics, which run() goes on replacing: the summary changed after it was
+    # taken, and a reader iterating it in another thread could meet the table changing size.
+    import copy
+
+    snapshots, said = [], threading.Event()
+
+    def take(line):
+        if not snapshots:
+            d = pipe.stats.as_dict()
+            snapshots.append((d, copy.deepcopy(d)))
+            said.set()
+
+    def source():
+        for f in frames(20):
+            if f.seq == 10:
+                said.wait(10.0)  # more estimates only once the summary was taken
+            yield f
+
+    out = Collect()
+    pipe = RigPipeline(source(), SunEstimator(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100, status_every_s=0.01), on_status=take)
+    stats = pipe.run(timeout_s=30.0)
+    (taken, as_it_was), = snapshots
+    assert stats.publishers["Collect"]["published"] > as_it_was["publishers"]["Collect"]["published"]
+    assert taken == as_it_was
