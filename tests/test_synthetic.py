@@ -18,7 +18,16 @@ from replay.synthetic import Drive, drive_seed, kitti_intrinsics, plan_drive, sy
 from replay.synthetic.camera import Camera, CameraEffects
 from replay.synthetic.drive import SUN_ELEVATION_RANGE_DEG
 from replay.synthetic.render import CameraPose, Renderer, project_direction, project_points, world_from_cam
-from replay.synthetic.scene import GroundMap, Material, Scene, SceneObject, box_solid, make_car
+from replay.synthetic.scene import (
+    GroundMap,
+    Material,
+    Scene,
+    SceneObject,
+    WindowPattern,
+    box_solid,
+    ellipsoid_solid,
+    make_car,
+)
 from replay.synthetic.sky import (
     _AEROSOL_LAMBDA,
     _RAYLEIGH_TAU,
@@ -367,6 +376,24 @@ def test_car_in_front_of_a_long_wall_is_drawn_in_front():
     assert face in car_faces
 
 
+def test_faces_past_32767_are_drawn_and_shaded_as_the_same_faces_alone():
+    # cv2.remap, which fetches each pixel's face attributes, takes tables of under 32767 rows
+    # (SHRT_MAX) and the long drives hold more faces than that. A tree of 33 280 faces far behind
+    # the camera puts the building's faces past that row: they must shade exactly as alone.
+    far = SceneObject("tree", [ellipsoid_solid((0.0, -500.0, 5.0), (4.0, 5.0), GREY, n_lon=256, n_lat=130)])
+    brick = Material((0.5, 0.25, 0.15), contrast=0.2, windows=WindowPattern(ground_floor_m=1.0))
+    building = SceneObject("building", [box_solid((4.0, 14.0), 0.4, 8.0, 10.0, 0.0, 9.0, brick)])
+    pose = CameraPose((0.0, 0.0, 1.65), 0.1)
+    _, alone, _ = render([building], 150.0, 35.0, pose)
+    radiance, ids = alone.radiance.copy(), alone.ids.copy()
+    r, many, _ = render([far, building], 150.0, 35.0, pose)
+    n_far = len(far.parts[0].faces)
+    assert len(r.F) + 2 > 32767
+    assert (ids >= 2).mean() > 0.2  # the building fills much of the picture
+    np.testing.assert_array_equal(many.ids, np.where(ids >= 2, ids + n_far, ids))
+    np.testing.assert_array_equal(many.radiance, radiance)
+
+
 # ---------------------------------------------------------------------------------------------
 # Drives
 
@@ -480,6 +507,46 @@ def test_vignetting_darkens_the_corners_and_blur_softens_edges():
     sharp = Camera(CameraEffects.ideal(0.09), 64, 48).capture(step)
     blurred = Camera(CameraEffects(auto_exposure=False, fixed_exposure=0.09, blur_sigma_px=1.5), 64, 48).capture(step)
     assert len(np.unique(sharp[..., 1])) == 2 and len(np.unique(blurred[..., 1])) > 4
+
+
+# sha256 over every frame's image (uint8 BGR, in order) of drives as they rendered before the
+# face tables became grids (e1fe4b1, one column of under 32767 rows): the first two drives of the
+# shipped model's training set (`sunrig synth data/train --drives 1800 --frames 24 --seed 1000`,
+# render scale 0.5 at KITTI size) and two small ones at full scale. A change here changes the
+# training data: make it on purpose, and say so.
+RENDERED_BEFORE = [
+    (drive_seed(1000, 0), 24, None, 0.5, "9f04def0214d76526281afade1bde0f62916ea218038b4f3a2c4b5b62e24dc48"),
+    (drive_seed(1000, 1), 24, None, 0.5, "2472a641e2b64da50fdea172da4a7d315e07f9bde615851f6e4edd8d48086470"),
+    (3, 6, SMALL, 1.0, "7abd7d804c0857490bc017f5e07797b95b00a84a41dfd12400e4fb6eb6021f28"),
+    (7, 6, SMALL, 1.0, "78e07a31675ba0ce96a74840aae3dc989e3da8d7174948b2e7d0316ac233f957"),
+]
+
+
+@pytest.mark.parametrize(("seed", "frames", "intrinsics", "render_scale", "sha256"), RENDERED_BEFORE)
+def test_drives_render_the_images_they_always_did(seed, frames, intrinsics, render_scale, sha256):
+    import hashlib
+
+    d = Drive(seed, frames, intrinsics=intrinsics, render_scale=render_scale)
+    camera = Camera(d.params.effects, d.intrinsics.width, d.intrinsics.height, seed=seed)
+    h = hashlib.sha256()
+    for k in range(frames):
+        h.update(d.render_frame(k, camera).tobytes())
+    assert h.hexdigest() == sha256
+
+
+def test_a_long_drive_renders():
+    # Drive 2 of seed 0 at 2000 frames: 1975 objects, 36 612 faces along 6 km of road, which the
+    # renderer refused ("a scene may hold at most 32765 faces").
+    d = Drive(drive_seed(0, 2), 2000, intrinsics=SMALL, render_scale=1.0, effects=CameraEffects.ideal(0.02))
+    assert len(d.renderer.F) > 32767
+    camera = Camera(d.params.effects, SMALL.width, SMALL.height, seed=0)
+    drawn = set()
+    for k in (0, 999, 1999):
+        out = d.renderer.render(d.poses[k])
+        drawn |= set(np.unique(out.ids).astype(int).tolist())
+        img = d.render_frame(k, camera)
+        assert img.shape == (SMALL.height, SMALL.width, 3) and img.std() > 5.0
+    assert max(drawn) - 2 > 32767  # the end of the drive draws faces past the old limit
 
 
 def test_noise_needs_an_rng():

@@ -12,8 +12,9 @@ Per frame:
 2. Face ids are painted with ``cv2.fillConvexPoly`` (near-plane clipped) into an id buffer whose
    background is the ground plane below the horizon and the sky above it.
 3. Per pixel, the id fetches the face's plane and attributes in one ``cv2.remap`` (nearest) per
-   table; the ray-plane intersection gives the world point P; shading is Lambertian, direct sun
-   times visibility plus sky/ground ambient; visibility comes from an exit-height map (below).
+   table (laid out as a grid, see :data:`TABLE_COLS`); the ray-plane intersection gives the world
+   point P; shading is Lambertian, direct sun times visibility plus sky/ground ambient; visibility
+   comes from an exit-height map (below).
 
 Shadows: for a ground point G the ray toward the sun leaves the last solid it crosses at some
 height; the map ``H(G)`` stores that height (max over solids; convex solids make it the min over
@@ -52,6 +53,14 @@ _NOISE_TEXELS_PER_M = 12.0
 _GROUND_NOISE_TEXELS_PER_M = 24.0
 _DOME_STEP_DEG = 0.5
 _MAX_SHADOW_CELLS = 4096  # per side of the exit-height map
+# The per-face tables are fetched with cv2.remap, which takes images of under 32767 (SHRT_MAX) rows
+# and columns: one row per face held 32 764 faces, fewer than a long drive's (2000 frames can make
+# 37 000). Row-major over TABLE_COLS columns, the id's (id mod TABLE_COLS, id div TABLE_COLS)
+# addresses a table's row id; a power of two, so that those are exact in float32.
+TABLE_COLS = 1024
+# The id buffer is float32 (cv2.remap's map type), whose integers are exact up to 2**24.
+MAX_FACES = 2**24 - FIRST_FACE_ID
+_IRRADIANCE_CHUNK = 32768  # faces (table rows) lit per call, above the old limit of 32 766 rows
 
 
 # ---------------------------------------------------------------------------------------------
@@ -227,7 +236,6 @@ class Renderer:
         self.xn, self.yn = np.meshgrid(u, v)
         self._xcol, self._yrow = u.astype(np.float64), v.astype(np.float64)
         self._ws: dict[str, np.ndarray] = {}
-        self.zeros = np.zeros((h, w), np.float32)
         hs, ws = -(-h // sky_step_px), -(-w // sky_step_px)
         us = ((np.arange(ws) + 0.5) * sky_step_px - self.intr.cx) / self.intr.fx
         vs = ((np.arange(hs) + 0.5) * sky_step_px - self.intr.cy) / self.intr.fy
@@ -241,7 +249,7 @@ class Renderer:
     def _compile_faces(self) -> None:
         solids: list[Solid] = [p for o in self.scene.objects for p in o.parts]
         verts, faces, normals, offsets, mats = [], [], [], [], []
-        base = 0
+        base = n0 = 0
         self._solid_faces: list[np.ndarray] = []
         for sol in solids:
             verts.append(sol.vertices)
@@ -249,15 +257,18 @@ class Renderer:
             normals.append(sol.normals)
             offsets.append(sol.offsets)
             mats.extend(sol.materials)
-            n0 = sum(len(f) for f in faces[:-1])
             self._solid_faces.append(np.arange(n0, n0 + len(sol.faces)))
             base += len(sol.vertices)
+            n0 += len(sol.faces)
         self.V = np.concatenate(verts) if verts else np.zeros((0, 3))
         self.F = np.concatenate(faces) if faces else np.zeros((0, 4), np.int64)
         self.N = np.concatenate(normals) if normals else np.zeros((0, 3))
         self.D = np.concatenate(offsets) if offsets else np.zeros(0)
         nf = len(self.F)
-        total = nf + FIRST_FACE_ID
+        if nf > MAX_FACES:
+            raise ValueError(f"Renderer: a scene may hold at most {MAX_FACES} faces, got {nf}")
+        # Every table is padded to whole rows of TABLE_COLS; ids never reach the padding.
+        total = -(-(nf + FIRST_FACE_ID) // TABLE_COLS) * TABLE_COLS
         # Texture coordinates (metres): a = e1 . P + a0 along the face (e1 horizontal, a from 0
         # at the face's left edge); b = z on walls (buildings stand on z = 0, so b is the height
         # on the wall), y on flat faces and the ground.
@@ -270,7 +281,7 @@ class Renderer:
         glass = np.zeros((total, 4), np.float32)
         alb = np.zeros((total, 4), np.float32)
         alb[GROUND_ID] = (0.0, 0.0, 0.0, 0.35)  # ground albedo comes from the map
-        fs = slice(FIRST_FACE_ID, None)
+        fs = slice(FIRST_FACE_ID, FIRST_FACE_ID + nf)
         n = self.N
         flat = np.abs(n[:, 2]) >= 0.99
         d1 = np.cross(np.array([0.0, 0.0, 1.0]), n)
@@ -301,7 +312,7 @@ class Renderer:
                 glass[f, :3] = w.glass_rgb[::-1]
         horizontal = np.zeros(total)
         horizontal[GROUND_ID] = 1.0
-        horizontal[FIRST_FACE_ID:] = np.abs(self.N[:, 2]) > 0.7
+        horizontal[FIRST_FACE_ID:FIRST_FACE_ID + nf] = np.abs(self.N[:, 2]) > 0.7
         self.tab_tex = np.stack([e1[:, 0], e1[:, 1], a0, horizontal], axis=-1).astype(np.float32).reshape(-1, 1, 4)
         self._noise_scale = np.full((total, 1), _NOISE_TEXELS_PER_M, np.float32)
         self._noise_scale[GROUND_ID] = _GROUND_NOISE_TEXELS_PER_M
@@ -314,17 +325,22 @@ class Renderer:
         normals_all = np.zeros((total, 3))
         normals_all[GROUND_ID] = (0.0, 0.0, 1.0)
         normals_all[SKY_ID] = (0.0, 0.0, 1.0)
-        normals_all[FIRST_FACE_ID:] = self.N
-        direct = self.sky.direct_irradiance(normals_all)
-        ambient = self.sky.ambient_irradiance(normals_all)
+        normals_all[FIRST_FACE_ID:FIRST_FACE_ID + nf] = self.N
+        direct, ambient = np.zeros((total, 3)), np.zeros((total, 3))
+        # In chunks: the sky integral holds a float64 (rows, 1200) matrix, 9.6 kB a face. A scene
+        # that fits one chunk (every scene before the tables became grids) takes the one BLAS
+        # call over its rows it always took: another split can change the last bit (OpenBLAS
+        # takes a single row through gemv), and with it a pixel.
+        for r0 in range(0, nf + FIRST_FACE_ID, _IRRADIANCE_CHUNK):
+            rows = slice(r0, min(r0 + _IRRADIANCE_CHUNK, nf + FIRST_FACE_ID))
+            direct[rows] = self.sky.direct_irradiance(normals_all[rows])
+            ambient[rows] = self.sky.ambient_irradiance(normals_all[rows])
         direct[SKY_ID] = ambient[SKY_ID] = 0.0
         # Channels 0-2: direct irradiance / pi (so albedo * it is radiance); 3: n . s.
         self.tab_direct = np.concatenate([direct / math.pi, (normals_all @ self.sky.sun_enu)[:, None]], axis=1) \
             .astype(np.float32).reshape(-1, 1, 4)
         self.tab_ambient = np.concatenate([ambient, np.zeros((total, 1))], axis=1) \
             .astype(np.float32).reshape(-1, 1, 4) / np.float32(math.pi)
-        if total >= 32767:
-            raise ValueError(f"Renderer: a scene may hold at most 32765 faces, got {nf}")
 
     def _compile_objects(self) -> None:
         objs = self.scene.objects
@@ -537,16 +553,23 @@ class Renderer:
         ry = self._outer("ry", r_wc[1, 0] * xcol + r_wc[1, 2], r_wc[1, 1] * yrow)
         rz = self._outer("rz", r_wc[2, 0] * xcol + r_wc[2, 2], r_wc[2, 1] * yrow)
         ids = self._rasterise(pose, r_wc, rz)
-        zeros = self.zeros
+        # Where each pixel's face sits in the tables' grid of TABLE_COLS columns (exact: ids are
+        # integers under 2**24 and TABLE_COLS a power of two).
+        id_row = np.multiply(ids, f32(1.0 / TABLE_COLS), out=buf("id_row"))
+        np.floor(id_row, out=id_row)
+        id_col = np.multiply(id_row, f32(-TABLE_COLS), out=buf("id_col"))
+        id_col += ids
 
         def fetch(tab: np.ndarray, name: str) -> np.ndarray:
-            return cv2.remap(tab, zeros, ids, cv2.INTER_NEAREST, dst=buf(name, tab.shape[2]))
+            grid = tab.reshape(-1, TABLE_COLS, tab.shape[-1])  # a view: the tables are padded to whole rows
+            return cv2.remap(grid, id_col, id_row, cv2.INTER_NEAREST, dst=buf(name, tab.shape[-1]))
 
         tmp, tmp2 = buf("tmp"), buf("tmp2")
         # Ray-plane intersection n.(c + t r) = d in camera coordinates: t = k / (n_cam . (xn, yn, 1)).
         plane = self._plane_tab
-        plane[FIRST_FACE_ID:, 0, :3] = self.N @ r_wc
-        plane[FIRST_FACE_ID:, 0, 3] = self.D - self.N @ c
+        faces = slice(FIRST_FACE_ID, FIRST_FACE_ID + len(self.F))
+        plane[faces, 0, :3] = self.N @ r_wc
+        plane[faces, 0, 3] = self.D - self.N @ c
         plane[GROUND_ID, 0, :3] = r_wc[2]
         plane[GROUND_ID, 0, 3] = -c[2]
         g = fetch(plane, "plane")
@@ -642,7 +665,7 @@ class Renderer:
         is_ground = np.equal(ids, GROUND_ID, out=buf("is_ground", dtype=bool))
         # Detail noise, fading with distance where it would only alias.
         nscale = self._noise_scale  # per face: texels per metre
-        nsc = cv2.remap(nscale, zeros, ids, cv2.INTER_NEAREST, dst=buf("nsc"))
+        nsc = cv2.remap(nscale.reshape(-1, TABLE_COLS), id_col, id_row, cv2.INTER_NEAREST, dst=buf("nsc"))
         np.multiply(ta, nsc, out=tmp)
         np.multiply(tb, nsc, out=tmp2)
         noise = cv2.remap(self._noise, tmp, tmp2, cv2.INTER_LINEAR, dst=buf("noise"), borderMode=cv2.BORDER_WRAP)

@@ -189,7 +189,8 @@ class PreethamSky:
         nrm = np.atleast_2d(np.asarray(normals, dtype=np.float64))
         dirs, dw = self._hemisphere()
         sky = self.radiance(dirs).astype(np.float64)  # (M, 3)
-        cosw = np.clip(nrm @ dirs.T, 0.0, None)  # (N, M)
+        cosw = nrm @ dirs.T  # (N, M)
+        np.clip(cosw, 0.0, None, out=cosw)  # in place: at 9.6 kB a normal, a second copy is felt
         e_sky = cosw @ sky * dw
         e_sky_h = (dirs[:, 2] @ sky) * dw
         e_ground_h = e_sky_h + self.sun_irradiance_bgr * self.sun_enu[2]
