@@ -173,6 +173,8 @@ class RigPipeline:
         self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
         self._warned_sparse = False  # said that windows cannot fill (_warn_if_sparse), until they do again
         self._status_error: str | None = None  # what the last status line that failed raised
+        self._failing_since: int | None = None  # the seq whose window began a stretch of failed windows
+        self._failed_in_stretch = 0
         # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
         # what its publish() raised on, and whether its reader is gone.
         self._names: list[str] = []
@@ -420,8 +422,18 @@ class RigPipeline:
                 est = self.estimator.estimate(window)
             except EstimationError as exc:
                 self.stats.estimates_failed += 1
-                log.warning("no estimate for seq %d: %s", feats.frame.seq, exc)
+                self._failed_in_stretch += 1
+                # Once per stretch, as the exposure and partial-window messages: a model answering
+                # NaN fails every window, and was said 10 times a second for as long as it lasted.
+                if self._failing_since is None:
+                    self._failing_since = feats.frame.seq
+                    log.warning("no estimate for seq %d: %s (the windows that fail after it are counted, and said "
+                                "when estimates come again)", feats.frame.seq, exc)
                 continue
+            if self._failing_since is not None:
+                log.info("from seq %d estimates again: %d windows failed since seq %d", feats.frame.seq,
+                         self._failed_in_stretch, self._failing_since)
+                self._failing_since, self._failed_in_stretch = None, 0
             self._publish(est)
             self.stats.estimates += 1
             self.stats.latency.add(self.clock() - arrived)

@@ -619,3 +619,39 @@ def test_a_summary_taken_while_the_rig_runs_stays_what_it_was(model):
     (taken, as_it_was), = snapshots
     assert stats.publishers["Collect"]["published"] > as_it_was["publishers"]["Collect"]["published"]
     assert taken == as_it_was
+
+
+def test_a_stretch_of_failed_windows_is_said_once_and_counted(model, caplog):
+    # A model that answers NaN, or a heading source whose zero keeps changing, fails every window
+    # for as long as that lasts: one warning per window (10 a second, for hours, from the estimate
+    # thread), where the rig says a lasting condition once (the exposure gate, partial windows,
+    # an output's errors). Each is counted; a stretch is said when it starts, and when it ends.
+    from estimator.calibration import EstimationError
+
+    attempted = threading.Semaphore(0)
+    failing = set(range(0, 10)) | set(range(15, 20))
+
+    class FailsInStretches(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            try:
+                seq = max(f.frame.seq for f in window)
+                if seq in failing:
+                    raise EstimationError(f"the model gave {seq % 7 + 1} of 32 token vectors that are not finite")
+                return super().estimate(window, aggregator)
+            finally:
+                attempted.release()
+
+    def one_window_each():  # the next frame once the last one's window was tried: none skipped
+        for f in frames(20):
+            if f.seq > 0:
+                assert attempted.acquire(timeout=10.0)
+            yield f
+
+    out = Collect()
+    with caplog.at_level(logging.INFO, logger="rig.pipeline"):
+        _, stats = run_pipeline(one_window_each(), FailsInStretches(model), [out], queue_size=100)
+    assert stats.estimates_failed == 15 and stats.estimates == len(out.estimates) == 5
+    said = [r for r in caplog.records if "estimate" in r.getMessage() and "seq" in r.getMessage()]
+    assert [r.levelno for r in said] == [logging.WARNING, logging.INFO, logging.WARNING], [r.getMessage() for r in said]
+    assert said[0].getMessage().startswith("no estimate for seq 0: the model gave 1 of 32")
+    assert said[1].getMessage().startswith("from seq 10 estimates again: 10 windows failed")
