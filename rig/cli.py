@@ -164,6 +164,16 @@ _nonneg_int = _int_in(0)
 _positive_float = _float_in(0.0)
 
 
+def _synth_frames(text: str) -> int:
+    """--frames of synth: at most replay.synthetic.MAX_FRAMES, whose comment says why."""
+    from replay.synthetic import MAX_FRAMES
+
+    try:
+        return _int_in(1, MAX_FRAMES)(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (a longer drive's route takes gigabytes to lay out)") from None
+
+
 def _utc_offset_type(text: str) -> float:
     from replay.kitti import UTC_OFFSET_LIMIT_H
 
@@ -1443,7 +1453,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("synth", parents=[debug], help="write procedural street drives with the true sun as native logs")
     p.add_argument("out", type=_path, help="output folder (drives already there are kept: a run resumes)")
     p.add_argument("--drives", type=_positive_int, default=10, help="how many drives (default 10)")
-    p.add_argument("--frames", type=_positive_int, default=40, help="frames per drive (default 40)")
+    p.add_argument("--frames", type=_synth_frames, default=40, help="frames per drive (default 40, at most 5000)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="drive i of seed S is always the same drive")
     # At least 1 frame in 1000 s: a drive's timestamps are int64 nanoseconds.
     p.add_argument("--fps", type=_float_in(1e-3, lo_included=True), default=10.0,

@@ -644,6 +644,38 @@ def test_an_output_that_is_a_file_is_refused_in_one_line(tmp_path):
     assert afile.read_bytes() == b"kept"
 
 
+def test_more_frames_than_synth_takes_are_refused_in_one_line_before_the_folder_is_made(tmp_path):
+    # --frames took any int up to 2**31 - 1: 10**8 laid out its road for minutes, growing, and
+    # 10 000 could take 8 GB (the layout's memory grows with the square of the route).
+    import subprocess
+
+    from replay.synthetic import MAX_FRAMES, write_synthetic_logs
+    from rig.errors import ValidationError
+
+    res = subprocess.run(_synth(tmp_path / "s", "--frames", str(MAX_FRAMES + 1)), capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    (last,) = res.stderr.strip().splitlines()
+    assert "argument --frames" in last and f"from 1 to {MAX_FRAMES}" in last, last
+    with pytest.raises(ValidationError, match=f"frames from 1 to {MAX_FRAMES}"):
+        write_synthetic_logs(tmp_path / "t", drives=1, frames=MAX_FRAMES + 1, seed=0, progress=False)
+    assert not (tmp_path / "s").exists() and not (tmp_path / "t").exists()
+    # The help, written before replay.synthetic is imported, says the same number.
+    from rig.cli import build_parser
+
+    synth = build_parser()._subparsers._group_actions[0].choices["synth"]  # type: ignore[union-attr]
+    (frames,) = (a for a in synth._actions if "--frames" in a.option_strings)
+    assert f"at most {MAX_FRAMES}" in frames.help
+
+
+def test_the_longest_drive_synth_takes_renders():
+    from replay.synthetic import MAX_FRAMES
+
+    d = Drive(drive_seed(0, 0), MAX_FRAMES, intrinsics=SMALL, render_scale=1.0, effects=CameraEffects.ideal(0.02))
+    img = d.render_frame(MAX_FRAMES - 1, Camera(d.params.effects, SMALL.width, SMALL.height, seed=0))
+    assert img.std() > 5.0
+
+
 def test_drives_rendered_in_parallel_are_the_drives_rendered_one_by_one(tmp_path):
     # `--jobs 2` is how docs/model.md makes the training set: the same bytes, whatever renders them.
     from replay.synthetic import write_synthetic_logs

@@ -38,6 +38,7 @@ from rig.types import Intrinsics
 
 __all__ = [
     "KITTI_INTRINSICS",
+    "MAX_FRAMES",
     "CameraEffects",
     "Drive",
     "DriveParams",
@@ -51,6 +52,12 @@ __all__ = [
 
 # The key of a synthetic drive's render scale in its log's ``sunrig`` metadata (docs/log-format.md).
 RENDER_SCALE_KEY = "render_scale"
+# The longest drive write_synthetic_logs (and sunrig synth --frames) takes. A drive's whole route
+# is laid out before its first frame, in occupancy grids over its bounding box, so its memory grows
+# with the square of its length: seed 0's drives peaked at 0.5-3.4 GB at 5000 frames and up to
+# 8.4 GB at 10 000 (its drive 5), where a frame also took up to 0.2 s. KITTI's longest drive is
+# about 5000 frames.
+MAX_FRAMES = 5000
 # The lock file of a folder being written (rig.files.folder_lock): hidden, and no *.mcap a reader takes.
 SYNTH_LOCK = ".synth.lock"
 
@@ -192,9 +199,10 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     with -9, and leave no .part. Returns the paths in order. Images go through the log
     writer's JPEG encoder.
     """
-    if drives < 0 or frames < 1 or jobs < 1:
+    if drives < 0 or not 1 <= frames <= MAX_FRAMES or jobs < 1:
         raise ValidationError(
-            f"synthetic logs: expected drives >= 0, frames >= 1 and jobs >= 1, got {drives}, {frames}, {jobs}"
+            f"synthetic logs: expected drives >= 0, frames from 1 to {MAX_FRAMES} (longer routes take gigabytes to "
+            f"lay out) and jobs >= 1, got {drives}, {frames}, {jobs}"
         )
     out = make_output_folder(out_dir, what="folder", holds="OUT is the folder the drives are written to")
     # Held to the end: a second synth on the folder (started twice, or resumed while the first
