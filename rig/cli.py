@@ -527,6 +527,9 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
             raise
         if not ran:  # stopped (or failed) before the pipeline ran: no empty recording left behind
             _discard_empty_recording(recorder)
+    # What the outputs wrote once closed: a background writer still at work when the run ended
+    # was reported "0 written" (exit 2, "wrote none") of a file that held estimates.
+    pipe.collect_publisher_stats()
     if not quiet:
         if live_line:
             sys.stderr.write("\n")

@@ -234,7 +234,7 @@ class RigPipeline:
                 estimate_done.wait(_POLL_S)
                 now = self.clock()
                 if self.on_status and now >= next_status:
-                    self._collect_publisher_stats()
+                    self.collect_publisher_stats()
                     self._report_status(self.on_status, self.stats.status_line(now))
                     next_status = now + self.config.status_every_s
                 if deadline is not None and now >= deadline:
@@ -252,7 +252,7 @@ class RigPipeline:
             if estimate_done.is_set():
                 self.stats.windows_skipped += len(self._mailbox)
             self.stats.ended_s = self.clock()
-            self._collect_publisher_stats()
+            self.collect_publisher_stats()
         stuck = [f"sunrig-{name}" for name, done in stages.items() if not done.is_set()]
         if stuck:
             log.warning("abandoned stage(s) %s that did not stop within %.0f s", ", ".join(stuck), _JOIN_S)
@@ -301,7 +301,10 @@ class RigPipeline:
                 log.warning("the status line could not be written (%s): counted, and the rig goes on", text)
             self._status_error = text
 
-    def _collect_publisher_stats(self) -> None:
+    def collect_publisher_stats(self) -> None:
+        """Take each output's statistics into ``stats.publishers``: at each status line, at the end
+        of :meth:`run`, and again by the caller once it has closed the outputs, whose background
+        writers may still have been writing (or dropping) when the run ended."""
         self.stats.publish_errors = sum(raised.count for raised in self._raised)
         for p, name, raised in zip(self.publishers, self._names, self._raised, strict=True):
             try:

@@ -1765,3 +1765,34 @@ def test_an_empty_source_flag_is_a_usage_error_not_an_override_of_the_config(tmp
         (said,) = captured.err.strip().splitlines()
         assert said.startswith(f"sunrig {command[0]}: error: argument {flag}: expected a source, got an empty "
                                "string (leave the flag out to use the config's)"), said
+
+
+def test_the_exit_report_counts_what_the_outputs_wrote_as_they_closed(tmp_path, monkeypatch, capsys):
+    # A background output still writing when the run ended was reported from the statistics taken
+    # then: "0 written" and exit 2 ("wrote none") for a JSONL that held estimates once closed.
+    import threading
+
+    import rig.cli
+    from rig.publishers import BackgroundPublisher, JsonlPublisher
+
+    closing = threading.Event()
+    real_publish, real_close_all, real_init = JsonlPublisher.publish, rig.cli._close_all, BackgroundPublisher.__init__
+
+    def slow_publish(self, est):  # a slow disk: nothing is written before the outputs close
+        closing.wait(10.0)
+        return real_publish(self, est)
+
+    def close_all(pubs, stop):
+        closing.set()
+        return real_close_all(pubs, stop)
+
+    monkeypatch.setattr(JsonlPublisher, "publish", slow_publish)
+    monkeypatch.setattr(rig.cli, "_close_all", close_all)
+    # A short queue, so that the slow disk costs estimates and the report has a line to say.
+    monkeypatch.setattr(BackgroundPublisher, "__init__", lambda self, inner, **kw: real_init(self, inner, max_pending=4))
+    out = tmp_path / "est.jsonl"
+    rc, captured = _main_in_process(["demo", "--fast", "--quiet", "--jsonl", str(out)], capsys)
+    lines = out.read_text().splitlines()
+    reported = re.search(r"JsonlPublisher: (\d+) estimates dropped .*, (\d+) written", captured.err)
+    assert reported is not None, captured.err
+    assert rc == 0 and int(reported.group(2)) == len(lines) > 0, captured.err
