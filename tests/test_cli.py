@@ -1789,7 +1789,8 @@ def test_the_exit_report_counts_what_the_outputs_wrote_as_they_closed(tmp_path, 
     monkeypatch.setattr(JsonlPublisher, "publish", slow_publish)
     monkeypatch.setattr(rig.cli, "_close_all", close_all)
     # A short queue, so that the slow disk costs estimates and the report has a line to say.
-    monkeypatch.setattr(BackgroundPublisher, "__init__", lambda self, inner, **kw: real_init(self, inner, max_pending=4))
+    monkeypatch.setattr(BackgroundPublisher, "__init__",
+                        lambda self, inner, **kw: real_init(self, inner, max_pending=4))
     out = tmp_path / "est.jsonl"
     rc, captured = _main_in_process(["demo", "--fast", "--quiet", "--jsonl", str(out)], capsys)
     lines = out.read_text().splitlines()
