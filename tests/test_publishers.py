@@ -692,6 +692,17 @@ def test_loop_url_string_is_opened_and_closed_by_the_publisher():
         pub.publish(make_estimate(5, 5))
 
 
+def test_what_loop_url_holds_for_its_reader_stays_written_at_close():
+    # loop://'s out_waiting counts its loopback queue (sent, not yet read back), not unsent bytes:
+    # taken for them, a close called every sentence the rig had sent there dropped.
+    pub = SerialPublisher("loop://", format="nmea")
+    for seq in range(3):
+        publish_and_wait(pub, make_estimate(5, 5, seq=seq), seq)
+    within(HANG_GUARD_S, pub.close)
+    st = pub.stats()
+    assert (st["written"], st["dropped_unsent"]) == (3, 0), st
+
+
 def test_close_returns_while_the_write_is_stuck_and_the_writer_closes_the_port_later(caplog):
     port = HungDriverPort()
     pub = SerialPublisher(port, format="nmea", join_timeout_s=0.2)
