@@ -10,7 +10,6 @@ give the same inputs, outputs, dynamic axes and metadata, and the runtime cannot
 from __future__ import annotations
 
 import contextlib
-import errno
 import hashlib
 import logging
 import math
@@ -40,7 +39,7 @@ from estimator.contract import (
 )
 from estimator.nets import TINY, Aggregator, Backbone, NetConfig
 from rig.errors import MissingExtraError, ModelError, ValidationError, require_torch
-from rig.files import make_output_folder
+from rig.files import make_output_folder, sync_to_disk
 
 require_torch()  # a missing torch names the extra to install
 import torch  # noqa: E402  (imported, not require_torch's value, so mypy knows torch.nn.Module)
@@ -139,23 +138,6 @@ def export_model(
             os.replace(path, out / name)
         sync_to_disk(out)
     return out
-
-
-def sync_to_disk(path: Path) -> None:
-    """Flush a file's data, or a folder's entries, to the disk. A folder cannot be opened for that
-    on Windows, and some file systems refuse to sync one (EINVAL): its rename is then as lasting as
-    the file system makes it."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except (IsADirectoryError, PermissionError):
-        return  # Windows opens no folder
-    try:
-        os.fsync(fd)
-    except OSError as exc:
-        if not (path.is_dir() and exc.errno in (errno.EINVAL, errno.EBADF, errno.ENOTSUP)):
-            raise
-    finally:
-        os.close(fd)
 
 
 def export_graph(

@@ -73,7 +73,7 @@ from estimator.contract import (
 from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
-from rig.files import folder_lock, make_output_folder, write_replacing
+from rig.files import folder_lock, make_output_folder, sync_to_disk, write_replacing
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.ring import DEFAULT_MAX_AGE_S, UTC_DISAGREEMENT_TOLERANCE_S
 from rig.types import Frame, HeadingRef
@@ -83,7 +83,7 @@ require_torch()  # a missing torch names the extra to install
 import torch  # noqa: E402  (imported, not require_torch's value, so mypy types it)
 
 from estimator import nets  # noqa: E402  (needs torch, checked just above)
-from estimator.export import STAGING_PREFIX, export_model, sync_to_disk  # noqa: E402
+from estimator.export import STAGING_PREFIX, export_model  # noqa: E402
 
 log = logging.getLogger(__name__)
 # The trained weights beside the exported graphs, as plain arrays (float16, no pickle, ignored by

@@ -108,6 +108,24 @@ def _take_lock(path: Path, fcntl: Any, *, command: str, flag: str) -> int | None
     return fd
 
 
+def sync_to_disk(path: Path) -> None:
+    """Flush a file's data, or a folder's entries, to the disk: a file before it is renamed into
+    place, its folder after, so that a power loss leaves the old file or the new one whole. A
+    folder cannot be opened for that on Windows, and some file systems refuse to sync one (EINVAL):
+    its rename is then as lasting as the file system makes it."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except (IsADirectoryError, PermissionError):
+        return  # Windows opens no folder
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if not (path.is_dir() and exc.errno in (errno.EINVAL, errno.EBADF, errno.ENOTSUP)):
+            raise
+    finally:
+        os.close(fd)
+
+
 def write_replacing(path: str | os.PathLike[str], write: Callable[[Path], object]) -> None:
     """``write`` a hidden sibling of ``path``, then rename it over ``path``: a kill or a full disk
     mid-write leaves the file that was there (or none), never a torn or empty one, and a sibling

@@ -6,6 +6,7 @@ UNTRAINED tiny model: it exercises loading, shapes and plumbing in seconds, neve
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -49,3 +50,39 @@ def tiny_model_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # width needs is tested in test_encoding.py.)
     return build_random_model(tmp_path_factory.mktemp("tiny_model"), TINY, seed=0, crops_per_frame=4,
                               frames_per_window=8)
+
+
+class DiskEvents(list):
+    """The fsyncs (("fsync", path the descriptor names)) and renames (("replace", src, dst)) a
+    process made, in order, real paths."""
+
+    def synced_in_order(self, path: str | os.PathLike[str]) -> bool:
+        """Whether ``path`` was written as a power loss cannot tear: renamed into place once, its
+        data synced before the rename, and its folder (the rename) after."""
+        path = os.path.realpath(path)
+        renames = [i for i, e in enumerate(self) if e[0] == "replace" and e[2] == path]
+        if len(renames) != 1:
+            return False
+        i = renames[0]
+        return ("fsync", self[i][1]) in self[:i] and ("fsync", os.path.dirname(path)) in self[i + 1:]
+
+
+@pytest.fixture
+def disk_events(monkeypatch: pytest.MonkeyPatch) -> DiskEvents:
+    """Records this process's fsyncs and renames (:class:`DiskEvents`) while the test runs."""
+    if not os.path.isdir("/proc/self/fd"):
+        pytest.skip("names an fsync's file by /proc/self/fd (Linux)")
+    events = DiskEvents()
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        events.append(("fsync", os.path.realpath(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
+        events.append(("replace", os.path.realpath(src), os.path.realpath(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    return events

@@ -688,27 +688,6 @@ def test_drives_rendered_in_parallel_are_the_drives_rendered_one_by_one(tmp_path
     assert not list((tmp_path / "two").glob("*.part"))
 
 
-@pytest.fixture
-def disk_events(monkeypatch):
-    """The fsyncs (by the path the descriptor names) and renames this process makes, in order."""
-    if not os.path.isdir("/proc/self/fd"):
-        pytest.skip("names an fsync's file by /proc/self/fd (Linux)")
-    events = []
-    real_fsync, real_replace = os.fsync, os.replace
-
-    def fsync(fd):
-        events.append(("fsync", os.path.realpath(f"/proc/self/fd/{fd}")))
-        return real_fsync(fd)
-
-    def replace(src, dst):
-        events.append(("replace", os.path.realpath(src), os.path.realpath(dst)))
-        return real_replace(src, dst)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-    monkeypatch.setattr(os, "replace", replace)
-    return events
-
-
 def test_a_finished_drive_is_on_the_disk_before_it_takes_its_name(tmp_path, disk_events):
     # A drive was renamed from its .part with its data still in memory: after a power loss the
     # folder could hold the drive's name on an empty or cut file, which a resume refuses until it
@@ -716,10 +695,7 @@ def test_a_finished_drive_is_on_the_disk_before_it_takes_its_name(tmp_path, disk
     from replay.synthetic import write_synthetic_logs
 
     (path,) = write_synthetic_logs(tmp_path, drives=1, frames=2, seed=9, intrinsics=SMALL, progress=False)
-    path = os.path.realpath(path)
-    (rename,) = [i for i, e in enumerate(disk_events) if e[0] == "replace" and e[2] == path]
-    assert ("fsync", disk_events[rename][1]) in disk_events[:rename], disk_events
-    assert ("fsync", os.path.dirname(path)) in disk_events[rename + 1:], disk_events
+    assert disk_events.synced_in_order(path), disk_events
 
 
 def test_a_drive_that_fills_the_disk_leaves_no_part_file(tmp_path, monkeypatch):

@@ -1513,44 +1513,6 @@ def test_a_resume_keeps_the_settings_without_a_flag_that_its_run_began_with(logs
     assert contract.frames_per_window == cfg.frames_per_window
 
 
-def _synced_in_order(events, path):
-    """Whether ``events`` (("fsync", path) and ("replace", src, dst), in order) wrote ``path`` as a
-    power loss cannot tear: its data on the disk before it is renamed over the old file, and the
-    rename on the disk (its folder synced) after."""
-    import os
-
-    renames = [i for i, e in enumerate(events) if e[0] == "replace" and e[2] == str(path)]
-    if len(renames) != 1:
-        return False
-    i = renames[0]
-    src = events[i][1]
-    return (("fsync", src) in events[:i]
-            and ("fsync", os.path.realpath(os.path.dirname(path))) in events[i + 1:])
-
-
-@pytest.fixture
-def disk_events(monkeypatch):
-    """The fsyncs (by the path the descriptor names) and renames this process makes, in order."""
-    import os
-
-    if not os.path.isdir("/proc/self/fd"):
-        pytest.skip("names an fsync's file by /proc/self/fd (Linux)")
-    events = []
-    real_fsync, real_replace = os.fsync, os.replace
-
-    def fsync(fd):
-        events.append(("fsync", os.path.realpath(f"/proc/self/fd/{fd}")))
-        return real_fsync(fd)
-
-    def replace(src, dst):
-        events.append(("replace", os.path.realpath(src), os.path.realpath(dst)))
-        return real_replace(src, dst)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-    monkeypatch.setattr(os, "replace", replace)
-    return events
-
-
 def test_a_checkpoint_and_the_weights_reach_the_disk_before_they_replace_the_last(tmp_path, disk_events):
     # Renamed over the last checkpoint with nothing synced, a power loss minutes later can leave
     # checkpoint.pt empty or torn (the rename reached the disk, the data did not), and a resume
@@ -1560,7 +1522,7 @@ def test_a_checkpoint_and_the_weights_reach_the_disk_before_they_replace_the_las
     _save_checkpoint(tmp_path / CHECKPOINT, {"w": torch.zeros(10)})
     save_weights(torch.nn.Linear(2, 2), torch.nn.Linear(2, 2), tmp_path)
     for name in (CHECKPOINT, "weights.npz"):
-        assert _synced_in_order(disk_events, (tmp_path / name).resolve()), (name, disk_events)
+        assert disk_events.synced_in_order(tmp_path / name), (name, disk_events)
 
 
 def test_an_exported_model_reaches_the_disk_before_it_replaces_the_last(tmp_path, disk_events):
@@ -1571,7 +1533,7 @@ def test_an_exported_model_reaches_the_disk_before_it_replaces_the_last(tmp_path
 
     out = build_random_model(tmp_path / "model")
     for name in (CHECKSUMS_FILE, BACKBONE_FILE, AGGREGATOR_FILE):
-        assert _synced_in_order(disk_events, (out / name).resolve()), (name, disk_events)
+        assert disk_events.synced_in_order(out / name), (name, disk_events)
 
 
 def test_a_run_killed_mid_export_exports_again_and_leaves_nothing_of_the_first(logs, tmp_path):

@@ -17,7 +17,6 @@ ambient), ``render`` (rasteriser, shading, shadows), ``camera`` (exposure, noise
 
 from __future__ import annotations
 
-import errno
 import math
 import os
 import signal
@@ -32,7 +31,7 @@ import numpy as np
 from replay.synthetic.camera import CameraEffects
 from replay.synthetic.drive import KITTI_INTRINSICS, Drive, DriveParams, kitti_intrinsics, plan_drive, synth_drive
 from rig.errors import ValidationError
-from rig.files import folder_lock, make_output_folder
+from rig.files import folder_lock, make_output_folder, sync_to_disk
 from rig.progress import Progress
 from rig.types import Intrinsics
 
@@ -82,13 +81,13 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
         # On the disk before it takes the drive's name, and the name on the disk after: renamed
         # with its data still in memory, a power loss could leave the name on an empty or cut
         # drive, which a resume refuses (_kept) until it is deleted by hand.
-        _sync_to_disk(tmp)
+        sync_to_disk(tmp)
         os.replace(tmp, path)
     except BaseException:
         # A drive cut short (a full disk, Ctrl-C, a worker stopped) would only hold its space.
         tmp.unlink(missing_ok=True)
         raise
-    _sync_to_disk(path.parent)
+    sync_to_disk(path.parent)
     return path, frames
 
 
@@ -125,22 +124,6 @@ def _watch_parent(parent_pid: int) -> None:
     while os.getppid() == parent_pid:  # a parent that dies gives its children another
         time.sleep(PARENT_POLL_S)
     os.kill(os.getpid(), signal.SIGTERM)
-
-
-def _sync_to_disk(path: Path) -> None:
-    """Flush a file's data, or a folder's entries, to the disk. Windows opens no folder for it, and
-    some file systems refuse to sync one (EINVAL): its rename is then as lasting as they make it."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except (IsADirectoryError, PermissionError):
-        return
-    try:
-        os.fsync(fd)
-    except OSError as exc:
-        if not (path.is_dir() and exc.errno in (errno.EINVAL, errno.EBADF, errno.ENOTSUP)):
-            raise
-    finally:
-        os.close(fd)
 
 
 def _float_or_nan(text: str) -> float:
