@@ -12,7 +12,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rig.errors import SunrigError
+from rig.errors import PublishError, SunrigError
 from rig.publishers import QueuedWriter
 from rig.types import Frame, SunEstimate
 
@@ -131,7 +131,8 @@ class RecorderPublisher:
             self._worker.put(frame)  # (nothing, once closed)
 
     def publish(self, est: SunEstimate) -> None:
-        self._worker.put(est)
+        if not self._worker.put(est):  # closed: said, so that the pipeline counts it, as any output's
+            raise PublishError(f"publish() on the closed recorder of {self.path}; make a new one")
 
     def _write(self, item: Frame | SunEstimate) -> None:
         if isinstance(item, Frame):

@@ -294,3 +294,16 @@ def test_an_empty_recording_to_a_device_leaves_the_device(tmp_path):
     w = LogWriter(node)
     w.close()
     assert not discard_if_empty(w) and stat.S_ISCHR(os.stat(node).st_mode)
+
+
+def test_an_estimate_published_to_a_closed_recorder_is_refused_not_lost_unsaid(tmp_path):
+    # As a closed background output does: the pipeline counts a PublishError; a silent drop left
+    # the recording short by estimates the rig believed recorded.
+    from rig.errors import PublishError
+
+    rec = RecorderPublisher(LogWriter(tmp_path / "closed.mcap"))
+    rec.publish(make_estimate(10.0, 20.0, seq=0))
+    rec.close()
+    with pytest.raises(PublishError, match="closed"):
+        rec.publish(make_estimate(10.0, 20.0, seq=1))
+    assert [d["seq"] for d in read_estimates(tmp_path / "closed.mcap")] == [0]
