@@ -136,6 +136,9 @@ def main() -> None:
         stats = pipe.run()
         wall = time.monotonic() - t0
         pub.close()
+        # The serial writer may still have been writing when run() took its statistics: read
+        # them again after the close, as the CLI's exit report does.
+        pipe.collect_publisher_stats()
         os.close(master)
         os.close(slave)
         d = stats.as_dict()
