@@ -30,9 +30,9 @@ The heading is :attr:`HeadingRef.RELATIVE`, 0 at the first frame, and drifts: ev
 its rotation error (``benchmarks/bench_vo.py`` measures the drift per 100 m on synthetic drives).
 When tracking is lost (too few points, a failed or refused fit) the frame gets no heading and
 odometry restarts from it, carrying over the rough turn (image shift or rotation-only fit) where
-there is one: its error goes into the drift. Across a gap in the frames or a change of camera
-mode no turn can be carried: the heading starts again at 0 in a new epoch. ``stats`` counts each
-case; ``docs/drivers.md`` states it.
+there is one: its error goes into the drift. Where there is none (a featureless or dark stretch),
+across a gap in the frames, or across a change of camera mode, no turn can be carried: the heading
+starts again at 0 in a new epoch. ``stats`` counts each case; ``docs/drivers.md`` states it.
 
 :class:`VisualOdometry` is pure (an image and a time in, a heading sample out, no clock, no I/O);
 :func:`with_visual_heading` attaches its heading to a frame stream.
@@ -247,16 +247,17 @@ class VisualOdometry:
     ``stats`` counts frames and keyframes; which fit gave each heading (``essential``,
     ``rotation_only``, ``still``; ``prior``: the essential fit chosen by the motion prior); frames
     without heading (``lost``), of which ``rejected`` had a fit that disagreed with both the image
-    shift and the rotation-only fit; ``carried``: losses over which a rough turn was carried;
-    ``restarts`` (the intrinsics changed) and ``gaps`` (frames more than ``max_gap_s`` apart).
+    shift and the rotation-only fit; ``carried``: losses over which a rough turn was carried, and
+    ``uncarried``: those with none; ``restarts`` (the intrinsics changed) and ``gaps`` (frames more
+    than ``max_gap_s`` apart).
 
-    A restart or a gap hides the turn made meanwhile, so the heading cannot go on: the frame after
-    it starts a new epoch (:attr:`epoch`, carried by each sample) at heading 0, as the first frame
+    A restart, a gap or an uncarried loss hides the turn made meanwhile, so the heading cannot go
+    on: the frame after it starts a new epoch (:attr:`epoch`, carried by each sample) at heading 0, as the first frame
     did, and the rig never puts frames of two epochs in one window (``docs/conventions.md``).
     """
 
     STATS = ("frames", "keyframes", "essential", "rotation_only", "still", "prior", "lost", "rejected", "carried",
-             "restarts", "gaps")
+             "uncarried", "restarts", "gaps")
 
     # The tracking state, set by _forget_images and each keyframe.
     _heading_key: float
@@ -383,6 +384,13 @@ class VisualOdometry:
         if carry_rad is not None:
             self.stats["carried"] += 1
             self._last_heading += carry_rad
+        else:
+            # Not even a rough turn: what the vehicle turned since the previous frame is as unknown
+            # as across a gap in the frames, so this frame is the zero of a new epoch. Going on at
+            # the old heading would put frames from either side of an unseen turn in one window.
+            self.stats["uncarried"] += 1
+            self.epoch += 1
+            self._last_heading = 0.0
         self._new_keyframe(gray, self._last_heading)
 
     def _new_keyframe(self, gray: np.ndarray, heading: float) -> None:

@@ -272,6 +272,27 @@ def test_lost_frames_carry_the_image_shift_turn_with_its_sign(step_deg):
     assert math.degrees(math.remainder(vo.heading_rad, 2 * math.pi)) == pytest.approx(5 * step_deg, abs=1.5)
 
 
+def test_a_loss_with_no_rough_turn_starts_a_new_epoch_at_zero():
+    # A featureless stretch (a lens covered, a dark underpass): tracking is lost and the image shift
+    # has no peak, so no turn is carried. The heading went on at its old value in the same epoch, as
+    # if the vehicle had not turned meanwhile, and the rig could window frames from either side of
+    # the stretch together; the turn is as unknown as across a gap in the frames, so it is a new zero.
+    base = textured()
+    grey = np.full_like(base, 128)
+    vo = VisualOdometry()
+    first = vo.update(0.0, base, INTR)
+    assert first is not None and first.attitude().epoch == 0
+    assert vo.update(0.1, grey, INTR) is None
+    assert vo.stats["lost"] == 1 and vo.stats["carried"] == 0 and vo.stats["uncarried"] == 1
+    turned = rotated_view(base, INTR, math.radians(30.0))
+    assert vo.update(0.2, turned, INTR) is None  # nothing tracks out of the grey keyframe either
+    after = vo.update(0.3, rotated_view(base, INTR, math.radians(33.0)), INTR)
+    assert after is not None and after.attitude().epoch >= 1
+    # Its zero is the frame tracking started again from, not the first frame: 3 deg on from there.
+    assert math.degrees(math.remainder(after.heading_rad, 2 * math.pi)) == pytest.approx(3.0, abs=WARP_TOL_DEG)
+    assert vo.stats["lost"] == vo.stats["carried"] + vo.stats["uncarried"]
+
+
 def test_a_fit_that_disagrees_with_the_image_shift_and_the_rotation_only_fit_is_rejected():
     # With both tolerances of VisualOdometry._plausible at 0 an essential-matrix fit (the drive
     # moves forward: no rotation-only frame, measured) never equals the coarse or rotation-only yaw,
