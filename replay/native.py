@@ -20,6 +20,7 @@ Two choices carry the robustness:
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -713,38 +714,66 @@ _AUX_DECODERS = {
 }
 
 
+_AUX_FIELDS = {
+    TOPIC_HEADING: "attitude",
+    TOPIC_GNSS: "gnss",
+    TOPIC_UTC: "utc_ns",
+    TOPIC_SUN_TRUTH: "sun_enu_truth",
+}
+
+
 class _FrameAssembler:
     """Turns one log's messages, in file order, into Frames. Pure: no I/O, no clock.
 
-    The per-frame messages precede their image and carry the same sequence; the calibration holds
-    until the next one. A message whose sequence does not match the image belonged to a frame whose
-    image was lost, and is dropped.
+    A per-frame message belongs to the image with the same MCAP log time and sequence, whether it
+    comes before the image (sunrig's writer) or after it (another writer's). The sequence alone
+    cannot tell: a writer that leaves every sequence 0 made each heading written after its image
+    the next image's. So a frame is held from its image until the next image (or a gap, or the
+    end) for the messages that follow it; take :meth:`take` after each call. A message that
+    matches no image belonged to a frame whose image was lost, or was stamped otherwise than its
+    image, and is dropped and counted in :attr:`unmatched`. The calibration holds until the next.
     """
 
     def __init__(self) -> None:
         self.intrinsics: Intrinsics | None = None
-        self._pending: dict[str, tuple[int, Any]] = {}
-        # Per-frame messages dropped for a sequence no image after them had, by topic: empty for a
-        # sunrig log that lost nothing; in another writer's, the sign of a layout sunrig cannot
-        # pair (a heading after its image, or a sequence counted per channel).
+        # topic -> ((sequence, log time), value) of the message waiting for its image
+        self._pending: dict[str, tuple[tuple[int, int], Any]] = {}
+        self._held: Frame | None = None  # the newest frame, open to messages written after its image
+        self._held_key: tuple[int, int] | None = None
+        self._ready: list[Frame] = []
+        # Per-frame messages dropped for a sequence and log time no image had, by topic: empty for
+        # a sunrig log that lost nothing; in another writer's, the sign of a layout sunrig cannot
+        # pair (a heading stamped with a time of its own, or a sequence counted per channel).
         self.unmatched: dict[str, int] = {}
+
+    def take(self) -> list[Frame]:
+        """The frames complete since the last call, in order."""
+        ready, self._ready = self._ready, []
+        return ready
 
     def gap(self) -> None:
         """Messages were lost (a skipped chunk): forget state that may no longer be current."""
+        self._release()
         self.intrinsics = None
         self._pending.clear()
 
     def end(self) -> None:
-        """The log ended: per-frame messages still waiting had no image after them."""
-        self._drop_unmatched(self._pending, None)
+        """The log ended: the held frame is complete; messages still waiting had no image."""
+        self._release()
+        for topic in self._pending:
+            self._count_unmatched(topic)
         self._pending = {}
 
-    def _drop_unmatched(self, pending: dict[str, tuple[int, Any]], seq: int | None) -> None:
-        for topic, (s, _) in pending.items():
-            if s != seq:
-                self.unmatched[topic] = self.unmatched.get(topic, 0) + 1
+    def _release(self) -> None:
+        if self._held is not None:
+            self._ready.append(self._held)
+        self._held, self._held_key = None, None
 
-    def feed(self, topic: str, seq: int, log_time_ns: int, data: bytes) -> Frame | None:
+    def _count_unmatched(self, topic: str) -> None:
+        self.unmatched[topic] = self.unmatched.get(topic, 0) + 1
+
+    def feed(self, topic: str, seq: int, log_time_ns: int, data: bytes) -> None:
+        """One message; raises :class:`_CorruptMessage` for one that does not decode."""
         if topic == TOPIC_CALIBRATION:
             try:
                 self.intrinsics = decode_calibration(data)
@@ -752,35 +781,48 @@ class _FrameAssembler:
                 # Better no frames until the next calibration than frames with wrong intrinsics.
                 self.intrinsics = None
                 raise _CorruptMessage(f"calibration: {exc}") from exc
-            return None
+            return
+        key = (seq, log_time_ns)
         decoder = _AUX_DECODERS.get(topic)
         if decoder is not None:
             try:
-                self._pending[topic] = (seq, decoder(data))
+                value = decoder(data)
             except _MESSAGE_ERRORS as exc:
                 raise _CorruptMessage(f"{topic}: {exc}") from exc
-            return None
+            name = _AUX_FIELDS[topic]
+            if self._held is not None and key == self._held_key and getattr(self._held, name) is None:
+                try:  # written after its image: the held frame's
+                    change: dict[str, Any] = {name: value}
+                    self._held = dataclasses.replace(self._held, **change)
+                except _MESSAGE_ERRORS as exc:
+                    raise _CorruptMessage(f"{topic}: {exc}") from exc
+                return
+            if topic in self._pending:  # a second one before any image: the first matched none
+                self._count_unmatched(topic)
+            self._pending[topic] = (key, value)
+            return
         if topic != TOPIC_IMAGE:
-            return None
+            return
+        self._release()  # the next image: the frame before it is complete
         pending, self._pending = self._pending, {}
-        self._drop_unmatched(pending, seq)
+        for t, (k, _) in pending.items():
+            if k != key:
+                self._count_unmatched(t)
         if self.intrinsics is None:
             raise _CorruptMessage("image without a valid calibration before it")
         try:
             image = decode_image(data)
-            aux = {t: v for t, (s, v) in pending.items() if s == seq}
-            return Frame(
+            aux = {_AUX_FIELDS[t]: v for t, (k, v) in pending.items() if k == key}
+            self._held = Frame(
                 t_mono_s=log_time_ns / 1e9,
                 seq=seq,
                 image_bgr=image,
                 intrinsics=self.intrinsics,
-                attitude=aux.get(TOPIC_HEADING),
-                utc_ns=aux.get(TOPIC_UTC),
-                gnss=aux.get(TOPIC_GNSS),
-                sun_enu_truth=aux.get(TOPIC_SUN_TRUTH),
+                **aux,
             )
         except _MESSAGE_ERRORS as exc:  # ValidationError is a ValueError
             raise _CorruptMessage(f"image: {exc}") from exc
+        self._held_key = key
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1186,26 +1228,28 @@ class NativeLogSource:
             for item in _messages(f, stats, name):
                 if item is None:
                     assembler.gap()
-                    continue
-                topic, msg = item
-                try:
-                    frame = assembler.feed(topic, msg.sequence, msg.log_time, msg.data)
-                except _CorruptMessage as exc:
-                    stats.corrupt_skipped += 1
-                    if warned < _MAX_WARNINGS:
-                        warned += 1
-                        logger.warning(
-                            "%s: skipped a corrupt message at seq %d: %s", name, msg.sequence, exc
-                        )
-                    continue
-                if frame is not None:
+                else:
+                    topic, msg = item
+                    try:
+                        assembler.feed(topic, msg.sequence, msg.log_time, msg.data)
+                    except _CorruptMessage as exc:
+                        stats.corrupt_skipped += 1
+                        if warned < _MAX_WARNINGS:
+                            warned += 1
+                            logger.warning(
+                                "%s: skipped a corrupt message at seq %d: %s", name, msg.sequence, exc
+                            )
+                for frame in assembler.take():
                     stats.frames_read += 1
                     yield frame
-        assembler.end()
+            assembler.end()
+            for frame in assembler.take():
+                stats.frames_read += 1
+                yield frame
         if assembler.unmatched:
             logger.warning(
-                "%s: dropped %s that matched no image, and its frames replay without them: a frame's "
-                "messages carry its image's MCAP sequence and come before the image (docs/log-format.md)",
+                "%s: dropped %s that matched no image, and its frames replay without them: the writer must "
+                "give each of a frame's messages its image's MCAP log time and sequence (docs/log-format.md)",
                 name,
                 ", ".join(f"{n} {topic} messages" for topic, n in sorted(assembler.unmatched.items())),
             )

@@ -1018,6 +1018,71 @@ def test_a_camera_recording_without_a_calibration_sunrig_reads_is_refused_by_nam
     assert not isinstance(info.value, EmptyLogError)
 
 
+def _heading_after_image_mcap(path: Path, *, heading_offset_ns: int = 0, finish: bool = True,
+                              sequence: str = "zero") -> list[float]:
+    """Another writer's camera log whose frames write the heading after the image, at the image's
+    log time plus ``heading_offset_ns``, and every message at MCAP sequence 0 (``sequence``
+    "zero") or at the frame's index ("frame"); returns the heading (deg) of each of its five
+    frames."""
+    headings = [10.0 * i + 5.0 for i in range(5)]
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="someone-else")
+        ids = {}
+        for topic in (TOPIC_CALIBRATION, TOPIC_IMAGE, TOPIC_HEADING):
+            spec = native.CHANNELS[topic]
+            sid = w.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_bytes())
+            ids[topic] = w.register_channel(topic, spec.message_encoding, sid)
+        t0 = 1_700_000_000 * 10**9  # wall-clock log times, as such a writer stamps them
+        for i, heading in enumerate(headings):
+            t = t0 + i * 100_000_000
+            seq = i if sequence == "frame" else 0
+            if i == 0:
+                w.add_message(ids[TOPIC_CALIBRATION], log_time=t, publish_time=t, sequence=seq,
+                              data=encode_calibration(INTR, t))
+            w.add_message(ids[TOPIC_IMAGE], log_time=t, publish_time=t, sequence=seq,
+                          data=native.encode_image(make_image(i, np.random.default_rng(0)), t, 90))
+            attitude = json.dumps({"heading_deg": heading, "reference": "true", "pitch_deg": None,
+                                   "roll_deg": None, "seq": seq}).encode()
+            th = t + heading_offset_ns
+            w.add_message(ids[TOPIC_HEADING], log_time=th, publish_time=th, sequence=seq, data=attitude)
+        if finish:
+            w.finish()
+        else:
+            w.flush()
+    return headings
+
+
+@pytest.mark.parametrize("finish", [True, False])
+@pytest.mark.parametrize("sequence", ["zero", "frame"])
+def test_a_heading_written_after_its_image_stays_with_its_frame(tmp_path, caplog, finish, sequence):
+    # Every image at sequence 0 and each heading after its image: the reader paired a heading with
+    # the next image of the same sequence, so every frame replayed with the heading of the frame
+    # before it (a wrong sun on every turn), and only the last heading was said to be dropped.
+    # With the frame's own sequence, every heading was dropped (and said to be).
+    path = tmp_path / "after.mcap"
+    headings = _heading_after_image_mcap(path, finish=finish, sequence=sequence)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        frames = list(open_log(path))
+    assert len(frames) == 5
+    assert [round(math.degrees(f.attitude.heading_rad), 9) if f.attitude else None for f in frames] == headings
+    assert "matched no image" not in caplog.text
+
+
+def test_a_heading_at_another_log_time_than_its_image_is_dropped_and_said(tmp_path, caplog):
+    # Its own log time (1 ms after the image's): which image it belongs to cannot be told, and a
+    # heading paired with the wrong frame is a wrong sun; so none is paired, and the warning says
+    # what the writer must do.
+    path = tmp_path / "own-time.mcap"
+    _heading_after_image_mcap(path, heading_offset_ns=1_000_000)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        frames = list(open_log(path))
+    assert len(frames) == 5 and all(f.attitude is None for f in frames)
+    said = [r.getMessage() for r in caplog.records if "matched no image" in r.getMessage()]
+    assert len(said) == 1 and "\n" not in said[0]
+    assert f"5 {TOPIC_HEADING} messages" in said[0] and "log time and sequence" in said[0]
+
+
 def test_newer_format_version_is_refused(tmp_path):
     path = tmp_path / "v2.mcap"
     with open(path, "wb") as f:
@@ -1172,12 +1237,12 @@ def test_a_finished_recording_whose_camera_sent_nothing_holds_no_frames(tmp_path
     assert source.stats.corrupt_skipped == 1 and caplog.records
 
 
-@pytest.mark.parametrize("layout", ["heading_after_image", "heading_counts_its_own_sequence"])
+@pytest.mark.parametrize("layout", ["heading_counts_its_own_sequence"])
 def test_per_frame_messages_that_match_no_image_are_warned_about(tmp_path, caplog, layout):
-    # Another writer's /heading: after its image (MCAP orders by time, not within a time), or
-    # with a sequence counted per channel (as publishers number their messages) rather than the
-    # image's. Every heading was dropped without a word, and replay then told the user to record
-    # with a heading source, of a log that has one.
+    # Another writer's /heading with a sequence counted per channel (as publishers number their
+    # messages) rather than the image's. Every heading was dropped without a word, and replay then
+    # told the user to record with a heading source, of a log that has one. (A heading after its
+    # image, at its time and sequence, is its frame's: test_a_heading_written_after_its_image_...)
     frames = make_frames(4, seed=3)
     path = tmp_path / "other.mcap"
     with open(path, "wb") as f:
