@@ -13,6 +13,7 @@ replays to its end and then finishes.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import logging
 import math
@@ -33,6 +34,7 @@ from drivers.nmea import (
     HeadingSample,
     NmeaStream,
     newest_heading,
+    suspended_between,
 )
 from rig.errors import GnssError
 from rig.portio import PORT_ERRORS, Backoff, begin_stop, join_worker
@@ -46,12 +48,6 @@ DEFAULT_BAUD = 115200  # what GNSS compasses ship with; NMEA 0183 itself says 48
 # heading a second, and the line and the device add latency and jitter on top.
 DEFAULT_MAX_AGE_S = 1.5
 _READ_CHUNK = 4096
-# How far CLOCK_BOOTTIME - CLOCK_MONOTONIC may move between a sentence and now before the sentence
-# is from before a suspend. The difference grows by exactly the time spent suspended (NTP slews
-# both clocks alike), but it is two clock reads one after the other, so a thread preempted between
-# them sees it move by the preemption (ms on a busy host). A suspend shorter than this leaves a
-# UTC at most this late (0.002 deg of sun) and a heading no older than DEFAULT_MAX_AGE_S lets one be.
-SUSPEND_TOLERANCE_S = 0.5
 
 
 def boottime_offset_s() -> float | None:
@@ -62,12 +58,6 @@ def boottime_offset_s() -> float | None:
     if boottime is None:
         return None
     return time.clock_gettime(boottime) - time.clock_gettime(time.CLOCK_MONOTONIC)
-
-
-def _suspended_between(then_s: float | None, now_s: float | None) -> bool:
-    """Whether the host was suspended between two boot offsets (:func:`boottime_offset_s`); False
-    when either is unknown."""
-    return then_s is not None and now_s is not None and abs(now_s - then_s) > SUSPEND_TOLERANCE_S
 
 
 class FileTransport:
@@ -213,8 +203,9 @@ class GnssReader:
         self._stream = NmeaStream(max_len=max_len, require_checksum=require_checksum)
 
         self._cond = threading.Condition()  # guards everything below, and wakes get_events()
-        # Each with the boot offset when it was read: what is from before a suspend is not handed out.
-        self._headings: deque[tuple[float | None, HeadingSample]] = deque(maxlen=history)
+        # Each with the boot offset when it was read (a heading sample carries its own): what is from
+        # before a suspend is not handed out, nor interpolated across (drivers/pairing.py).
+        self._headings: deque[HeadingSample] = deque(maxlen=history)
         self._fix: tuple[float | None, float, GnssFix] | None = None
         self._utc: tuple[float | None, float, int] | None = None
         self._events: deque[GnssUpdate] = deque()
@@ -241,13 +232,15 @@ class GnssReader:
         with self._cond:
             kept = list(self._headings)
         boot_now = self._boot_offset()
-        samples = [s for boot_then, s in kept if not _suspended_between(boot_then, boot_now)]
+        samples = [s for s in kept if not suspended_between(s.boot_offset_s, boot_now)]
         return newest_heading(samples, now_s, max_age_s)
 
     def heading_history(self) -> list[HeadingSample]:
-        """The kept heading samples, oldest first (for interpolating to a frame's time)."""
+        """The kept heading samples, oldest first (for interpolating to a frame's time), each with
+        the boot offset it was read under (``boot_offset_s``: the pairing does not interpolate
+        across a suspend)."""
         with self._cond:
-            return [s for _, s in self._headings]
+            return list(self._headings)
 
     def latest_fix(self, now_s: float, max_age_s: float = DEFAULT_MAX_AGE_S) -> GnssFix | None:
         """The newest position fix, or None when there is none, it arrived more than ``max_age_s``
@@ -271,7 +264,7 @@ class GnssReader:
         return kept[2] + round((now_s - kept[1]) * 1e9)
 
     def _fresh(self, boot_then: float | None, age_s: float, max_age_s: float) -> bool:
-        return 0.0 <= age_s <= max_age_s and not _suspended_between(boot_then, self._boot_offset())
+        return 0.0 <= age_s <= max_age_s and not suspended_between(boot_then, self._boot_offset())
 
     def get_events(self, timeout_s: float = 0.5) -> list[GnssUpdate]:
         """Take every queued update (``events`` > 0), waiting at most ``timeout_s`` for one."""
@@ -364,6 +357,10 @@ class GnssReader:
     def _take(self, data: bytes, t_mono_s: float, boot_offset_s: float | None, end: bool = False) -> None:
         """Decode outside the lock (pure work), then publish the results under it."""
         updates = self._stream.flush(t_mono_s) if end else self._stream.feed(data, t_mono_s)
+        # A heading sample carries its boot offset itself: heading_history() hands it to the pairing.
+        updates = [u if u.heading is None else
+                   dataclasses.replace(u, heading=dataclasses.replace(u.heading, boot_offset_s=boot_offset_s))
+                   for u in updates]
         counts = self._stream.counts
         self._failing = False
         with self._cond:
@@ -372,7 +369,7 @@ class GnssReader:
             self._stream_counts = counts
             for u in updates:
                 if u.heading is not None:
-                    self._headings.append((boot_offset_s, u.heading))
+                    self._headings.append(u.heading)
                 if u.fix is not None:
                     self._fix = (boot_offset_s, u.t_mono_s, u.fix)
                 if u.utc_ns is not None:

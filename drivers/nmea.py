@@ -500,11 +500,29 @@ def decode_sentence(sentence: Sentence) -> Message | None:
 # ---------------------------------------------------------------------------------------------
 
 
+# How far CLOCK_BOOTTIME - CLOCK_MONOTONIC may move between two reads before the host was suspended
+# between them. The difference grows by exactly the time spent suspended (NTP slews both clocks
+# alike), but it is two clock reads one after the other, so a thread preempted between them sees it
+# move by the preemption (ms on a busy host). A suspend shorter than this goes unseen: it leaves a
+# UTC at most this late (0.002 deg of sun), and bridges samples at most this much further apart.
+SUSPEND_TOLERANCE_S = 0.5
+
+
+def suspended_between(then_s: float | None, now_s: float | None) -> bool:
+    """Whether the host was suspended between two reads of CLOCK_BOOTTIME - CLOCK_MONOTONIC
+    (``drivers.gnss.boottime_offset_s``, ``HeadingSample.boot_offset_s``); False when either is unknown."""
+    return then_s is not None and now_s is not None and abs(now_s - then_s) > SUSPEND_TOLERANCE_S
+
+
 @dataclass(frozen=True, slots=True)
 class HeadingSample:
     """A valid heading as it arrived. ``t_mono_s``: the monotonic time its line end was read
     (so it lags the measurement by the transmit time and the device's own latency);
-    ``utc_ns``: the measurement's UTC when the sentence carries a time (PASHR), else None."""
+    ``utc_ns``: the measurement's UTC when the sentence carries a time (PASHR), else None.
+    ``boot_offset_s``: CLOCK_BOOTTIME - CLOCK_MONOTONIC when it was read (the time the host had spent
+    suspended so far; the reader sets it), or None where unknown. The monotonic clock stands still
+    while the host is suspended, so two samples around a suspend look as close as their stamps say:
+    this tells them apart (:func:`suspended_between`)."""
 
     t_mono_s: float
     heading_rad: float
@@ -516,11 +534,15 @@ class HeadingSample:
     # Which zero a relative heading counts from (Attitude.epoch): visual odometry starts a new one
     # where it cannot carry its heading over (a gap in the frames, a new camera mode). 0 otherwise.
     epoch: int = 0
+    boot_offset_s: float | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.t_mono_s) and math.isfinite(self.heading_rad)):
             raise ValidationError(f"HeadingSample: expected finite time and heading, got {self.t_mono_s}, "
                                   f"{self.heading_rad}")
+        if self.boot_offset_s is not None and not math.isfinite(self.boot_offset_s):
+            raise ValidationError(f"HeadingSample.boot_offset_s: expected finite seconds or None, got "
+                                  f"{self.boot_offset_s}")
         object.__setattr__(self, "heading_rad", self.heading_rad % TWO_PI)
         object.__setattr__(self, "reference", HeadingRef(self.reference))
 

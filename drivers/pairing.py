@@ -7,7 +7,9 @@ arc, so 359 deg and 1 deg meet at 0, not at 180). Nothing is extrapolated and no
 used: a frame gets no attitude (``None``, counted) when
 
 - ``gap``: the two samples around it are more than ``max_gap_s`` apart (a dropout: a turn
-  during it would be invisible);
+  during it would be invisible), or the host was suspended between them (the monotonic clock
+  stands still meanwhile, so they look as close as ever; the vehicle may have turned any way):
+  each sample carries the boot offset it was read under (``HeadingSample.boot_offset_s``);
 - ``before``: it is older than the oldest sample kept;
 - ``stale``: no sample after it arrived within ``max_age_s`` of it (a live source stalled), or
   ``after``: the heading source has ended before it;
@@ -40,7 +42,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.nmea import HeadingSample
+from drivers.nmea import HeadingSample, suspended_between
 from rig.errors import ValidationError
 from rig.geometry import wrap_pi
 from rig.types import Attitude, Frame, HeadingRef
@@ -151,7 +153,7 @@ class HeadingInterpolator:
             return Lookup(None, "pending")
         s0, s1 = samples[i - 1], samples[i]
         t0, t1 = times[i - 1], times[i]
-        if t1 - t0 > self.max_gap_s:
+        if t1 - t0 > self.max_gap_s or suspended_between(s0.boot_offset_s, s1.boot_offset_s):
             return Lookup(None, "gap")
         if s0.reference != s1.reference:
             return Lookup(None, "mixed")

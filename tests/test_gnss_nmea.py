@@ -605,7 +605,7 @@ def test_a_fix_utc_or_heading_from_before_a_suspend_is_not_handed_out_after_it()
     # at 100.0 looked 0.5 s old at 100.5, and utc_at carried its UTC on to frames an hour late. The
     # injected boot offset stands for CLOCK_BOOTTIME - CLOCK_MONOTONIC, which grows by the time
     # suspended: nothing stamped before a suspend is handed out after it (no UTC rather than a wrong one).
-    from drivers.gnss import SUSPEND_TOLERANCE_S
+    from drivers.nmea import SUSPEND_TOLERANCE_S
 
     port = serial.serial_for_url("loop://", timeout=0.05)
     clock, boot = FakeClock(100.0), FakeClock(0.0)
@@ -631,6 +631,24 @@ def test_a_fix_utc_or_heading_from_before_a_suspend_is_not_handed_out_after_it()
         # Asked of a moment before the resume, the heading from before the suspend is still not
         # handed out: it is judged by the clocks now, and the frame asking is as old as the suspend.
         assert reader.latest_heading(100.5) is None
+
+
+def test_heading_samples_carry_the_boot_offset_so_pairing_does_not_bridge_a_suspend():
+    # heading_history() kept every sample, and by its monotonic stamp alone one from before an hour's
+    # suspend and one from after it looked 0.6 s apart: drivers/pairing.py interpolated between them.
+    from drivers.pairing import HeadingInterpolator
+
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    clock, boot = FakeClock(100.0), FakeClock(2.0)
+    with GnssReader(port, clock=clock, boot_offset=boot, events=4, timeout_s=0.05) as reader:
+        port.write(nmea("HEHDT,10.0,T"))
+        assert len(collect(reader, lambda us: len(us) == 1)) == 1
+        clock.now, boot.now = 100.6, 3602.0  # suspended for an hour, and resumed
+        port.write(nmea("HEHDT,100.0,T"))
+        assert len(collect(reader, lambda us: len(us) == 1)) == 1
+        history = reader.heading_history()
+    assert [s.boot_offset_s for s in history] == [2.0, 3602.0]
+    assert HeadingInterpolator().lookup(history, 100.3).status == "gap"
 
 
 def test_without_clock_boottime_a_suspend_goes_unseen_as_before(monkeypatch):

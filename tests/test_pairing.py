@@ -4,6 +4,7 @@ source that is still arriving (an injected clock: no sleeps)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -86,6 +87,37 @@ def test_a_gap_is_not_interpolated_across():
     samples = [sample(10.0, 0.0), sample(12.0, 90.0)]
     result = interp.lookup(samples, 11.0)
     assert result.attitude is None and result.status == "gap"
+
+
+def test_no_heading_is_interpolated_across_a_suspend_of_the_host():
+    # CLOCK_MONOTONIC stands still while the host is suspended: a sample read just before an hour's
+    # suspend (10.0) and the first after it (10.6) look 0.6 s apart, and a frame between them was
+    # given a heading half-way between the vehicle's heading then and an hour later. Each sample
+    # carries CLOCK_BOOTTIME - CLOCK_MONOTONIC when it was read (boot_offset_s), which grows by the
+    # time suspended; two samples around a frame that differ in it are a gap, however close they look.
+    from drivers.nmea import SUSPEND_TOLERANCE_S
+
+    def at(t, heading_deg, boot):
+        return dataclasses.replace(sample(t, heading_deg), boot_offset_s=boot)
+
+    interp = HeadingInterpolator(max_gap_s=1.5, max_age_s=1.5)
+    samples = [at(9.6, 0.0, 2.0), at(10.0, 4.0, 2.0), at(10.6, 90.0, 3602.0), at(11.0, 94.0, 3602.0)]
+    for t in (10.1, 10.5):  # a frame from just before the suspend, and one from just after it
+        result = interp.lookup(samples, t)
+        assert result.attitude is None and result.status == "gap", t
+    assert deg(interp.at(samples, 9.8)) == pytest.approx(2.0)  # both samples before the suspend
+    assert deg(interp.at(samples, 10.8)) == pytest.approx(92.0)  # both after it
+    assert interp.at(samples, 10.6) is not None  # a frame at a sample's own time is that sample
+    # Live: a frame after the last sample from before the suspend waits (the monotonic clock has not
+    # moved on), and the sample that then comes from after the suspend does not give it a heading.
+    assert interp.lookup(samples[:2], 10.1, now_s=10.3).status == "pending"
+    assert interp.lookup(samples[:3], 10.1, now_s=10.6).status == "gap"
+    # Two clock reads a moment apart are not a suspend; a sample without the offset (not Linux, a
+    # recorded sequence, visual odometry) is paired by the monotonic clock alone, as before.
+    near = [at(10.0, 4.0, 2.0), at(10.6, 10.0, 2.0 + SUSPEND_TOLERANCE_S / 2)]
+    assert deg(interp.at(near, 10.3)) == pytest.approx(7.0)
+    unknown = [at(10.0, 4.0, 2.0), sample(10.6, 10.0)]
+    assert deg(interp.at(unknown, 10.3)) == pytest.approx(7.0)
 
 
 def test_stale_while_live():
