@@ -20,7 +20,8 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Generic, Protocol, TypeVar, runtime_checkable
 
@@ -85,6 +86,101 @@ class ErrorTally:
         self.last = text
 
 
+@dataclass(frozen=True)
+class Said:
+    """A line :class:`LastingCondition` has decided to say. ``kind`` "change": the state is now
+    ``state``, no longer ``before``; "still": it is ``state`` as said before, and changes went unsaid
+    in between (``changes`` > 0) or it has lasted long enough for a reminder. ``changes`` counts the
+    changes of state, ``counts`` the events of each kind (this one included) since ``before`` was said,
+    at ``since_s``; ``budget_spent``: changes are said once per refill from now on."""
+
+    kind: str
+    state: Hashable
+    before: Hashable
+    since_s: float
+    changes: int
+    counts: dict[Hashable, int]
+    budget_spent: bool
+
+
+class LastingCondition:
+    """When to say a condition that lasts and changes (an exposure verdict, a port whose writes fail):
+    each change when it happens, and counts in between, in a bounded number of lines.
+
+    A change of state is said at once while a budget allows: ``burst`` changes, refilled one per
+    ``refill_s``. A condition flipping on every event (a scene at a threshold, a link failing every
+    other write) is then counted, not said: one line per ``refill_s`` sums up the changes since, with
+    the state it is in. Two real changes, a lens covered and then uncovered, are each said at once.
+    A state other than ``ok`` that lasts is said again after ``remind_s``, then after doubling
+    intervals up to ``remind_max_s`` (None: never).
+
+    Pure: the caller passes each event's state and time (its own clock, or a frame's), says the
+    :class:`Said` returned, and keeps the exact counts in its statistics, as before."""
+
+    def __init__(self, ok: Hashable = None, *, burst: int = 4, refill_s: float = 60.0,
+                 remind_s: float | None = None, remind_max_s: float = 3600.0) -> None:
+        self.ok = ok
+        self._burst, self._refill_s = burst, refill_s
+        self._remind_s, self._remind_max_s = remind_s, remind_max_s
+        self._tokens = float(burst)
+        self._at_s: float | None = None  # the time of the newest event
+        self.said: Hashable = ok  # the state the log says the condition is in
+        self.state: Hashable = ok  # the state it is in
+        self._since_s: float | None = None  # when `said` was said (the first event, for the initial state)
+        self._changes = 0  # since `said` was said
+        self._unsaid = 0  # changes since the last line
+        self._counts: dict[Hashable, int] = {}
+        self._key: Hashable = None  # what the newest event was counted under
+        self._remind_every_s = remind_s
+        self._next_remind_s = math.inf
+
+    def update(self, state: Hashable, now_s: float, event: Hashable = None) -> Said | None:
+        """One event (a frame judged, a write tried) finding the condition in ``state`` at
+        ``now_s``; counted under ``event`` (default: the state). The line to say, or None."""
+        if self._at_s is None:
+            self._at_s = self._since_s = now_s
+        # Time that steps back (a replayed log's clock) refills nothing and delays no reminder.
+        self._tokens = min(float(self._burst), self._tokens + max(0.0, now_s - self._at_s) / self._refill_s)
+        if now_s < self._at_s and self._remind_every_s is not None:
+            self._next_remind_s = min(self._next_remind_s, now_s + self._remind_every_s)
+        self._at_s = now_s
+        key = state if event is None else event
+        self._counts[key] = self._counts.get(key, 0) + 1
+        self._key = key
+        if state != self.state:
+            self.state = state
+            self._changes += 1
+            self._unsaid += 1
+        if state != self.said:
+            if self._tokens < 1.0:
+                return None
+            return self._say("change", now_s)
+        if self._unsaid and self._tokens >= 1.0:
+            return self._say("still", now_s)
+        if state != self.ok and now_s >= self._next_remind_s:
+            return self._say("still", now_s)
+        return None
+
+    def _say(self, kind: str, now_s: float) -> Said:
+        if kind == "change" or self._unsaid:
+            self._tokens -= 1.0
+        assert self._since_s is not None
+        said = Said(kind, self.state, self.said, self._since_s, self._changes, dict(self._counts),
+                    budget_spent=self._tokens < 1.0)
+        self._unsaid = 0
+        if kind == "change":
+            self.said, self._since_s, self._changes = self.state, now_s, 0
+            self._counts = {self._key: 1}  # this event: the first of the new state's stretch
+            self._remind_every_s = self._remind_s
+        elif self._remind_every_s is not None:
+            self._remind_every_s = min(2.0 * self._remind_every_s, self._remind_max_s)
+        if self._remind_every_s is not None and self.state != self.ok:
+            self._next_remind_s = now_s + self._remind_every_s
+        else:
+            self._next_remind_s = math.inf
+        return said
+
+
 def publisher_name(p: Publisher) -> str:
     """What a publisher is called in statistics and logs: its class, or the class it wraps."""
     inner = getattr(p, "inner", None)
@@ -125,6 +221,12 @@ _CLOSE_DRAIN_S = 0.5
 # least. The writer takes it as soon as its write ends (within write_timeout_s); the rest is for
 # a busy machine that schedules the writer thread late.
 _WAIT_FOR_WRITER_MIN_S = 1.0
+
+
+# A port whose writes keep failing (or timing out, or whose reopen fails) is said when that starts,
+# again after this long if it lasts and then at doubling intervals up to an hour, and when a write
+# goes through again: not at every failed write and reopen, a line a second for as long as it lasted.
+_STILL_FAILING_FIRST_S = 60.0
 
 
 # How many of the newest messages' sizes are kept for that: a UART buffer of 4 KiB holds about
@@ -236,6 +338,9 @@ class SerialPublisher:
         # The bytes of a message whose write timed out or failed that went into the port's buffer
         # anyway: the newest unsent bytes, but that message is already counted as dropped.
         self._cut_bytes = 0
+        # The writer's outage: None while writes go through, "failing" while they fail, time out or the
+        # port cannot be reopened; its events are counted under the names of the counters above.
+        self._outage = LastingCondition(None, remind_s=_STILL_FAILING_FIRST_S)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sunrig-serial {self._name}", daemon=True)
         self._thread.start()
@@ -367,9 +472,10 @@ class SerialPublisher:
                 self._last_error = error
         if outcome == "written":
             self._resync = False
+            self._note(None, outcome)
             return True
-        if error is not None:
-            log.warning("serial write to %s failed (%s); reopening with backoff", self._name, error)
+        if error is not None or not self._stop.is_set():  # a write cut short by close() is no outage
+            self._note("failing", outcome, error)
         self._close_port()
         return False
 
@@ -453,12 +559,45 @@ class SerialPublisher:
         except PORT_ERRORS as exc:
             with self._cond:
                 self._last_error = f"reopen: {type(exc).__name__}: {exc}"
+            self._note("failing", "reopen_failed", f"{type(exc).__name__}: {exc}")
             return False
         with self._cond:
             self._counts["reopens"] += 1
         self._resync = True
-        log.info("serial port %s reopened", self._name)
+        if self._outage.said is None and self._outage.state is None:
+            log.info("serial port %s reopened", self._name)  # closed by its owner, say: no outage to sum up
+        self._note(self._outage.state, "reopens")
         return True
+
+    def _note(self, state: Hashable, event: str, error: str | None = None) -> None:
+        """Count a write or reopen in the outage (:class:`LastingCondition`) and say what it decides:
+        an outage when it starts, at doubling intervals while it lasts, and when it ends."""
+        now = time.monotonic()
+        said = self._outage.update(state, now, event)
+        if said is None:
+            return
+        n = said.counts
+        counted = (f"{n.get('write_errors', 0)} failed writes, {n.get('dropped_write_timeout', 0)} timed out "
+                   f"and {n.get('reopen_failed', 0)} failed reopens in {now - said.since_s:.1f} s "
+                   f"(reopened {n.get('reopens', 0)} times)")
+        if said.kind == "change" and said.state is None:
+            log.info("serial port %s writes again after %s", self._name, counted)
+        elif said.kind == "change" and said.changes == 1:
+            if event == "dropped_write_timeout":
+                what = (f"serial write to {self._name} timed out after {self._write_timeout_s:g} s "
+                        "(a reader that stopped reading?)")
+            elif event == "reopen_failed":
+                what = f"serial port {self._name} cannot be reopened ({error})"
+            else:
+                what = f"serial write to {self._name} failed ({error})"
+            log.warning("%s; reopening with backoff: the failures are counted, and said again in %.0f s if they last "
+                        "and when a write goes through", what, _STILL_FAILING_FIRST_S)
+        elif said.changes:  # it went from failing to writing and back, unsaid: the budget was spent
+            log.warning("serial writes to %s fail and go through in turn: %d changes, %d written, %s; %s", self._name,
+                        said.changes, n.get("written", 0), counted,
+                        "failing now" if said.state is not None else "writing now")
+        else:
+            log.warning("serial writes to %s still failing: %s; last error: %s", self._name, counted, self._last_error)
 
 
 class JsonRow(Protocol):

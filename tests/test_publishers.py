@@ -42,6 +42,7 @@ from rig.protocol import (
 from rig.publishers import (
     BackgroundPublisher,
     JsonlPublisher,
+    LastingCondition,
     Publisher,
     QueuedWriter,
     SentencePublisher,
@@ -663,6 +664,139 @@ def test_given_port_object_is_reopened_with_open(pty):
         assert not port.is_open  # the publisher owns the port and closed it
     finally:
         reader.stop()
+
+
+# --- LastingCondition: when a lasting, changing condition is said (pure, by the caller's clock) --
+
+
+def test_a_condition_flipping_at_every_event_is_said_in_a_bounded_number_of_lines():
+    # A link failing every other write, 10 events a second for 10 minutes: 6000 changes. Four are
+    # said at once (the burst), then one line a minute sums up the changes since.
+    cond = LastingCondition(None, burst=4, refill_s=60.0)
+    said = [(t, line) for k in range(6000)
+            if (line := cond.update("failing" if k % 2 else None, t := k * 0.1)) is not None]
+    assert [line.kind for _, line in said[:4]] == ["change"] * 4
+    summaries = said[4:]
+    assert 9 <= len(summaries) <= 11  # one a minute, for ten minutes
+    assert all(b[0] - a[0] >= 59.5 for a, b in zip(said[3:], summaries, strict=False))
+    # Each sums up the ~600 changes of its minute (the first says the state it changed to).
+    assert all(line.changes >= 590 and line.budget_spent for _, line in summaries)
+    assert [line.kind for _, line in summaries[1:]] == ["still"] * (len(summaries) - 1)
+
+
+def test_two_real_changes_are_each_said_at_once_with_the_counts_of_the_stretch_before():
+    cond = LastingCondition(None, burst=4, refill_s=60.0)
+    for k in range(100):
+        assert cond.update(None, float(k), "written") is None  # the ok state is never said
+    first = cond.update("failing", 100.0, "write_errors")
+    assert first is not None and first.changes == 1
+    assert (first.kind, first.state, first.before) == ("change", "failing", None)
+    for k in range(1, 50):
+        assert cond.update("failing", 100.0 + k, "write_errors") is None
+    back = cond.update(None, 150.0, "written")
+    assert back is not None and (back.kind, back.state, back.before) == ("change", None, "failing")
+    assert back.since_s == 100.0 and back.counts == {"write_errors": 50, "written": 1}
+
+
+def test_a_lasting_bad_state_is_said_again_at_doubling_intervals_up_to_the_cap():
+    cond = LastingCondition(None, remind_s=60.0, remind_max_s=240.0)
+    said_at = [t for t in range(0, 1200)
+               if cond.update("failing" if t else None, float(t)) is not None]
+    # Said when it starts (t=1), then after 60, 120, 240, 240, ... seconds.
+    assert said_at[:6] == [1, 61, 181, 421, 661, 901]
+
+
+def test_time_that_steps_back_neither_refills_the_budget_nor_delays_a_reminder():
+    # A replayed log's clock may step back (a second log, a looped file): no crash, no burst of lines.
+    cond = LastingCondition(None, burst=1, refill_s=60.0, remind_s=30.0)
+    assert cond.update("dark", 1000.0) is not None  # the one token
+    assert cond.update(None, 1001.0) is None  # no token left: counted, not said
+    assert cond.update("dark", 5.0) is None  # stepped back 996 s: still no token
+    still = cond.update("dark", 35.0)  # the reminder comes 30 s after the step back, not at 1030
+    assert still is not None and still.kind == "still" and still.state == "dark"
+
+
+class FailingPort(LoopSerial):
+    """FAKE serial port: a loop:// port that opens, but whose write() fails while ``failing`` is set,
+    as a USB adapter that hangs with its device node still there, or a TCP bridge whose serial side
+    is gone: every reopen works and every write after it fails."""
+
+    def __init__(self) -> None:
+        super().__init__("loop://")
+        self.failing = threading.Event()
+        self.failing.set()
+
+    def write(self, data: bytes) -> int:
+        if self.failing.is_set():
+            raise serial.SerialException("write failed: [Errno 5] Input/output error")
+        return super().write(data)
+
+    @property
+    def out_waiting(self) -> int:
+        return 0  # as HungDriverPort's: what it wrote has gone down the wire
+
+
+def serial_lines(caplog) -> list[logging.LogRecord]:
+    return [r for r in caplog.records if r.name == "rig.publishers" and "serial" in r.getMessage()]
+
+
+def test_a_port_whose_writes_keep_failing_is_said_when_it_starts_and_when_it_recovers(caplog):
+    # Each failed write said a warning and each reopen an info line: with the default backoff that
+    # is a line a second for as long as the adapter stays hung (3600 an hour, in the journal).
+    port = FailingPort()
+    caplog.set_level(logging.INFO, logger="rig.publishers")
+    with SerialPublisher(port, format="nmea", backoff_s=(0.01, 0.02)) as pub:
+
+        def failed_often() -> bool:
+            pub.publish(make_estimate(40, 5, seq=1))
+            return pub.stats()["write_errors"] >= 30
+
+        wait_until(failed_often, "30 failed writes")
+        port.failing.clear()  # the adapter answers again
+
+        def written() -> bool:
+            pub.publish(make_estimate(40, 5, seq=2))
+            return pub.stats()["written"] >= 1
+
+        wait_until(written, "a write that goes through")
+        wait_until(lambda: len(serial_lines(caplog)) >= 2, "the recovery said")
+        stats = pub.stats()
+    said = serial_lines(caplog)
+    assert [r.levelno for r in said] == [logging.WARNING, logging.INFO], [r.getMessage() for r in said]
+    assert said[0].getMessage().startswith("serial write to loop:// failed (SerialException: write failed: "
+                                           "[Errno 5] Input/output error); reopening with backoff")
+    # The recovery says how long it lasted, with the counts the statistics keep (exact, as before).
+    assert f"after {stats['write_errors']} failed writes" in said[1].getMessage()
+    assert f"reopened {stats['reopens']} times" in said[1].getMessage()
+    assert stats["write_errors"] == stats["reopens"] >= 30
+
+
+def test_a_reader_that_stopped_reading_is_said_once_not_at_every_reopen(pty, caplog):
+    # A controller that stops reading: every write times out, the port is closed and reopened, and
+    # each reopen said "serial port ... reopened", a line per backoff for as long as it lasted.
+    caplog.set_level(logging.INFO, logger="rig.publishers")
+    pub = SerialPublisher(pty.name, format="nmea", write_timeout_s=0.02, backoff_s=(0.01, 0.02))
+    reader = None
+    try:
+        pty.fill()
+
+        def timed_out_often() -> bool:
+            pub.publish(make_estimate(30, 20, seq=1))
+            return pub.stats()["dropped_write_timeout"] >= 20
+
+        wait_until(timed_out_often, "20 writes timing out")
+        reader = MasterReader(pty.master, NmeaLineReader())  # it reads again
+        publish_until_seen(pub, reader, 90000, "a sentence after the reader came back")
+        wait_until(lambda: len(serial_lines(caplog)) >= 2, "the recovery said")
+        stats = pub.stats()
+    finally:
+        if reader is not None:
+            reader.stop()
+        within(HANG_GUARD_S, pub.close)
+    said = serial_lines(caplog)
+    assert [r.levelno for r in said] == [logging.WARNING, logging.INFO], [r.getMessage() for r in said]
+    assert "timed out" in said[0].getMessage()
+    assert f"{stats['dropped_write_timeout']} timed out" in said[1].getMessage()
 
 
 # --- loop://, close(), errors --------------------------------------------------------------
