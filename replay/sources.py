@@ -16,8 +16,10 @@ from pathlib import Path
 from rig.errors import REINSTALL, LogError
 from rig.types import Frame
 
-# A 40-frame synthetic street drive (`sunrig synth OUT --drives 1 --frames 40 --seed 3000`),
-# shipped so the quick start runs without any download.
+# A 40-frame synthetic street drive (`sunrig synth OUT --drives 1 --frames 40 --seed 3000`, which
+# makes it byte for byte), shipped so the quick start runs without any download. Remade with the
+# writer of the day when the layout changes: it is the log users copy. Its /gnss/fix is empty, as
+# in any log without GNSS: a synthetic drive has its sun (/sun/truth) and UTC, but no place.
 DEMO_LOG = Path(__file__).resolve().parent / "data" / "demo.mcap"
 
 

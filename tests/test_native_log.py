@@ -1083,6 +1083,35 @@ def test_a_heading_at_another_log_time_than_its_image_is_dropped_and_said(tmp_pa
     assert f"5 {TOPIC_HEADING} messages" in said[0] and "log time and sequence" in said[0]
 
 
+def _channels_and_metadata(path: Path) -> tuple[set[str], dict[str, str]]:
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    return {c.topic for c in summary.channels.values()}, metadata.get(native.METADATA_NAME, {})
+
+
+def test_the_bundled_demo_log_is_laid_out_as_a_drive_synth_writes_today(tmp_path):
+    # The demo is what users copy, and the log-format page says every log registers each
+    # per-frame channel with its first frame, an empty /gnss/fix in a log without GNSS. The
+    # shipped one was written before that (and before synth recorded its render scale): it had
+    # no /gnss/fix channel at all, and no render_scale.
+    from replay.sources import DEMO_LOG
+    from replay.synthetic import RENDER_SCALE_KEY
+
+    today = tmp_path / "today.mcap"
+    with LogWriter(today) as w:
+        w.write_frame(make_frames(1, full=False)[0])
+    demo_topics, demo_meta = _channels_and_metadata(DEMO_LOG)
+    assert demo_topics == _channels_and_metadata(today)[0]
+    assert TOPIC_GNSS in demo_topics
+    # As `sunrig synth OUT --drives 1 --frames 40 --seed 3000` writes it (replay/sources.py), at the default scale.
+    assert demo_meta.get(RENDER_SCALE_KEY) == "0.5"
+    frames = list(read_frames(DEMO_LOG))
+    assert len(frames) == 40 and all(f.gnss is None and f.utc_ns is not None and f.sun_enu_truth is not None
+                                     for f in frames)  # a synthetic drive: its truth, no place
+
+
 def test_newer_format_version_is_refused(tmp_path):
     path = tmp_path / "v2.mcap"
     with open(path, "wb") as f:
