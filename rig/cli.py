@@ -866,12 +866,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
             write_replacing(args.json, lambda tmp: tmp.write_text(text + "\n", encoding="utf-8"))
         else:
             print(text)
-        if args.plot:
+        # A chart of no window is no figure: the error below says why nothing was graded.
+        if args.plot and result.window_logs:
             plot_eval(result, Path(args.plot))
     lines = [f"{name}: mean {s['mean_deg']:.2f} deg, median {s['median_deg']:.2f}, max {s['max_deg']:.1f}, "
              f"{s[TAIL_KEY]} of {s['n_windows']} windows over {TAIL_DEG:g} deg"
              for name, s in summary["aggregators"].items() if s["n_windows"]]
-    if result.interrupted:
+    if result.interrupted and not result.window_logs:
+        lines.insert(0, "interrupted before any window was graded; the JSON holds what was counted, and no figure "
+                        "was drawn")
+    elif result.interrupted:
         lines.insert(0, f"interrupted after {len(result.window_logs)} windows in {len(result.logs)} logs begun; "
                         "the JSON and figures hold those")
     if not args.quiet:

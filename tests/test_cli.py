@@ -1797,3 +1797,32 @@ def test_the_exit_report_counts_what_the_outputs_wrote_as_they_closed(tmp_path, 
     reported = re.search(r"JsonlPublisher: (\d+) estimates dropped .*, (\d+) written", captured.err)
     assert reported is not None, captured.err
     assert rc == 0 and int(reported.group(2)) == len(lines) > 0, captured.err
+
+
+def test_eval_that_grades_nothing_draws_no_empty_figure(tmp_path, capsys):
+    # A log shorter than a window: the error said graded nothing, yet an empty chart was saved at
+    # --plot as if it were the figure asked for, with matplotlib's legend warning beside it.
+    log = _write_log(tmp_path / "short.mcap", n=5)
+    png = tmp_path / "e.png"
+    rc, captured = _main_in_process(["eval", str(log), "--aggregators", "mean", "--quiet", "--json",
+                                     str(tmp_path / "e.json"), "--plot", str(png)], capsys)
+    _assert_one_line_error(rc, captured, names="eval graded nothing: no log has 8 frames")
+    assert len(captured.err.strip().splitlines()) == 1, captured.err
+    assert not png.exists() and not (tmp_path / "e-tokens.png").exists()
+
+
+def test_eval_stopped_before_any_window_draws_no_figure_and_says_so(tmp_path, capsys, monkeypatch):
+    # "interrupted after 0 windows ...; the JSON and figures hold those": an empty chart was saved.
+    import estimator.evaluate
+
+    def stopped_at_once(sources, *args, **kwargs):
+        return estimator.evaluate.EvalResult(errors_deg={"mean": []}, flags={"mean": []}, elevation_deg={"mean": []},
+                                             logs=[name for name, _ in sources][:1], interrupted=True)
+
+    monkeypatch.setattr(estimator.evaluate, "evaluate", stopped_at_once)
+    png, out = tmp_path / "e.png", tmp_path / "e.json"
+    rc, captured = _main_in_process(["eval", str(_write_log(tmp_path / "d.mcap")), "--aggregators", "mean",
+                                     "--json", str(out), "--plot", str(png)], capsys)
+    assert rc == 130 and not png.exists() and json.loads(out.read_text())["interrupted"] is True
+    assert captured.err == "eval: interrupted before any window was graded; the JSON holds what was counted, " \
+                           "and no figure was drawn\n"
