@@ -37,7 +37,7 @@ from estimator.estimator import SunEstimator
 from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.pacing import Pacer
-from rig.publishers import ErrorTally, Publisher, failed_writes, publisher_name
+from rig.publishers import ErrorTally, LastingCondition, Publisher, failed_writes, publisher_name
 from rig.ring import DEFAULT_MAX_AGE_S, DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
@@ -170,7 +170,9 @@ class RigPipeline:
         self.ring = FrameRing(self.config.ring_capacity, self.config.ring_max_age_s)
         self._failure: tuple[str, BaseException] | None = None
         self._failure_lock = threading.Lock()
-        self._exposure_reason: str | None = None  # why the last frame failed the exposure gate
+        # Why frames fail the exposure gate (None: they pass), said when that changes; a verdict that
+        # flips at every frame (a scene at a threshold, light through trees) is summed up once a minute.
+        self._exposure = LastingCondition(None)
         self._warned_sparse = False  # said that windows cannot fill (_warn_if_sparse), until they do again
         self._status_error: str | None = None  # what the last status line that failed raised
         self._failing_since: int | None = None  # the seq whose window began a stretch of failed windows
@@ -336,8 +338,7 @@ class RigPipeline:
                 continue
             gate = self.config.exposure_gate
             reason = gate.rejects(frame.image_bgr) if gate is not None else None
-            if reason != self._exposure_reason:
-                self._log_exposure_change(frame.seq, reason)
+            self._log_exposure(frame, reason)
             if reason:
                 # Too dark, bright or flat to show the sun (rig/exposure.py): recorded, never estimated.
                 self.stats.frames_bad_exposure += 1
@@ -374,14 +375,24 @@ class RigPipeline:
                     "camera's frame rate, or lighten the load that drops frames", len(window), self.policy.n_frames,
                     self.policy.span_s)
 
-    def _log_exposure_change(self, seq: int, reason: str | None) -> None:
-        # Once per change, not per frame: a night is one message, not one per frame.
-        if reason:
-            log.warning("from seq %d frames are too %s to show the sun: left out of windows until that changes",
-                        seq, reason)
-        else:
-            log.info("from seq %d frames show the scene again: windows refill", seq)
-        self._exposure_reason = reason
+    def _log_exposure(self, frame: Frame, reason: str | None) -> None:
+        # Once per change, not per frame: a night is one message, not one per frame. By the frames'
+        # clock, so a replay says the same as the drive did.
+        said = self._exposure.update(reason, frame.t_mono_s)
+        if said is None:
+            return
+        if said.kind == "change" and said.changes == 1:
+            if reason:
+                log.warning("from seq %d frames are too %s to show the sun: left out of windows until that changes",
+                            frame.seq, reason)
+            else:
+                log.info("from seq %d frames show the scene again: windows refill", frame.seq)
+            return
+        left_out = sum(n for r, n in said.counts.items() if r is not None)
+        log.warning("frames pass and fail the exposure gate in turn: %d changes in %.0f s, %d of %d frames left out "
+                    "of windows; from seq %d %s (said once a minute while it goes on)", said.changes,
+                    frame.t_mono_s - said.since_s, left_out, sum(said.counts.values()), frame.seq,
+                    f"too {reason}" if reason else "showing the scene")
 
     def _encode(self) -> None:
         while not self._stop.is_set():

@@ -2,6 +2,7 @@
 
 import logging
 import math
+import re
 
 import numpy as np
 import pytest
@@ -164,3 +165,34 @@ def test_live_rig_recovers_when_the_light_returns(estimator, caplog):
     said = [r.getMessage() for r in caplog.records if r.name == "rig.pipeline"]
     assert said == ["from seq 0 frames are too dark to show the sun: left out of windows until that changes",
                     "from seq 10 frames show the scene again: windows refill"]
+
+
+def flickering(n, dark_every=2):
+    """Frames at 10 fps, every ``dark_every``-th one black: a scene at the gate's threshold, or a
+    lens flickering under trees, which the gate judges frame by frame."""
+    for i in range(n):
+        dark = i % dark_every == 0
+        yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=np.zeros_like(TEXTURED) if dark else TEXTURED,
+                    intrinsics=INTR, attitude=Attitude(math.radians(3.0 * i), HeadingRef.TRUE),
+                    sun_enu_truth=[0.0, 0.8, 0.6])
+
+
+@pytest.mark.torch
+def test_a_verdict_flipping_at_every_frame_is_said_a_few_times_then_summed_up(estimator, caplog):
+    # Each change was said at once: a verdict flipping at every frame wrote a line per frame, ten a
+    # second into the journal. The first changes are said at once, then one line a minute (by the
+    # frames' clock) sums up the changes since; the counts stay exact.
+    caplog.set_level(logging.INFO, logger="rig.pipeline")
+    stats = run_live(flickering(1300), estimator)  # 130 s
+    assert stats.frames_bad_exposure == 650
+    said = [r.getMessage() for r in caplog.records if r.name == "rig.pipeline" and any(
+            words in r.getMessage() for words in ("show the sun", "show the scene again", "exposure gate"))]
+    assert said[:2] == ["from seq 0 frames are too dark to show the sun: left out of windows until that changes",
+                        "from seq 1 frames show the scene again: windows refill"]
+    assert len(said) == 6, said  # 4 at once, then one at about 60 s and one at about 120 s
+    for line, at_s in zip(said[4:], (60.0, 120.0), strict=True):
+        changes, seconds, left_out, judged = map(int, re.findall(r"(\d+) changes in (\d+) s, (\d+) of (\d+) frames",
+                                                                 line)[0])
+        assert changes == judged - 1 and left_out in (judged // 2, judged // 2 + 1), line
+        assert 590 <= changes <= 600 and abs(seconds - 60) <= 1, line
+        assert f"from seq {round(at_s * 10)}" in line or f"from seq {round(at_s * 10) + 1}" in line, line
