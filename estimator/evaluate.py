@@ -270,8 +270,7 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
     n = max((len(v) for v in result.errors_deg.values()), default=0)
     ax.set_title(title or f"cumulative angular error, {n} windows")
     fig.tight_layout()
-    fig.savefig(out_png)
-    plt.close(fig)
+    _save_whole(fig, out_png)
     written.append(out_png)
 
     if result.samples:
@@ -291,10 +290,22 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
                      fontsize=9)
         fig.tight_layout()
         fig.subplots_adjust(hspace=0.3)
-        fig.savefig(tokens_png)
-        plt.close(fig)
+        _save_whole(fig, tokens_png)
         written.append(tokens_png)
     return written
+
+
+def _save_whole(fig, path: Path) -> None:
+    """Save ``fig`` at ``path`` whole or not at all, and close it: saved in place, a full disk left a
+    torn image under the name asked for (read as the run's figure) and lost the one there before."""
+    import matplotlib.pyplot as plt
+
+    from rig.files import write_replacing
+
+    try:
+        write_replacing(path, fig.savefig)  # the sibling keeps the suffix, which picks the format
+    finally:
+        plt.close(fig)
 
 
 def _polar_window(ax, est: SunEstimate, log: str) -> None:

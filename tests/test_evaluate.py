@@ -5,6 +5,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -377,3 +378,42 @@ def test_frames_a_misbehaving_clock_cost_are_counted(tiny_model_dir):
                       SpreadWindowPolicy(8, 4.0), aggregators=["transformer"])
     summary = result.summary()
     assert summary["frames"] == 80 and summary["frames_out_of_order"] == 4 and summary["clock_jumps"] == 1
+
+
+def _plotted_result(interrupted: bool = False) -> EvalResult:
+    """Two graded windows of one log, one of them sampled for the per-token figure."""
+    from rig.types import SunEstimate
+
+    est = SunEstimate(t_mono_s=1.0, seq=7, sun_enu=np.array([0.0, 0.8, 0.6]), heading_rad=0.0,
+                      heading_ref=HeadingRef.TRUE, spread_rad=0.1, n_frames=8, n_tokens=4, aggregator="mean",
+                      truth_enu=np.array([0.0, 0.6, 0.8]), token_enu=np.array([[0.0, 0.8, 0.6]] * 4))
+    return EvalResult(errors_deg={"mean": [3.0, 14.0]}, flags={"mean": [FLAG_VALID] * 2},
+                      samples=[("d0.mcap", {"mean": est})], logs=["d0.mcap"], window_logs=["d0.mcap"] * 2,
+                      window_seqs=[7, 8], interrupted=interrupted)
+
+
+@pytest.mark.parametrize("failing", ["eval.png", "eval-tokens.png"])
+def test_a_figure_cut_short_by_a_full_disk_leaves_the_one_that_was_there(tmp_path, monkeypatch, failing):
+    # savefig wrote in place: a full disk mid-write left a torn PNG under the name asked for, which
+    # reads as the figure of the run; a previous run's figure there was lost too.
+    import errno
+
+    from matplotlib.figure import Figure
+
+    from estimator.evaluate import plot_eval
+
+    real_savefig = Figure.savefig
+
+    def disk_full_on(self, fname, *args, **kwargs):
+        if Path(fname).name.replace(".tmp", "").lstrip(".") == failing:
+            Path(fname).write_bytes(b"\x89PNG torn")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_savefig(self, fname, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", disk_full_on)
+    (tmp_path / failing).write_bytes(b"the previous run's figure")
+    with pytest.raises(OSError, match="No space left on device") as caught:
+        plot_eval(_plotted_result(), tmp_path / "eval.png")
+    assert caught.value.filename == str(tmp_path / failing)  # the user's name, not a hidden sibling's
+    assert (tmp_path / failing).read_bytes() == b"the previous run's figure"
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
