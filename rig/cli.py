@@ -634,8 +634,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     next_status = start + 5.0
     interrupted = False
     disk_full: OSError | None = None
+    # A log is read as fast as it can be: its own time, not the wall clock, says how much of it
+    # --seconds keeps, and no wall-clock backstop cuts a slow re-recording (visual odometry) short.
+    replayed = source.camera.kind == "file"
+    first_t_s: float | None = None
     # A backstop for --seconds: a camera that stops sending frames must not keep the recording open.
-    deadline = threading.Timer(args.seconds + 2.0, source.stop) if args.seconds is not None else None
+    deadline = (threading.Timer(args.seconds + 2.0, source.stop)
+                if args.seconds is not None and not replayed else None)
     if deadline is not None:
         deadline.daemon = True
         deadline.start()
@@ -647,6 +652,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         out = writer.path
         try:
             for frame in source:
+                if replayed and args.seconds is not None:
+                    first_t_s = frame.t_mono_s if first_t_s is None else first_t_s
+                    if frame.t_mono_s - first_t_s > args.seconds:
+                        break
                 with stop.finishing():  # a frame is written whole or not at all
                     writer.write_frame(frame, jpeg_quality=args.jpeg_quality)
                 n += 1
@@ -663,7 +672,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 if stop.requested:  # held while the frame was written
                     break
                 if (args.frames is not None and n >= args.frames) or (
-                        args.seconds is not None and now - start >= args.seconds):
+                        args.seconds is not None and not replayed and now - start >= args.seconds):
                     break
         except KeyboardInterrupt:
             interrupted = True  # Ctrl-C (or SIGTERM from a service manager) is how a live recording ends
@@ -1328,7 +1337,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "An existing file is refused unless --overwrite")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--seconds", type=_positive_float, metavar="N",
-                   help="stop after N seconds (default: Ctrl-C or the end)")
+                   help="stop after N seconds, of the log's own time for a file: camera (default: Ctrl-C "
+                        "or the end)")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="stop after N frames")
     p.add_argument("--jpeg-quality", type=_int_in(1, 100), default=90, metavar="Q",
                    help="JPEG quality of the images, 1-100 (default 90)")

@@ -307,3 +307,20 @@ def test_an_estimate_published_to_a_closed_recorder_is_refused_not_lost_unsaid(t
     with pytest.raises(PublishError, match="closed"):
         rec.publish(make_estimate(10.0, 20.0, seq=1))
     assert [d["seq"] for d in read_estimates(tmp_path / "closed.mcap")] == [0]
+
+
+def test_record_seconds_of_a_log_counts_the_logs_own_time(tmp_path, capsys):
+    # `--seconds` was timed by the wall clock, and a log is read as fast as it can be: re-recording
+    # the first second of the 3.9 s bundled drive kept all of it. A log's own time says how much.
+    from replay.sources import DEMO_LOG
+    from rig.cli import main
+
+    frames = list(read_frames(DEMO_LOG))
+    t0 = frames[0].t_mono_s
+    within_1s = [f.seq for f in frames if f.t_mono_s - t0 <= 1.0]
+    assert 5 < len(within_1s) < len(frames) - 5
+    out = tmp_path / "first-second.mcap"
+    rc = main(["record", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out), "--seconds", "1",
+               "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    assert [f.seq for f in read_frames(out)] == within_1s
