@@ -168,7 +168,9 @@ class GnssReader:
     while the host is suspended, so a sentence from before a suspend would look a moment old after
     it: ``boot_offset`` (:func:`boottime_offset_s`: CLOCK_BOOTTIME - CLOCK_MONOTONIC, the time spent
     suspended so far) is kept with each sentence too, and a heading, fix or UTC kept from before a
-    suspend is not handed out after it. Where it returns None (no CLOCK_BOOTTIME), it is not checked.
+    suspend is not handed out after it. Nor are the bytes the first read after a suspend finds
+    waiting (sent before it, maybe, and kept by the kernel meanwhile): they are dropped, counted in
+    ``stale_bytes``. Where it returns None (no CLOCK_BOOTTIME), it is not checked.
     """
 
     def __init__(
@@ -210,10 +212,12 @@ class GnssReader:
         self._utc: tuple[float | None, float, int] | None = None
         self._events: deque[GnssUpdate] = deque()
         self._events_max = events
-        self._counts = dict.fromkeys(("bytes", "updates", "read_errors", "reopens", "events_dropped"), 0)
+        self._counts = dict.fromkeys(("bytes", "updates", "read_errors", "reopens", "events_dropped", "suspends",
+                                      "stale_bytes"), 0)
         self._stream_counts = self._stream.counts
         self._last_error: str | None = None
         self._failing = False  # only the reader thread touches it
+        self._read_boot_s: float | None = None  # the boot offset at the last read (reader thread only)
         self._failure: str | None = None
         self._finished = threading.Event()  # the thread has ended (end of a capture, close, a bug)
         self._stop = threading.Event()
@@ -326,15 +330,26 @@ class GnssReader:
                     continue
                 try:
                     data = self._port.read(self._port.in_waiting or 1)
+                    t_mono_s, boot_offset_s = self._stamp()
+                    suspended_s = self._suspended_since_last_read(boot_offset_s)
+                    if suspended_s is not None:
+                        # What the kernel kept through the suspend is all waiting now (the read that
+                        # waited through it took as little as one byte of it): it goes with it.
+                        waiting = self._port.in_waiting
+                        if waiting:
+                            data += self._port.read(waiting)
                 except PORT_ERRORS as exc:
                     self._read_failed(exc)
                     self._backoff.wait(self._stop)  # a vanished device fails at once: do not spin
                     continue
                 if data:
                     self._backoff.reset()
-                    self._take(data, *self._stamp())
+                if suspended_s is not None:
+                    self._drop_stale(data, suspended_s)
+                elif data:
+                    self._take(data, t_mono_s, boot_offset_s)
                 elif self._is_file and self._port.at_eof:
-                    self._take(b"", *self._stamp(), end=True)
+                    self._take(b"", t_mono_s, boot_offset_s, end=True)
                     break
         except BaseException as exc:  # a bug: report it rather than die silently
             with self._cond:
@@ -353,6 +368,29 @@ class GnssReader:
         bytes from before it marked as from after."""
         boot_offset_s = self._boot_offset()
         return self._clock(), boot_offset_s
+
+    def _suspended_since_last_read(self, boot_offset_s: float | None) -> float | None:
+        """How long the host was suspended since the reader's last read (seconds), or None if it
+        was not (or it cannot tell). Never for a capture file: its bytes wait nowhere meanwhile."""
+        before, self._read_boot_s = self._read_boot_s, boot_offset_s
+        if self._is_file or before is None or boot_offset_s is None or not suspended_between(before, boot_offset_s):
+            return None
+        return boot_offset_s - before
+
+    def _drop_stale(self, data: bytes, suspended_s: float) -> None:
+        """The first read after a suspend. What it found waiting, and the partial line kept, may
+        have been sent before the suspend: stamped now they would pass for fresh, an hour-old
+        heading or UTC handed out as current. Bytes sent after the resume cannot be told apart
+        from them, so all go (counted in ``stale_bytes``); the device's next sentences are fresh."""
+        self._stream.reset()  # the partial line from before: counted as truncated, as for a reopen
+        counts = self._stream.counts
+        with self._cond:
+            self._counts["bytes"] += len(data)
+            self._counts["stale_bytes"] += len(data)
+            self._counts["suspends"] += 1
+            self._stream_counts = counts
+        log.info("GNSS reader for %s: the host was suspended for %.1f s; dropped %d bytes read after it that "
+                 "may be from before it", self._name, suspended_s, len(data))
 
     def _take(self, data: bytes, t_mono_s: float, boot_offset_s: float | None, end: bool = False) -> None:
         """Decode outside the lock (pure work), then publish the results under it."""

@@ -620,6 +620,8 @@ def test_a_fix_utc_or_heading_from_before_a_suspend_is_not_handed_out_after_it()
         assert reader.latest_fix(100.5) is None
         assert reader.latest_heading(100.5) is None
         # The first sentences after the resume are fresh, and what they say is handed out again.
+        # (Once the reader has seen the resume: what its first read after one finds is dropped.)
+        assert wait_until(lambda: reader.stats()["suspends"] == 1)
         clock.now = 101.0
         port.write(nmea("GPRMC,214133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D")
                    + nmea("HEHDT,200.0,T"))
@@ -644,11 +646,107 @@ def test_heading_samples_carry_the_boot_offset_so_pairing_does_not_bridge_a_susp
         port.write(nmea("HEHDT,10.0,T"))
         assert len(collect(reader, lambda us: len(us) == 1)) == 1
         clock.now, boot.now = 100.6, 3602.0  # suspended for an hour, and resumed
+        assert wait_until(lambda: reader.stats()["suspends"] == 1)  # the reader's first read after it
         port.write(nmea("HEHDT,100.0,T"))
         assert len(collect(reader, lambda us: len(us) == 1)) == 1
         history = reader.heading_history()
     assert [s.boot_offset_s for s in history] == [2.0, 3602.0]
     assert HeadingInterpolator().lookup(history, 100.3).status == "gap"
+
+
+class SuspendablePort:
+    """A port whose bytes wait in a buffer until read, as in the kernel's tty buffer. ``freeze()``
+    parks the reader's next read until ``thaw()``, as the host's suspend freezes the thread in it;
+    that read then returns one byte (a read(1) that was waiting), and the rest waits for the next."""
+
+    def __init__(self) -> None:
+        self.is_open = True
+        self.timeout = 0.05
+        self.port = "suspendable://test"
+        self._cond = threading.Condition()
+        self._buf = bytearray()
+        self._frozen = False
+        self._cancelled = False
+        self.parked = threading.Event()  # the reader is in a read that waits for thaw()
+
+    @property
+    def in_waiting(self) -> int:
+        with self._cond:
+            return 0 if self._frozen else len(self._buf)
+
+    def write(self, data: bytes) -> None:
+        with self._cond:
+            self._buf += data
+
+    def freeze(self) -> None:
+        with self._cond:
+            self._frozen = True
+
+    def thaw(self) -> None:
+        with self._cond:
+            self._frozen = False
+            self._cond.notify_all()
+
+    def read(self, size: int = 1) -> bytes:
+        with self._cond:
+            if self._frozen:
+                self.parked.set()
+                self._cond.wait_for(lambda: not self._frozen or self._cancelled, HANG_GUARD_S)
+                size = 1
+            data = bytes(self._buf[:size])
+            del self._buf[:size]
+            if not data and not self._cancelled:
+                self._cond.wait(self.timeout)
+        return data
+
+    def cancel_read(self) -> None:
+        with self._cond:
+            self._cancelled = True
+            self._cond.notify_all()
+
+    def open(self) -> None:
+        self.is_open = True
+
+    def close(self) -> None:
+        self.is_open = False
+
+
+def test_bytes_that_waited_through_a_suspend_are_dropped_not_stamped_fresh():
+    # The device's sentences from before a suspend wait in the kernel's buffer (and a partial line in
+    # the framer's) while the reader's thread is frozen; after the resume they were read, stamped
+    # with the monotonic time and boot offset of then, and an hour-old heading, fix and UTC were
+    # handed out as current. What the first read after a resume finds waiting is dropped and counted.
+    port = SuspendablePort()
+    clock, boot = FakeClock(100.0), FakeClock(0.0)
+    hdt_77 = nmea("HEHDT,77.0,T")
+    before = RMC + HDT_10 + hdt_77[:10]  # the last sentence's tail is still on the wire
+    with GnssReader(port, clock=clock, boot_offset=boot, events=16, timeout_s=0.05) as reader:
+        port.write(before)
+        assert wait_until(lambda: reader.stats()["bytes"] == len(before))
+        assert len(collect(reader, lambda us: len(us) == 2)) == 2
+        port.freeze()
+        assert port.parked.wait(HANG_GUARD_S)
+        stale = hdt_77[10:] + nmea("GPRMC,204134.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D") \
+            + nmea("HEHDT,50.0,T")
+        port.write(stale)  # in the kernel's buffer as the host suspends
+        clock.now, boot.now = 100.3, 3600.0  # suspended for an hour, and resumed
+        port.thaw()
+        assert wait_until(lambda: reader.stats()["bytes"] == len(before) + len(stale))
+        assert reader.get_events(timeout_s=0.01) == []
+        assert reader.latest_heading(100.4) is None
+        assert reader.utc_at(100.4) is None and reader.latest_fix(100.4) is None
+        stats = reader.stats()
+        assert stats["suspends"] == 1 and stats["stale_bytes"] == len(stale)
+        assert stats["truncated"] == 1  # the partial line kept from before the suspend
+        # What comes after the resume is fresh, and handed out.
+        clock.now = 100.5
+        port.write(nmea("GPRMC,214133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D")
+                   + nmea("HEHDT,200.0,T"))
+        assert len(collect(reader, lambda us: len(us) == 2)) == 2
+        reading = reader.latest_heading(100.6)
+        assert reading is not None and math.degrees(reading.heading_rad) == pytest.approx(200.0)
+        assert reader.utc_at(100.6) == utc_ns_of("2014-02-19T21:41:33+00:00") + 100_000_000
+        assert reader.stats()["suspends"] == 1
 
 
 def test_without_clock_boottime_a_suspend_goes_unseen_as_before(monkeypatch):
