@@ -268,7 +268,11 @@ def plot_eval(result: EvalResult, out_png: Path, title: str = "") -> list[Path]:
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
     n = max((len(v) for v in result.errors_deg.values()), default=0)
-    ax.set_title(title or f"cumulative angular error, {n} windows")
+    title = title or f"cumulative angular error, {n} windows"
+    if result.interrupted:  # as its JSON says: the figure is of the windows before a Ctrl-C, not of every log
+        begun = len(result.logs)
+        title += f" (interrupted: {begun} log{'' if begun == 1 else 's'} begun)"
+    ax.set_title(title)
     fig.tight_layout()
     _save_whole(fig, out_png)
     written.append(out_png)

@@ -417,3 +417,25 @@ def test_a_figure_cut_short_by_a_full_disk_leaves_the_one_that_was_there(tmp_pat
     assert caught.value.filename == str(tmp_path / failing)  # the user's name, not a hidden sibling's
     assert (tmp_path / failing).read_bytes() == b"the previous run's figure"
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_the_figure_of_an_interrupted_evaluation_says_so(tmp_path, monkeypatch):
+    # The JSON of a Ctrl-C'd run says "interrupted": true; its figure was titled as a whole run's,
+    # "cumulative angular error, 2 windows", and read later as the figure of every log.
+    from matplotlib.axes import Axes
+
+    from estimator.evaluate import plot_eval
+
+    titles: list[str] = []
+    real_set_title = Axes.set_title
+
+    def recorded(self, label, *args, **kwargs):
+        titles.append(label)
+        return real_set_title(self, label, *args, **kwargs)
+
+    monkeypatch.setattr(Axes, "set_title", recorded)
+    plot_eval(_plotted_result(interrupted=True), tmp_path / "eval.png")
+    assert titles[0] == "cumulative angular error, 2 windows (interrupted: 1 log begun)"
+    titles.clear()
+    plot_eval(_plotted_result(), tmp_path / "eval.png")
+    assert titles[0] == "cumulative angular error, 2 windows"
