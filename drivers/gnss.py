@@ -210,6 +210,7 @@ class GnssReader:
         self._headings: deque[HeadingSample] = deque(maxlen=history)
         self._fix: tuple[float | None, float, GnssFix] | None = None
         self._utc: tuple[float | None, float, int] | None = None
+        self._resumed_at_s: float | None = None
         self._events: deque[GnssUpdate] = deque()
         self._events_max = events
         self._counts = dict.fromkeys(("bytes", "updates", "read_errors", "reopens", "events_dropped", "suspends",
@@ -269,6 +270,15 @@ class GnssReader:
 
     def _fresh(self, boot_then: float | None, age_s: float, max_age_s: float) -> bool:
         return 0.0 <= age_s <= max_age_s and not suspended_between(boot_then, self._boot_offset())
+
+    @property
+    def resumed_at_s(self) -> float | None:
+        """The monotonic time of the reader's first read after the latest host suspend it saw, or
+        None. That clock stood still through the suspend, so a frame stamped before this may have
+        been taken before it: the UTC and the fix the reader has now are not that frame's (the
+        pairing, drivers/pairing.py, gives it neither)."""
+        with self._cond:
+            return self._resumed_at_s
 
     def get_events(self, timeout_s: float = 0.5) -> list[GnssUpdate]:
         """Take every queued update (``events`` > 0), waiting at most ``timeout_s`` for one."""
@@ -345,7 +355,7 @@ class GnssReader:
                 if data:
                     self._backoff.reset()
                 if suspended_s is not None:
-                    self._drop_stale(data, suspended_s)
+                    self._drop_stale(data, t_mono_s, suspended_s)
                 elif data:
                     self._take(data, t_mono_s, boot_offset_s)
                 elif self._is_file and self._port.at_eof:
@@ -377,7 +387,7 @@ class GnssReader:
             return None
         return boot_offset_s - before
 
-    def _drop_stale(self, data: bytes, suspended_s: float) -> None:
+    def _drop_stale(self, data: bytes, t_mono_s: float, suspended_s: float) -> None:
         """The first read after a suspend. What it found waiting, and the partial line kept, may
         have been sent before the suspend: stamped now they would pass for fresh, an hour-old
         heading or UTC handed out as current. Bytes sent after the resume cannot be told apart
@@ -388,6 +398,7 @@ class GnssReader:
             self._counts["bytes"] += len(data)
             self._counts["stale_bytes"] += len(data)
             self._counts["suspends"] += 1
+            self._resumed_at_s = t_mono_s
             self._stream_counts = counts
         log.info("GNSS reader for %s: the host was suspended for %.1f s; dropped %d bytes read after it that "
                  "may be from before it", self._name, suspended_s, len(data))

@@ -184,23 +184,30 @@ def _samples_of(source: Any) -> Callable[[], Sequence[HeadingSample]]:
                           f"HeadingSample, got {type(source).__name__}")
 
 
-def _gnss_extras(source: Any, t_frame: float, now_s: float) -> dict[str, Any]:
+def _gnss_extras(source: Any, t_frame: float, now_s: float, status: str) -> dict[str, Any]:
     """UTC and position for a frame from a source that has them (GnssReader), else nothing.
 
     UTC is carried from now back to the frame by the monotonic clock; a fix is the newest one
     (positions change slowly next to what the sun needs: a kilometre moves it by 0.01 deg).
+    A frame ``ahead`` gets no UTC: its stamp is not the host's clock, and carried to it the UTC
+    would be extrapolated to a time that has not come. A frame stamped before the source's latest
+    resume (``resumed_at_s``) gets neither: it may have been taken before the suspend, which the
+    monotonic clock did not count, so the UTC carried back to it would be late by the whole suspend,
+    and the position is from after it.
     """
     out: dict[str, Any] = {}
     utc_at = getattr(source, "utc_at", None)
-    if callable(utc_at):
-        utc = utc_at(now_s)
-        if utc is not None:
-            out["utc_ns"] = utc - round((now_s - t_frame) * 1e9)
+    utc = utc_at(now_s) if callable(utc_at) else None
     latest_fix = getattr(source, "latest_fix", None)
-    if callable(latest_fix):
-        fix = latest_fix(now_s)
-        if fix is not None:
-            out["gnss"] = fix
+    fix = latest_fix(now_s) if callable(latest_fix) else None
+    # Asked after them: a UTC or fix read after a resume was kept after the reader saw the resume.
+    resumed_at_s = getattr(source, "resumed_at_s", None)
+    if isinstance(resumed_at_s, int | float) and t_frame < resumed_at_s:
+        return out
+    if utc is not None and status != "ahead":
+        out["utc_ns"] = utc - round((now_s - t_frame) * 1e9)
+    if fix is not None:
+        out["gnss"] = fix
     return out
 
 
@@ -223,7 +230,8 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
 
     ``heading_source``: an object with ``heading_history()`` (a :class:`drivers.gnss.GnssReader`),
     or a sequence of samples. When it also has ``utc_at``/``latest_fix`` (a GNSS receiver), the
-    frames get UTC and the position too. A heading the frames carried is replaced.
+    frames get UTC and the position too (not a UTC for a frame ``ahead``; neither for a frame
+    stamped before the source's latest resume from a suspend). A heading the frames carried is replaced.
 
     ``live``: samples are still arriving, so a frame newer than the newest sample waits (checked
     again as each next frame arrives) until its heading comes, or ``max_age_s`` passes, or
@@ -249,7 +257,7 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
                     return
                 stats.overflow += 1  # the buffer is full: let the oldest go without heading
             pending.popleft()
-            extras = _gnss_extras(heading_source, frame.t_mono_s, now) if live else {}
+            extras = _gnss_extras(heading_source, frame.t_mono_s, now, result.status) if live else {}
             yield dataclasses.replace(frame, attitude=result.attitude, **extras)
 
     for frame in frames:

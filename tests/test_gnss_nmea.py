@@ -15,6 +15,7 @@ import tty
 from datetime import datetime
 from pathlib import Path
 
+import numpy as np
 import pytest
 import serial
 
@@ -747,6 +748,42 @@ def test_bytes_that_waited_through_a_suspend_are_dropped_not_stamped_fresh():
         assert reading is not None and math.degrees(reading.heading_rad) == pytest.approx(200.0)
         assert reader.utc_at(100.6) == utc_ns_of("2014-02-19T21:41:33+00:00") + 100_000_000
         assert reader.stats()["suspends"] == 1
+
+
+def test_a_frame_from_before_a_suspend_gets_no_utc_or_fix_from_after_it():
+    # The pairing carried the UTC read after a resume back to a frame by the monotonic clock, which
+    # stood still through the suspend: a frame taken before an hour's suspend (waiting for its
+    # heading through it, or delivered by the camera after it) got a UTC an hour late.
+    from drivers.pairing import HeadingInterpolator, PairingStats, with_heading
+    from rig.types import Frame, Intrinsics
+
+    intrinsics = Intrinsics.from_hfov(8, 6, math.radians(60.0))
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    clock, boot = FakeClock(100.0), FakeClock(0.0)
+    with GnssReader(port, clock=clock, boot_offset=boot, events=16, timeout_s=0.05) as reader:
+
+        def frames():
+            port.write(RMC + HDT_10)
+            assert len(collect(reader, lambda us: len(us) == 2)) == 2
+            clock.now = 100.2
+            yield Frame(100.2, 0, intrinsics, image_bgr=np.zeros((6, 8, 3), np.uint8))  # waits for its heading
+            clock.now, boot.now = 100.3, 3600.0  # suspended for an hour, and resumed
+            assert wait_until(lambda: reader.stats()["suspends"] == 1)
+            clock.now = 100.4
+            port.write(nmea("GPRMC,214133.00,A,4205.735585,N,08802.039368,W,8.904,41.865,190214,,,D")
+                       + nmea("HEHDT,200.0,T"))
+            assert len(collect(reader, lambda us: len(us) == 2)) == 2
+            clock.now = 100.5
+            yield Frame(100.25, 1, intrinsics, image_bgr=np.zeros((6, 8, 3), np.uint8))  # taken before, come after
+            clock.now = 100.6
+            yield Frame(100.55, 2, intrinsics, image_bgr=np.zeros((6, 8, 3), np.uint8))  # taken after the resume
+
+        stats = PairingStats(HeadingInterpolator())
+        out = list(with_heading(frames(), reader, stats.interpolator, clock=clock, stats=stats))
+    assert [f.seq for f in out] == [0, 1, 2]
+    assert [(f.attitude, f.utc_ns, f.gnss) for f in out[:2]] == [(None, None, None)] * 2
+    assert out[2].utc_ns == utc_ns_of("2014-02-19T21:41:33+00:00") + 150_000_000
+    assert out[2].gnss is not None
 
 
 def test_without_clock_boottime_a_suspend_goes_unseen_as_before(monkeypatch):

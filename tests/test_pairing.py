@@ -342,6 +342,27 @@ def test_gnss_utc_and_fix_are_attached():
     assert all(f.gnss == fix for f in out)
 
 
+def test_a_frame_stamped_ahead_gets_no_utc():
+    # Its stamp is not the host's clock: the UTC carried from now to it was extrapolated to a time
+    # that had not come (100 s ahead here), beyond the reader's own limits. Its neighbours get theirs.
+    clock = Clock()
+    utc0 = 1_700_000_000 * 10**9
+    fix = GnssFix(utc_ns=utc0, lat_deg=48.1, lon_deg=11.5)
+    samples = [sample(0.1 * k, float(k)) for k in range(31)]
+    stats = PairingStats(HeadingInterpolator(max_gap_s=0.5, max_age_s=1.0))
+
+    def frames():
+        for seq, t in enumerate((1.0, 1.1, 1.2)):
+            clock.t = t
+            yield frame(t + (100.0 if seq == 1 else 0.0), seq)
+
+    out = list(with_heading(frames(), ArrivingHeadings(samples, clock, utc0_ns=utc0, fix=fix), stats.interpolator,
+                            clock=clock, stats=stats))
+    assert stats.as_dict()["ahead"] == 1
+    assert [f.utc_ns for f in out] == [utc0 + 1_000_000_000, None, utc0 + 1_200_000_000]
+    assert all(f.gnss == fix for f in out)  # the newest position is as near to it as to any frame
+
+
 def test_a_recorded_sequence_of_samples():
     samples = [sample(0.0, 350.0), sample(1.0, 10.0)]
     out = list(with_heading([frame(0.5, 0), frame(1.5, 1)], samples, live=False))
