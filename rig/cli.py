@@ -845,6 +845,18 @@ def _open_logs(command: str, paths: list[Path],
     return opened, [skipped.name for skipped in empty]
 
 
+def _eval_each_log_once(paths: list[Path]) -> list[Path]:
+    """``paths`` without the logs named again (a folder and a log in it, overlapping globs), with
+    a warning for each: graded twice, a log's windows weighed double in every figure."""
+    first_by_file: dict[Path, Path] = {}
+    for path in paths:
+        first = first_by_file.setdefault(path.resolve(), path)
+        if first is not path:
+            again = "" if first == path else f" as {first}"
+            logging.getLogger(__name__).warning("eval: %s: named before%s; evaluated once", path, again)
+    return list(first_by_file.values())
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from estimator.estimator import AGGREGATORS, SunEstimator
     from estimator.evaluate import TAIL_DEG, TAIL_KEY, evaluate, plot_eval
@@ -853,7 +865,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     _check_writable("--json", args.json)
     _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
-    paths = _expand_logs(args.logs)
+    paths = _eval_each_log_once(_expand_logs(args.logs))
     _refuse_overwriting(paths, json=args.json, plot=args.plot)
     opened, left_out = _open_logs("eval", paths, args.utc_offset)
     sources = [(str(p), frames) for p, frames in opened]

@@ -1826,3 +1826,21 @@ def test_eval_stopped_before_any_window_draws_no_figure_and_says_so(tmp_path, ca
     assert rc == 130 and not png.exists() and json.loads(out.read_text())["interrupted"] is True
     assert captured.err == "eval: interrupted before any window was graded; the JSON holds what was counted, " \
                            "and no figure was drawn\n"
+
+
+def test_eval_of_a_log_named_twice_grades_it_once_and_says_so(tmp_path, capsys, caplog):
+    # A folder and a log in it (or overlapping globs): the log's windows were graded twice, its
+    # errors weighing double in every figure and its worst_logs row counting each window twice.
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    a, b = _write_log(fleet / "a.mcap"), _write_log(fleet / "b.mcap", n=14)
+    out = tmp_path / "e.json"
+    rc, captured = _main_in_process(["eval", str(fleet), str(a), str(fleet / ".." / "fleet" / "b.mcap"),
+                                     "--aggregators", "mean", "--quiet", "--json", str(out)], capsys)
+    assert rc == 0, captured.err
+    summary = json.loads(out.read_text())
+    assert summary["logs"] == [str(a), str(b)]
+    assert summary["aggregators"]["mean"]["n_windows"] == 4 + 6  # 11 frames with a heading, and 13
+    assert [r.getMessage() for r in caplog.records] == [
+        f"eval: {a}: named before; evaluated once",
+        f"eval: {fleet / '..' / 'fleet' / 'b.mcap'}: named before as {b}; evaluated once"]
