@@ -392,7 +392,9 @@ class GnssReader:
         have been sent before the suspend: stamped now they would pass for fresh, an hour-old
         heading or UTC handed out as current. Bytes sent after the resume cannot be told apart
         from them, so all go (counted in ``stale_bytes``); the device's next sentences are fresh."""
-        self._stream.reset()  # the partial line from before: counted as truncated, as for a reopen
+        # The partial line from before is counted as truncated, as for a reopen; the date that GGA and
+        # PASHR times of day take moves on by the time suspended.
+        self._stream.suspended(suspended_s)
         counts = self._stream.counts
         with self._cond:
             self._counts["bytes"] += len(data)

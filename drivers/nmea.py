@@ -681,6 +681,13 @@ class GnssTracker:
             return None
         return HeadingSample(t_mono_s, heading, reference, pitch, roll, name, utc)
 
+    def suspended(self, duration_s: float) -> None:
+        """The host was suspended for ``duration_s``, which the arrival times do not count: the
+        newest UTC, which dates the next GGA and PASHR times of day, moves on by it. (Left where it
+        was, after a night suspended a GGA at 16:41 took the date before the suspend.)"""
+        if self._anchor_utc_ns is not None:
+            self._anchor_utc_ns += round(duration_s * 1e9)
+
     def _fix(self, utc_ns: int, lat: float | None, lon: float | None, alt: float | None) -> GnssFix | None:
         if lat is None or lon is None:
             return None
@@ -730,6 +737,12 @@ class NmeaStream:
     def reset(self) -> None:
         """The byte stream was broken (a reopened port): drop a partial sentence."""
         self.framer.reset()
+
+    def suspended(self, duration_s: float) -> None:
+        """The host was suspended for ``duration_s`` (the reader saw CLOCK_BOOTTIME - CLOCK_MONOTONIC
+        move): drop a partial sentence, which may be from before it, and move the date on by it."""
+        self.framer.reset()
+        self.tracker.suspended(duration_s)
 
     @property
     def counts(self) -> dict[str, int]:

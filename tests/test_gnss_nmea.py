@@ -786,6 +786,23 @@ def test_a_frame_from_before_a_suspend_gets_no_utc_or_fix_from_after_it():
     assert out[2].gnss is not None
 
 
+def test_a_gga_after_a_night_suspended_gets_the_date_of_after_it():
+    # GGA carries only the time of day, dated by the newest UTC (within 12 h of it). After a host
+    # suspended overnight (20 h), the RMC's date from before it put a GGA at 16:41 on the day before:
+    # the date is moved on by the time suspended, which the monotonic clock does not count.
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    clock, boot = FakeClock(100.0), FakeClock(0.0)
+    with GnssReader(port, clock=clock, boot_offset=boot, events=4, timeout_s=0.05) as reader:
+        port.write(RMC)  # 2014-02-19 20:41:33
+        assert len(collect(reader, lambda us: len(us) == 1)) == 1
+        clock.now, boot.now = 100.5, 20 * 3600.0
+        assert wait_until(lambda: reader.stats()["suspends"] == 1)
+        port.write(nmea("GPGGA,164133.10,4205.735766,N,08802.039145,W,2,09,0.9,221.871,M,,,4,0138"))
+        got = collect(reader, lambda us: len(us) == 1)
+    assert [u.utc_ns for u in got] == [utc_ns_of("2014-02-20T16:41:33+00:00") + 100_000_000]
+    assert got[0].fix is not None and got[0].fix.utc_ns == got[0].utc_ns
+
+
 def test_without_clock_boottime_a_suspend_goes_unseen_as_before(monkeypatch):
     # Not Linux: no CLOCK_BOOTTIME, so nothing tells a suspend; the reader works by the monotonic
     # clock alone, as it did.
