@@ -412,6 +412,7 @@ class InterruptedSource:
     def __init__(self, after: int, signame: str = "SIGINT"):
         self.after, self.signame = after, signame
         self.closed = False
+        self.camera = parse_camera(f"file:{DEMO_LOG}")  # what it stands in for (LiveSource.camera)
 
     def __iter__(self):
         import signal
