@@ -98,6 +98,9 @@ class EvalResult:
     # computed over a damaged log says so, and the frames it lost are in no other count.
     records_skipped_corrupt_by_log: dict[str, int] = field(default_factory=dict)
     interrupted: bool = False  # Ctrl-C: the figures are of the windows evaluated until then
+    # Logs read to their end of which no window was graded, each with why: among graded logs the
+    # figures are not theirs, and only this says so (the counts above are pooled over all logs).
+    logs_not_graded: dict[str, str] = field(default_factory=dict)
 
     # The counters above: pooled by addition and reported as they are, in this order.
     COUNTS = ("frames", "frames_without_heading", "frames_bad_exposure", "frames_out_of_order", "clock_jumps",
@@ -108,8 +111,8 @@ class EvalResult:
 
     def extend(self, other: EvalResult) -> None:
         """Pool another evaluation of the same logs into this one (e.g. with other crop seeds):
-        its windows' errors and counts (per log too) are added; the logs and the sample windows stay
-        this one's."""
+        its windows' errors and counts (per log too) are added; the logs, those not graded and the sample
+        windows stay this one's."""
         for per_agg in ("errors_deg", "flags", "elevation_deg"):
             for name, values in getattr(other, per_agg).items():
                 getattr(self, per_agg).setdefault(name, []).extend(values)
@@ -173,6 +176,7 @@ class EvalResult:
             "status": {name: status_summary(self.flags[name], e) for name, e in self.errors_deg.items()},
             "worst_logs": {name: self.by_log(name)[:WORST_LOGS] for name in self.errors_deg},
             "logs": self.logs,
+            "logs_not_graded": self.logs_not_graded,
             **{name: getattr(self, name) for name in self.COUNTS},
             "records_skipped_corrupt": self.records_skipped_corrupt,
             **({"interrupted": True} if self.interrupted else {}),
@@ -196,9 +200,13 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
         for n_logs, (name, frames) in enumerate(sources, 1):
             result.logs.append(name)
             stats = OfflineStats()
+            graded_before, without_truth_before = len(result.window_logs), result.windows_without_truth
             try:
                 _evaluate_log(result, name, frames, estimator, policy, aggregators, n_samples, rule, stats, progress,
                               n_logs - 1)
+                if len(result.window_logs) == graded_before:
+                    result.logs_not_graded[name] = _why_not_graded(
+                        stats, result.windows_without_truth - without_truth_before, policy)
             finally:  # an interrupted log's frames count too
                 for key in EvalResult.STREAM_COUNTS:
                     setattr(result, key, getattr(result, key) + getattr(stats, key))
@@ -211,6 +219,25 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
         result.interrupted = True
         result.trim_to_whole_windows()
     return result
+
+
+def _why_not_graded(stats: OfflineStats, windows_without_truth: int, policy: SpreadWindowPolicy) -> str:
+    """Why a log read to its end gave no window to grade, from its own counts (in the order the
+    CLI's error for a run that graded nothing gives them)."""
+    n, m = policy.n_frames, stats.frames
+    if not m:
+        return "no frame of it could be read"
+    if stats.windows_failed:
+        return f"its {stats.windows_failed} windows failed"
+    if windows_without_truth:
+        return f"its {windows_without_truth} full windows have no true sun"
+    if stats.frames_without_heading:
+        return f"{stats.frames_without_heading} of its {m} frames have no heading"
+    if stats.frames_bad_exposure:
+        return f"{stats.frames_bad_exposure} of its {m} frames are too dark, bright or flat to use"
+    if m < n:
+        return f"it has {m} frames, fewer than a window's {n}"
+    return f"no {n} of its {m} frames are within {policy.span_s:g} s of each other"
 
 
 def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estimator: SunEstimator,

@@ -900,7 +900,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
         lines.insert(0, f"interrupted after {len(result.window_logs)} windows in {len(result.logs)} logs begun; "
                         "the JSON and figures hold those")
     if not args.quiet:
-        progress.close("; ".join(lines) if lines else None)
+        progress.close()  # the counter cleared, so that the warnings below start a line of their own
+    if result.window_logs:  # (with none graded, the error below says why in one line)
+        for log, why in result.logs_not_graded.items():
+            logging.getLogger(__name__).warning("eval: %s: no window graded (%s); the figures are of the other logs",
+                                                log, why)
+    if not args.quiet and lines:
+        print(f"eval: {'; '.join(lines)}", file=sys.stderr)
     if result.interrupted:
         return args.stop.exit_code()  # as for any Ctrl-C, but with the work so far written
     if not lines:  # an error, so said even with --quiet (which silences progress, not errors)

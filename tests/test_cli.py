@@ -1844,3 +1844,20 @@ def test_eval_of_a_log_named_twice_grades_it_once_and_says_so(tmp_path, capsys, 
     assert [r.getMessage() for r in caplog.records] == [
         f"eval: {a}: named before; evaluated once",
         f"eval: {fleet / '..' / 'fleet' / 'b.mcap'}: named before as {b}; evaluated once"]
+
+
+def test_eval_names_a_log_of_which_no_window_was_graded(tmp_path, capsys, caplog):
+    # A log too short for a window among logs graded: exit 0 and figures over "every log", with
+    # nothing said of the one that gave none (only a pooled count in the JSON).
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    _write_log(fleet / "a.mcap")
+    short = _write_log(fleet / "b.mcap", n=5)
+    out = tmp_path / "e.json"
+    rc, captured = _main_in_process(["eval", str(fleet), "--aggregators", "mean", "--json", str(out)], capsys)
+    assert rc == 0, captured.err
+    assert [r.getMessage() for r in caplog.records] == [
+        f"eval: {short}: no window graded (it has 5 frames, fewer than a window's 8); the figures are of the "
+        "other logs"]
+    assert json.loads(out.read_text())["logs_not_graded"] == {str(short): "it has 5 frames, fewer than a window's 8"}
+    assert captured.err.startswith("eval: mean: mean ")  # the summary line, after the counter is cleared

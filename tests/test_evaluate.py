@@ -439,3 +439,27 @@ def test_the_figure_of_an_interrupted_evaluation_says_so(tmp_path, monkeypatch):
     titles.clear()
     plot_eval(_plotted_result(), tmp_path / "eval.png")
     assert titles[0] == "cumulative angular error, 2 windows"
+
+
+@pytest.mark.torch
+def test_a_log_of_which_no_window_was_graded_is_named_with_why(tiny_model_dir):
+    # A log without the true sun (or shorter than a window) among logs with it: its windows were
+    # left out unsaid, the figures reading as the figures of every log given.
+    from estimator.estimator import SunEstimator
+    from estimator.evaluate import evaluate
+    from estimator.runtime import OnnxModel
+    from rig.window import SpreadWindowPolicy
+
+    no_truth = [dataclasses.replace(f, sun_enu_truth=None) for f in noise_drive(12)]
+    no_heading = [dataclasses.replace(f, attitude=None) for f in noise_drive(12)]
+    slow = [dataclasses.replace(f, t_mono_s=1.0 * f.seq) for f in noise_drive(12)]
+    result = evaluate([("graded", noise_drive(12)), ("no_truth", no_truth), ("short", noise_drive(5)),
+                       ("no_heading", no_heading), ("slow", slow)],
+                      SunEstimator(OnnxModel.load(tiny_model_dir)), SpreadWindowPolicy(8, 4.0), aggregators=["mean"])
+    assert result.window_logs == ["graded"] * 5
+    assert result.summary()["logs_not_graded"] == {
+        "no_truth": "its 5 full windows have no true sun",
+        "short": "it has 5 frames, fewer than a window's 8",
+        "no_heading": "12 of its 12 frames have no heading",
+        "slow": "no 8 of its 12 frames are within 4 s of each other",
+    }
