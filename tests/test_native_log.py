@@ -1018,6 +1018,19 @@ def test_a_camera_recording_without_a_calibration_sunrig_reads_is_refused_by_nam
     assert not isinstance(info.value, EmptyLogError)
 
 
+def _foreign_writer(f) -> tuple[McapWriter, dict[str, int]]:
+    """Another writer's MCAP, started, with sunrig's calibration, image and heading channels: the
+    writer and each topic's channel id."""
+    w = McapWriter(f)
+    w.start(profile="", library="someone-else")
+    ids = {}
+    for topic in (TOPIC_CALIBRATION, TOPIC_IMAGE, TOPIC_HEADING):
+        spec = native.CHANNELS[topic]
+        sid = w.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_bytes())
+        ids[topic] = w.register_channel(topic, spec.message_encoding, sid)
+    return w, ids
+
+
 def _heading_after_image_mcap(path: Path, *, heading_offset_ns: int = 0, finish: bool = True,
                               sequence: str = "zero") -> list[float]:
     """Another writer's camera log whose frames write the heading after the image, at the image's
@@ -1026,13 +1039,7 @@ def _heading_after_image_mcap(path: Path, *, heading_offset_ns: int = 0, finish:
     frames."""
     headings = [10.0 * i + 5.0 for i in range(5)]
     with open(path, "wb") as f:
-        w = McapWriter(f)
-        w.start(profile="", library="someone-else")
-        ids = {}
-        for topic in (TOPIC_CALIBRATION, TOPIC_IMAGE, TOPIC_HEADING):
-            spec = native.CHANNELS[topic]
-            sid = w.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_bytes())
-            ids[topic] = w.register_channel(topic, spec.message_encoding, sid)
+        w, ids = _foreign_writer(f)
         t0 = 1_700_000_000 * 10**9  # wall-clock log times, as such a writer stamps them
         for i, heading in enumerate(headings):
             t = t0 + i * 100_000_000
@@ -1275,13 +1282,7 @@ def test_per_frame_messages_that_match_no_image_are_warned_about(tmp_path, caplo
     frames = make_frames(4, seed=3)
     path = tmp_path / "other.mcap"
     with open(path, "wb") as f:
-        w = McapWriter(f)
-        w.start(profile="", library="someone-else")
-        ids = {}
-        for topic in (TOPIC_CALIBRATION, TOPIC_IMAGE, TOPIC_HEADING):
-            spec = native.CHANNELS[topic]
-            sid = w.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_bytes())
-            ids[topic] = w.register_channel(topic, spec.message_encoding, sid)
+        w, ids = _foreign_writer(f)
         for i, fr in enumerate(frames):
             t = native.ns_from_s(fr.t_mono_s)
             heading_seq = i if layout == "heading_counts_its_own_sequence" else fr.seq
