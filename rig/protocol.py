@@ -404,7 +404,8 @@ def decode_binary(frame: bytes) -> dict[str, Any]:
     """Decode one frame (delimiters optional) into a dict; see docs/protocol.md.
 
     Raises :class:`ProtocolError` whose ``reason`` is ``framing`` (bad COBS, wrong length),
-    ``checksum`` (CRC) or ``version`` (a version or message type this decoder does not know).
+    ``checksum`` (CRC), ``version`` (a version or message type this decoder does not know) or
+    ``field`` (a heading ref other than T/M/R; a float that is NaN, infinite or outside its range).
     """
     raw = cobs_decode(bytes(frame).strip(b"\x00"))
     if len(raw) < 4:
@@ -429,6 +430,20 @@ def decode_binary(frame: bytes) -> dict[str, Any]:
     )
     if chr(ref) not in _REF_FROM_CODE:
         raise ProtocolError(f"binary heading_ref byte {ref:#04x}, expected ASCII T, M or R", "field")
+    # As the NMEA decoder does: a frame the CRC passes can still come from another encoder or be
+    # noise the CRC missed, and a NaN or an out-of-range angle must not reach a control loop.
+    if not math.isfinite(t_mono_s):
+        raise ProtocolError(f"binary field t_mono_s: {t_mono_s} is not finite; the frame is corrupt", "field")
+    for name, value, lo, hi, top_open in (
+        ("east", e, -1.0, 1.0, False), ("north", n, -1.0, 1.0, False), ("up", u, -1.0, 1.0, False),
+        ("azimuth_deg", az, 0.0, 360.0, True), ("elevation_deg", el, -90.0, 90.0, False),
+        ("relative_bearing_deg", rb, -180.0, 180.0, True), ("heading_deg", heading, 0.0, 360.0, True),
+        ("spread_deg", spread, 0.0, 180.0, False),
+    ):
+        if not (lo <= value < hi if top_open else lo <= value <= hi):  # also false for NaN
+            raise ProtocolError(
+                f"binary field {name}: {value} outside [{lo}, {hi}{')' if top_open else ']'}; the frame is corrupt",
+                "field")
     return {
         "version": version,
         "msg_type": msg_type,

@@ -372,6 +372,46 @@ def test_decode_binary_refuses_with_a_reason():
         assert info.value.reason == reason, frame.hex()
 
 
+def _payload_with(**fields) -> bytes:
+    """A version-1 payload of a good estimate with some fields replaced (by BINARY_STRUCT name)."""
+    names = ("version", "msg_type", "flags", "ref", "seq", "t_mono_s", "utc_ns", "east", "north", "up",
+             "azimuth_deg", "elevation_deg", "relative_bearing_deg", "heading_deg", "spread_deg",
+             "n_frames", "n_tokens")
+    raw = cobs_decode(encode_binary(make_estimate(50, 20))[1:-1])[:-2]
+    values = dict(zip(names, struct.unpack("<BBBBIdq8fHH", raw), strict=True))
+    values.update(fields)
+    return struct.pack("<BBBBIdq8fHH", *(values[name] for name in names))
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("azimuth_deg", math.nan), ("azimuth_deg", 360.0), ("azimuth_deg", -0.5), ("elevation_deg", 90.5),
+     ("elevation_deg", -math.inf), ("relative_bearing_deg", 180.0), ("relative_bearing_deg", -180.5),
+     ("heading_deg", 360.0), ("heading_deg", math.nan), ("spread_deg", -0.5), ("spread_deg", 180.5),
+     ("spread_deg", math.inf), ("east", 1.5), ("north", math.nan), ("up", -1.5), ("t_mono_s", math.inf),
+     ("t_mono_s", math.nan)],
+)
+def test_decode_binary_refuses_a_field_outside_its_documented_range(field, value):
+    # The CRC passes (another encoder, or noise the CRC misses): the values the page promises never
+    # reach the controller as NaN, inf or out of range; the frame is a bad field (counted malformed).
+    frame = _frame(_payload_with(**{field: value}))
+    with pytest.raises(ProtocolError, match=field) as info:
+        decode_binary(frame)
+    assert info.value.reason == "field"
+    reader = BinaryFrameReader()
+    assert reader.feed(frame) == [] and reader.counts["malformed"] == 1
+
+
+def test_decode_binary_accepts_each_range_end():
+    for fields in (dict(azimuth_deg=0.0, heading_deg=0.0, relative_bearing_deg=-180.0, spread_deg=0.0,
+                        elevation_deg=-90.0, east=-1.0, north=0.0, up=0.0),
+                   dict(azimuth_deg=float(np.nextafter(np.float32(360), np.float32(0))), elevation_deg=90.0,
+                        relative_bearing_deg=float(np.nextafter(np.float32(180), np.float32(0))),
+                        spread_deg=180.0, east=0.0, north=0.0, up=1.0)):
+        got = decode_binary(_frame(_payload_with(**fields)))
+        assert got["azimuth_deg"] == fields["azimuth_deg"] and got["spread_deg"] == fields["spread_deg"]
+
+
 # --- stream readers: chunked input, leading garbage, truncated messages ----------------------
 
 
