@@ -863,6 +863,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from rig.files import write_replacing
     from rig.window import SpreadWindowPolicy
 
+    if args.json and Path(args.json).suffix.lower() == ".mcap":
+        # `eval --json drives/*.mcap` took the first log for the JSON's path and wrote over it.
+        raise SunrigError(f"--json {args.json}: that is a log's name (.mcap), not a JSON file's; pass the JSON "
+                          "file's own path after --json (or - for stdout)")
     _check_writable("--json", args.json)
     _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
     paths = _eval_each_log_once(_expand_logs(args.logs))

@@ -1861,3 +1861,14 @@ def test_eval_names_a_log_of_which_no_window_was_graded(tmp_path, capsys, caplog
         "other logs"]
     assert json.loads(out.read_text())["logs_not_graded"] == {str(short): "it has 5 frames, fewer than a window's 8"}
     assert captured.err.startswith("eval: mean: mean ")  # the summary line, after the counter is cleared
+
+
+def test_eval_refuses_to_write_its_json_over_a_log(tmp_path, capsys):
+    # `sunrig eval --json drives/*.mcap`: the first log became the JSON's path, and the evaluation
+    # of the others wrote over it, a recording lost without a word.
+    a, b = _write_log(tmp_path / "a.mcap"), _write_log(tmp_path / "b.mcap")
+    before = a.read_bytes()
+    rc, captured = _main_in_process(["eval", "--json", str(a), str(b), "--aggregators", "mean", "--quiet"], capsys)
+    _assert_one_line_error(rc, captured, names=f"--json {a}: that is a log's name (.mcap), not a JSON file's; "
+                                               "pass the JSON file's own path after --json (or - for stdout)")
+    assert a.read_bytes() == before
