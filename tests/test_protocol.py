@@ -7,7 +7,9 @@ their last digit, so a round trip is exact to half of it; binary floats are floa
 from __future__ import annotations
 
 import math
+import re
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,7 +38,7 @@ from rig.protocol import (
     nmea_checksum,
     nmea_sentence,
 )
-from rig.types import SunEstimate
+from rig.types import HeadingRef, SunEstimate
 
 NMEA_DEG = 0.05 + 1e-9  # half of the 0.1 deg last digit
 NMEA_UNIT = 0.0005 + 1e-9  # half of the 0.001 last digit
@@ -239,6 +241,27 @@ def test_nmea_rounding_stays_in_range_and_never_prints_minus_zero():
     assert line.split(",")[5] == "-90.0"
 
 
+def test_nmea_status_judges_unrounded_values_so_a_field_at_a_threshold_can_read_either_way():
+    # docs/protocol.md, status rule: a spread of 30.04 deg is sent as 30.0 and flagged.
+    fields = encode_nmea(make_estimate(100, 30, spread_deg=30.04)).decode().split("*")[0].split(",")
+    assert (fields[10], fields[13]) == ("30.0", "V")
+    fields = encode_nmea(make_estimate(100, 30, spread_deg=29.96)).decode().split("*")[0].split(",")
+    assert (fields[10], fields[13]) == ("30.0", "A")
+    rule = StatusRule.for_model(8, 74.9)  # limit 79.9 deg
+    assert encode_nmea(make_estimate(100, 79.94), rule).decode().split(",")[5] == "79.9"
+    assert decode_nmea(encode_nmea(make_estimate(100, 79.94), rule))["valid"] is False
+
+
+def test_exact_zenith_and_nadir_send_the_azimuth_of_atan2_of_zeros():
+    # docs/protocol.md: no horizontal part, so the azimuth is 0.0, or 180.0 when north is -0.0.
+    for enu, azimuth in (((0.0, 0.0, 1.0), 0.0), ((0.0, 0.0, -1.0), 0.0), ((0.0, -0.0, 1.0), 180.0)):
+        est = SunEstimate(t_mono_s=1.0, seq=1, sun_enu=np.array(enu), heading_rad=0.0,
+                          heading_ref=HeadingRef.TRUE, spread_rad=0.0, n_frames=8, n_tokens=1, aggregator="mean")
+        assert decode_nmea(encode_nmea(est))["azimuth_deg"] == azimuth
+        assert decode_binary(encode_binary(est))["azimuth_deg"] == azimuth
+        assert decode_nmea(encode_nmea(est))["elevation_deg"] == math.copysign(90.0, enu[2])
+
+
 def test_nmea_worst_case_is_exactly_82_characters():
     for est in worst_case_estimates():
         line = encode_nmea(est)
@@ -410,6 +433,20 @@ def test_decode_binary_accepts_each_range_end():
                         spread_deg=180.0, east=0.0, north=0.0, up=1.0)):
         got = decode_binary(_frame(_payload_with(**fields)))
         assert got["azimuth_deg"] == fields["azimuth_deg"] and got["spread_deg"] == fields["spread_deg"]
+
+
+def test_the_examples_on_the_protocol_page_are_what_the_encoders_send():
+    # A controller's author copies these: each sentence and the frame must be the encoders' bytes.
+    page = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text()
+    sentences = re.findall(r"^\$PSRGS,[^\n]*\*[0-9A-F]{2}$", page, flags=re.MULTILINE)
+    golden = make_estimate(123.4, 35.6, heading_deg=100.0, spread_deg=5.2, seq=1234)
+    partial = make_estimate(10.0, 5.0, heading_deg=350.0, spread_deg=12.0, n_frames=3, seq=123456,
+                            utc_ns=None, heading_ref="relative")
+    assert [s.encode() + b"\r\n" for s in sentences] == [
+        encode_nmea(golden), encode_nmea(partial), encode_nmea(worst_case_estimates()[0])]
+    assert len(encode_nmea(worst_case_estimates()[0])) == NMEA_MAX_LEN
+    block = page.split("(CRC 0x6764):", 1)[1].split("```")[1]
+    assert bytes.fromhex(block) == bytes.fromhex(GOLDEN_FRAME_HEX)
 
 
 # --- stream readers: chunked input, leading garbage, truncated messages ----------------------
