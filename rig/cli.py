@@ -845,6 +845,20 @@ def _open_logs(command: str, paths: list[Path],
     return opened, [skipped.name for skipped in empty]
 
 
+def _aggregator_list(text: str) -> list[str]:
+    """An argparse type: eval's comma-separated aggregators, each one the estimator has. Checked
+    here, so that a typo names the flag before the logs are opened and the model loaded."""
+    from estimator.estimator import AGGREGATORS
+
+    names = text.split(",")
+    unknown = [name for name in names if name not in AGGREGATORS]
+    if unknown:
+        listed = ", ".join(repr(name) for name in unknown)
+        raise argparse.ArgumentTypeError(f"no aggregator{'s' if len(unknown) > 1 else ''} {listed}: pass a "
+                                         f"comma-separated subset of {', '.join(AGGREGATORS)}")
+    return list(dict.fromkeys(names))  # each once: "mean,mean" is the mean
+
+
 def _eval_each_log_once(paths: list[Path]) -> list[Path]:
     """``paths`` without the logs named again (a folder and a log in it, overlapping globs), with
     a warning for each: graded twice, a log's windows weighed double in every figure."""
@@ -876,7 +890,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     model = _load_model(args.model, args.stop)
     estimator = SunEstimator(model, seed=args.seed)
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=args.window_span_s)
-    aggregators = args.aggregators.split(",") if args.aggregators else list(AGGREGATORS)
+    aggregators = args.aggregators or list(AGGREGATORS)
     # Logs are the unit with a known total (windows per log are known only once read): rate and time left.
     progress = Progress("eval", total=len(sources), unit="logs", enabled=None if not args.quiet else False)
     result = evaluate(sources, estimator, policy, aggregators=aggregators,
@@ -1391,7 +1405,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=_path, metavar="OUT", help="write the summary here (default: stdout)")
     p.add_argument("--plot", type=_path, metavar="OUT.png", help="cumulative error curves (and OUT-tokens.png)")
     p.add_argument("--model", type=_path, metavar="DIR", help="model folder (default: the shipped model)")
-    p.add_argument("--aggregators", metavar="A,B", help="comma-separated subset (default: all)")
+    p.add_argument("--aggregators", type=_aggregator_list, metavar="A,B",
+                   help="comma-separated subset (default: all)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=_positive_float, default=4.0, metavar="S",
                    help="choose each window's frames from the last S seconds (default 4)")

@@ -1872,3 +1872,14 @@ def test_eval_refuses_to_write_its_json_over_a_log(tmp_path, capsys):
     _assert_one_line_error(rc, captured, names=f"--json {a}: that is a log's name (.mcap), not a JSON file's; "
                                                "pass the JSON file's own path after --json (or - for stdout)")
     assert a.read_bytes() == before
+
+
+@pytest.mark.parametrize(("given", "unknown"), [("bogus", "aggregator 'bogus'"), ("mean,", "aggregator ''"),
+                                                ("Mean,single,x", "aggregators 'Mean', 'x'")])
+def test_eval_names_the_aggregators_it_does_not_know_by_the_flag(tmp_path, capsys, given, unknown):
+    # "aggregator: expected one of ..., got ['bogus']", after the logs were opened and the model
+    # loaded: no flag named, and a Python list for the user to read.
+    rc, captured = _main_in_process(["eval", str(_write_log(tmp_path / "d.mcap")), "--aggregators", given], capsys)
+    assert rc == 2 and captured.out == ""
+    assert captured.err == (f"sunrig eval: error: argument --aggregators: no {unknown}: pass a "
+                            "comma-separated subset of transformer, mean, meanshift, single (see sunrig eval --help)\n")
