@@ -35,13 +35,15 @@ LOG_KEYS = ("n_windows", "mean_deg", "max_deg", TAIL_KEY)  # of error_summary, p
 SEQ_KEYS = ("n_windows", "mean_deg", "p99_deg", "max_deg", TAIL_KEY)  # of error_summary, per newest frame
 
 
-def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int]:
+def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int | None]:
     """Mean, median, p99, max, the share of windows under 5, 10 and 20 degrees and the number
-    of windows over :data:`TAIL_DEG`."""
+    of windows over :data:`TAIL_DEG`. Of no window, the same keys, None for the figures there are
+    none of: a reader of the JSON finds the shape it was promised."""
     e = np.asarray(errors_deg, dtype=np.float64)
     if e.size == 0:
-        return {"n_windows": 0}
-    out: dict[str, float | int] = {
+        return {"mean_deg": None, "median_deg": None, "p99_deg": None, "max_deg": None, "n_windows": 0,
+                **{f"under_{th:g}_deg": None for th in THRESHOLDS_DEG}, TAIL_KEY: 0}
+    out: dict[str, float | int | None] = {
         "mean_deg": float(e.mean()),
         "median_deg": float(np.median(e)),
         "p99_deg": float(np.percentile(e, 99)),

@@ -34,7 +34,16 @@ def test_error_summary_numbers():
     assert s["windows_over_30_deg"] == 0  # 30.0 itself is on target, not past it
     assert s["p99_deg"] == pytest.approx(np.percentile([1.0, 4.0, 6.0, 12.0, 30.0], 99))
     assert error_summary([10.0, 30.5, 75.0])["windows_over_30_deg"] == 2
-    assert error_summary([]) == {"n_windows": 0}
+
+
+
+def test_the_summary_of_no_window_has_every_key_with_none_for_what_it_cannot_say():
+    # It was {"n_windows": 0}: a reader of eval's JSON (an interrupted run, a log shorter than a
+    # window) met a KeyError on "mean_deg" where the shape promised one.
+    s = error_summary([])
+    assert set(s) == set(error_summary([1.0]))
+    assert s["n_windows"] == 0 and s["windows_over_30_deg"] == 0
+    assert all(s[k] is None for k in s if k not in ("n_windows", "windows_over_30_deg"))
 
 
 
