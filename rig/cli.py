@@ -877,14 +877,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from rig.files import write_replacing
     from rig.window import SpreadWindowPolicy
 
+    _check_writable("--json", args.json)
+    _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
+    paths = _eval_each_log_once(_expand_logs(args.logs))
+    _refuse_overwriting(paths, json=args.json, plot=args.plot)  # first: it says the log is being read
     if args.json and Path(args.json).suffix.lower() == ".mcap":
         # `eval --json drives/*.mcap` took the first log for the JSON's path and wrote over it.
         raise SunrigError(f"--json {args.json}: that is a log's name (.mcap), not a JSON file's; pass the JSON "
                           "file's own path after --json (or - for stdout)")
-    _check_writable("--json", args.json)
-    _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
-    paths = _eval_each_log_once(_expand_logs(args.logs))
-    _refuse_overwriting(paths, json=args.json, plot=args.plot)
     opened, left_out = _open_logs("eval", paths, args.utc_offset)
     sources = [(str(p), frames) for p, frames in opened]
     model = _load_model(args.model, args.stop)
