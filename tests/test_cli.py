@@ -1316,10 +1316,10 @@ class _SilentCamera:
 def silent_camera(monkeypatch):
     """Every --camera opens as a _SilentCamera (with the heading asked for)."""
     import rig.cli
-    from drivers.sources import LiveSource
+    from drivers.sources import LiveSource, parse_camera, parse_heading
 
     monkeypatch.setattr(rig.cli, "_open_camera", lambda spec, heading, options=None: LiveSource(
-        spec, heading, _SilentCamera(), {"camera": _SilentCamera()}))
+        parse_camera(spec), parse_heading(heading), _SilentCamera(), {"camera": _SilentCamera()}))
 
 
 @pytest.mark.parametrize("stopped", [False, True])
