@@ -770,9 +770,12 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
-def _expand_logs(items: list[str]) -> list[Path]:
+def _expand_logs(command: str, items: list[str]) -> list[Path]:
     """Log arguments: files, or folders whose *.mcap files are taken in name order. A folder
-    with none is taken as a KITTI drive, unless it is none (:func:`_refuse_folder_without_logs`)."""
+    with none is taken as a KITTI drive, unless it is none (:func:`_refuse_folder_without_logs`).
+    A log named again (a folder and a log in it, overlapping globs, another spelling of its path)
+    is taken once, with a warning: read twice, its windows weighed double in eval's every figure
+    and in training."""
     paths: list[Path] = []
     for item in items:
         p = Path(item)
@@ -783,7 +786,13 @@ def _expand_logs(items: list[str]) -> list[Path]:
             if p.is_dir():
                 _refuse_folder_without_logs(p)
             paths.append(p)
-    return paths
+    first_by_file: dict[Path, Path] = {}
+    for path in paths:
+        first = first_by_file.setdefault(path.resolve(), path)
+        if first is not path:
+            again = "" if first == path else f" as {first}"
+            logging.getLogger(__name__).warning("%s: %s: named before%s; read once", command, path, again)
+    return list(first_by_file.values())
 
 
 def _refuse_folder_without_logs(folder: Path) -> None:
@@ -859,18 +868,6 @@ def _aggregator_list(text: str) -> list[str]:
     return list(dict.fromkeys(names))  # each once: "mean,mean" is the mean
 
 
-def _eval_each_log_once(paths: list[Path]) -> list[Path]:
-    """``paths`` without the logs named again (a folder and a log in it, overlapping globs), with
-    a warning for each: graded twice, a log's windows weighed double in every figure."""
-    first_by_file: dict[Path, Path] = {}
-    for path in paths:
-        first = first_by_file.setdefault(path.resolve(), path)
-        if first is not path:
-            again = "" if first == path else f" as {first}"
-            logging.getLogger(__name__).warning("eval: %s: named before%s; evaluated once", path, again)
-    return list(first_by_file.values())
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
     from estimator.estimator import AGGREGATORS, SunEstimator
     from estimator.evaluate import TAIL_DEG, TAIL_KEY, evaluate, plot_eval
@@ -879,7 +876,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     _check_writable("--json", args.json)
     _check_writable("--plot", args.plot, (".png", ".pdf", ".svg"))
-    paths = _eval_each_log_once(_expand_logs(args.logs))
+    paths = _expand_logs("eval", args.logs)
     _refuse_overwriting(paths, json=args.json, plot=args.plot)  # first: it says the log is being read
     if args.json and Path(args.json).suffix.lower() == ".mcap":
         # `eval --json drives/*.mcap` took the first log for the JSON's path and wrote over it.
@@ -971,7 +968,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         # Logs beside --export-only: a checkpoint from before training recorded its data's sun
         # elevations takes them from its logs (checked to be the run's by their fingerprint).
-        opened, _ = _open_logs("train", _expand_logs(args.logs), args.utc_offset) if args.logs else ([], [])
+        opened, _ = _open_logs("train", _expand_logs("train", args.logs), args.utc_offset) if args.logs else ([], [])
         logs = [p for p, _ in opened]
         mirror = args.mirror_windows
         out = export_checkpoint(Path(args.out), Path(args.export_only), run_crops_per_frame=args.crops or 0,
@@ -987,7 +984,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise SunrigError("train: --mirror-windows sets how an exported model runs; pass it with --export-only "
                           "once the run is done (a fine-tune keeps its --init model's)")
     # Opened now, so that a bad log fails before minutes of loading the others.
-    opened, _ = _open_logs("train", _expand_logs(args.logs), args.utc_offset)
+    opened, _ = _open_logs("train", _expand_logs("train", args.logs), args.utc_offset)
     paths = [p for p, _ in opened]
     cfg = TrainConfig(preset=args.preset, layers=args.layers, minutes=args.minutes, max_steps=args.steps,
                       batch_windows=args.batch, crops_per_frame=args.crops or 0, lr=args.lr,
@@ -1054,7 +1051,7 @@ def cmd_quantize(args: argparse.Namespace) -> int:
 
     model = _load_model(args.model, args.stop)
     # Calibration reads images only: a KITTI drive's UTC offset (its true sun) does not matter here.
-    opened, _ = _open_logs("quantize", _expand_logs(args.logs), 0.0)
+    opened, _ = _open_logs("quantize", _expand_logs("quantize", args.logs), 0.0)
     # Frames are the unit: how many the logs hold is known only once read.
     progress = Progress("quantize: calibrating", unit="frames", enabled=None if not args.quiet else False)
     out = quantize_logs_model(model, opened, Path(args.out), n_crops=args.calibration_crops, seed=args.seed,

@@ -1842,8 +1842,21 @@ def test_eval_of_a_log_named_twice_grades_it_once_and_says_so(tmp_path, capsys, 
     assert summary["logs"] == [str(a), str(b)]
     assert summary["aggregators"]["mean"]["n_windows"] == 4 + 6  # 11 frames with a heading, and 13
     assert [r.getMessage() for r in caplog.records] == [
-        f"eval: {a}: named before; evaluated once",
-        f"eval: {fleet / '..' / 'fleet' / 'b.mcap'}: named before as {b}; evaluated once"]
+        f"eval: {a}: named before; read once",
+        f"eval: {fleet / '..' / 'fleet' / 'b.mcap'}: named before as {b}; read once"]
+
+
+def test_train_and_quantize_read_a_log_named_twice_once(tmp_path, caplog):
+    # The same expansion as eval's: a log named twice weighed double in training (and calibration).
+    from rig.cli import _expand_logs
+
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    a, b = _write_log(fleet / "a.mcap"), _write_log(fleet / "b.mcap", n=14)
+    for command in ("train", "quantize"):
+        caplog.clear()
+        assert _expand_logs(command, [str(fleet), str(a)]) == [a, b]
+        assert [r.getMessage() for r in caplog.records] == [f"{command}: {a}: named before; read once"]
 
 
 def test_eval_names_a_log_of_which_no_window_was_graded(tmp_path, capsys, caplog):
