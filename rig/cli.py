@@ -735,7 +735,7 @@ def _source_summary(stats: dict) -> str:
             parts.append(f"heading {key} {pairing[key]}")
     gnss = stats.get("gnss") or {}  # why a heading port gave no headings: its bytes, as the framer saw them
     for key in ("bad_checksum", "truncated", "overlong", "malformed", "garbage_bytes", "bad_fields", "no_data",
-                "read_errors", "reopens"):
+                "read_errors", "reopens", "suspends", "stale_bytes"):
         if gnss.get(key):
             parts.append(f"heading port {key.replace('_', ' ')} {gnss[key]}")
     vo = stats.get("visual_odometry") or {}
@@ -1109,7 +1109,8 @@ def cmd_gnss(args: argparse.Namespace) -> int:
     stats = reader.stats()
     if not args.quiet:
         dropped = {k: stats[k] for k in ("bad_checksum", "no_checksum", "truncated", "overlong", "malformed",
-                                         "bad_fields", "no_data", "undated", "read_errors", "events_dropped")
+                                         "bad_fields", "no_data", "undated", "read_errors", "events_dropped",
+                                         "suspends", "stale_bytes")
                    if stats[k]}
         summary = (f"{n_lines} updates from {stats['sentences']} sentences ({stats['headings']} headings, "
                    f"{stats['fixes']} fixes)")

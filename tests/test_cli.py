@@ -1896,3 +1896,12 @@ def test_eval_names_the_aggregators_it_does_not_know_by_the_flag(tmp_path, capsy
     assert rc == 2 and captured.out == ""
     assert captured.err == (f"sunrig eval: error: argument --aggregators: no {unknown}: pass a "
                             "comma-separated subset of transformer, mean, meanshift, single (see sunrig eval --help)\n")
+
+
+def test_the_exit_report_says_what_a_suspend_cost_the_heading_port():
+    # The GNSS reader drops what its first read after a host suspend finds waiting (a668782): the
+    # exit report named every other loss of the port's bytes, but not that one.
+    from rig.cli import _source_summary
+
+    assert _source_summary({"gnss": {"suspends": 1, "stale_bytes": 412, "reopens": 0}}) == (
+        "heading port suspends 1, heading port stale bytes 412")
