@@ -271,6 +271,9 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
         raise ConfigError(f"config file {path} nests arrays or tables too deeply for a config, which holds "
                           "[sections] of strings, numbers and booleans; sunrig config --print writes one") from None
     cfg = merge(cfg, raw, where=str(path))
+    for key in ("camera", "heading"):
+        if key in raw.get("source", {}):
+            _check_source_spec(key, cfg["source"][key], where=str(path))
     # The folder the file really is in (--config /dev/stdin < rig.toml included); a pipe has none.
     real = os.path.realpath(path)
     folder = os.path.dirname(real) if os.path.isfile(real) else os.getcwd()
@@ -278,6 +281,23 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
         if key in raw.get(section, {}):
             cfg[section][key] = _in_folder(key, cfg[section][key], folder)
     return cfg
+
+
+def _check_source_spec(key: str, value: str, where: str) -> None:
+    """Refuse a ``[source] camera`` or ``heading`` that the drivers cannot parse (ConfigError).
+    Checked as the file is read, so `config --print` refuses what boot would; at boot the drivers'
+    own error named the flag (``--camera bogus:0``) a service never passed, and not the file.
+    Only a file's values: a flag's are named by the drivers as the flag. The pair (a log's heading
+    with a live camera) is not checked here: a flag may still change either."""
+    from drivers.sources import CAMERA_HELP, HEADING_HELP, parse_camera, parse_heading
+
+    if key == "camera" and value == "":  # unset, the default: `run` asks for one
+        return
+    parse, expected = (parse_camera, CAMERA_HELP) if key == "camera" else (parse_heading, HEADING_HELP)
+    try:
+        parse(value)
+    except SunrigError:
+        raise ConfigError(f"{where}: [source] {key}: expected {expected}, got {shown_value(value)}") from None
 
 
 # The options that name a file or folder. Relative in a config file, they are relative to the

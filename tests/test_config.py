@@ -394,3 +394,38 @@ def test_docs_deploy_lists_every_option_with_its_default(tmp_path):
     printed = tomllib.loads(dump_toml(DEFAULTS))
     for section, key, default in rows:
         assert _same(tomllib.loads(f"v = {default}")["v"], printed[section][key]), (section, key, default)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[source]\ncamera = 'bogus:0'\n", "[source] camera: expected oak, oak:DEVICE_ID, opencv:0, opencv:rtsp://..., "
+                                           "opencv:VIDEO_FILE or file:LOG, got 'bogus:0'"),
+        ("[source]\ncamera = 'opencv:'\n", "[source] camera: expected oak, "),
+        ("[source]\ncamera = '  '\n", "[source] camera: expected oak, "),
+        ("[source]\nheading = 'nmea'\n",
+         "[source] heading: expected oak-imu, nmea:PORT, visual, none or log, got 'nmea'"),
+        ("[source]\nheading = 'gps'\n",
+         "[source] heading: expected oak-imu, nmea:PORT, visual, none or log, got 'gps'"),
+        ("[source]\nheading = ''\n", "[source] heading: expected oak-imu, nmea:PORT, visual, none or log, got ''"),
+    ],
+)
+def test_a_source_the_drivers_do_not_know_is_named_as_the_files_option(tmp_path, text, message):
+    # `camera = "bogus:0"` passed `config --print` (which deploy.md says checks the file "as it would
+    # be at boot"), and at boot was "--camera bogus:0: unknown camera", a flag the service never passed,
+    # with no word of the file.
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value).startswith(f"{path}: {message}")
+
+
+def test_every_source_the_drivers_know_loads_and_an_unset_camera_stays_unset(tmp_path):
+    path = tmp_path / "rig.toml"
+    for camera, heading in [("oak", "oak-imu"), ("oak:1844301011", "none"), ("opencv:0", "nmea:/dev/ttyUSB0"),
+                            ("opencv:rtsp://cam/live", "visual"), ("file:/d/drive.mcap", "log"),
+                            ("", "nmea:socket://10.0.0.5:2000")]:
+        path.write_text(f'[source]\ncamera = "{camera}"\nheading = "{heading}"\n')
+        cfg = load_config(path)
+        assert (cfg["source"]["camera"], cfg["source"]["heading"]) == (camera, heading)
