@@ -171,12 +171,19 @@ def check_window_fits(cfg: Mapping[str, Mapping[str, Any]], frames_per_window: i
     """Refuse a ring that can never hold a full window of the model's (ConfigError). Each option is
     in range alone (:func:`check_option`); together they would stream partial windows, all
     flagged invalid, for as long as the rig runs."""
-    rig, window = cfg["rig"], cfg["window"]
+    rig = cfg["rig"]
     if rig["ring_capacity"] < frames_per_window:
         raise ConfigError(
             f"[rig] ring_capacity: {rig['ring_capacity']} frames is fewer than the model's window of "
             f"{frames_per_window}, so no window would ever be full; set it to {frames_per_window} or more"
         )
+    check_ring_keeps_span(cfg)
+
+
+def check_ring_keeps_span(cfg: Mapping[str, Mapping[str, Any]]) -> None:
+    """Refuse a ring that lets frames go before a window's span has passed (ConfigError). Needs no
+    model, so :func:`load_config` checks it as the file is read (no flag sets either option)."""
+    rig, window = cfg["rig"], cfg["window"]
     if rig["ring_max_age_s"] < window["span_s"]:
         raise ConfigError(
             f"[rig] ring_max_age_s: {rig['ring_max_age_s']:g} s is shorter than [window] span_s "
@@ -274,6 +281,10 @@ def load_config(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     for key in ("camera", "heading"):
         if key in raw.get("source", {}):
             _check_source_spec(key, cfg["source"][key], where=str(path))
+    try:  # here, not at boot after the camera has opened and the model loaded, and naming the file
+        check_ring_keeps_span(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     # The folder the file really is in (--config /dev/stdin < rig.toml included); a pipe has none.
     real = os.path.realpath(path)
     folder = os.path.dirname(real) if os.path.isfile(real) else os.getcwd()

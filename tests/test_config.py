@@ -429,3 +429,18 @@ def test_every_source_the_drivers_know_loads_and_an_unset_camera_stays_unset(tmp
         path.write_text(f'[source]\ncamera = "{camera}"\nheading = "{heading}"\n')
         cfg = load_config(path)
         assert (cfg["source"]["camera"], cfg["source"]["heading"]) == (camera, heading)
+
+
+def test_a_ring_shorter_than_the_window_span_is_refused_as_the_file_is_read(tmp_path):
+    # `[window] span_s = 12` (over the default ring_max_age_s of 10) passed `config --print`; `run`
+    # refused it only after the camera had opened and the model loaded, without naming the file.
+    # Neither option has a flag, so the file alone decides it.
+    path = tmp_path / "rig.toml"
+    path.write_text("[window]\nspan_s = 12.0\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == (f"{path}: [rig] ring_max_age_s: 10 s is shorter than [window] span_s 12 s, so frames "
+                               "would leave the ring before a window could reach them; raise ring_max_age_s or "
+                               "lower span_s")
+    path.write_text("[window]\nspan_s = 12.0\n[rig]\nring_max_age_s = 12.0\n")
+    assert load_config(path)["rig"]["ring_max_age_s"] == 12.0
