@@ -349,6 +349,12 @@ def merge(cfg: dict[str, dict[str, Any]], raw: Mapping[str, Any], where: str = "
             raise ConfigError(f"{where}: [{section}] must be a table of options")
         for key, value in values.items():
             if key not in DEFAULTS[section]:
+                # An option of another section is no typo: its list of known names would not have it.
+                homes = [name for name, options in DEFAULTS.items() if key in options]
+                if homes:
+                    article = "an" if homes[0][0] in "aeiou" else "a"
+                    raise ConfigError(f"{where}: unknown option [{section}] {key}: it is {article} "
+                                      + " or ".join(f"[{home}]" for home in homes) + " option; move it there")
                 raise ConfigError(
                     f"{where}: unknown option [{section}] {key}; known: {', '.join(DEFAULTS[section])}"
                 )

@@ -444,3 +444,24 @@ def test_a_ring_shorter_than_the_window_span_is_refused_as_the_file_is_read(tmp_
                                "lower span_s")
     path.write_text("[window]\nspan_s = 12.0\n[rig]\nring_max_age_s = 12.0\n")
     assert load_config(path)["rig"]["ring_max_age_s"] == 12.0
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[output]\ncamera = 'oak'\n", "unknown option [output] camera: it is a [source] option; move it there"),
+        ("[source]\nserial = '/dev/ttyUSB1'\n",
+         "unknown option [source] serial: it is an [output] option; move it there"),
+        ("[rig]\nbaud = 9600\n",
+         "unknown option [rig] baud: it is a [source] or [output] option; move it there"),
+        ("[source]\nrealtime = false\n", "unknown option [source] realtime: it is a [rig] option; move it there"),
+    ],
+)
+def test_an_option_under_another_section_says_where_it_belongs(tmp_path, text, message):
+    # It was refused as any typo is ("unknown option [output] camera; known: serial, baud, ..."),
+    # a list without it, that left the user looking for the spelling mistake there was none of.
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: {message}"
