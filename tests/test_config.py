@@ -465,3 +465,30 @@ def test_an_option_under_another_section_says_where_it_belongs(tmp_path, text, m
     with pytest.raises(ConfigError) as info:
         load_config(path)
     assert str(info.value) == f"{path}: {message}"
+
+
+def test_the_service_in_docs_deploy_can_open_what_its_config_names(tmp_path):
+    # The unit ran as a user in `dialout` alone: the page's own `camera = "opencv:0"` is /dev/video0,
+    # the `video` group's ("no camera at index 0: ... that the user is in the 'video' group"), and its
+    # recording folder /var/lib/sunrig/drives was made by nothing, nor writable by that user.
+    import re
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "deploy.md").read_text(encoding="utf-8")
+    [unit] = re.findall(r"```ini\n(.*?)```", text, flags=re.S)
+    settings = dict(re.findall(r"^(\w+)=(.*)$", unit, flags=re.M))
+    assert {"dialout", "video"} <= set(settings["SupplementaryGroups"].split())
+    [config] = re.findall(r"```toml\n(.*?)```", text, flags=re.S)
+    record = tomllib.loads(config)["output"]["record"]
+    assert str(Path(record).parent) == f"/var/lib/{settings['StateDirectory']}"
+    analyze = shutil.which("systemd-analyze")
+    sunrig = shutil.which("sunrig")
+    if analyze is None or sunrig is None:
+        return  # the lines above are what a systemd-less machine can check
+    path = tmp_path / "sunrig.service"  # with the ExecStart= path of this machine's sunrig
+    path.write_text(unit.replace("/usr/local/bin/sunrig", sunrig))
+    done = subprocess.run([analyze, "verify", str(path)], capture_output=True, text=True, timeout=60)
+    # verify exits 0 for a setting it ignores ("Failed to parse ..., ignoring"): its lines say so.
+    assert done.returncode == 0 and str(path) not in done.stderr, done.stderr
