@@ -1,5 +1,6 @@
 """Configuration: TOML covers every option, flags override, mistakes are named."""
 
+import argparse
 import inspect
 import json
 import math
@@ -41,7 +42,8 @@ def test_strings_with_quotes_backslashes_and_control_characters_round_trip():
 def test_every_run_flag_has_a_config_option():
     from rig.cli import build_parser
 
-    run = next(a for a in build_parser()._subparsers._group_actions[0].choices.values() if a.prog.endswith(" run"))
+    parser = build_parser()
+    run = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["run"]
     cli_only = {"help", "debug", "config", "quiet", "fast", "record_frames", "source_baud"}
     dests = {a.dest for a in run._actions} - cli_only
     known = {key for section in DEFAULTS.values() for key in section}
