@@ -1084,6 +1084,11 @@ def _train_locked(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig, ne
                         log.warning("other work is using the CPU (load %.1f beyond training's %d threads): this "
                                     "%.0f-minute budget will train fewer steps; leave the machine idle while it trains",
                                     extra, threads, cfg.minutes)
+        # One snapshot for both, so the exported contract's minutes are the checkpoint's to the second
+        # (a second snapshot after a slow save reads a later clock). Saved under the Ctrl-C below:
+        # a stop cutting this save lost every step since the last checkpoint, without a word.
+        final = fit_state()
+        _save_checkpoint(ckpt_path, final)
     except KeyboardInterrupt:
         # Ctrl-C (or a kill by SIGINT) keeps what was trained since the last checkpoint: up to
         # checkpoint_every_s of steps would otherwise be lost. The same command resumes.
@@ -1095,15 +1100,18 @@ def _train_locked(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig, ne
         log.warning("interrupted at step %d: saved %s; run the same command to resume", step, ckpt_path)
         raise
 
-    # One snapshot for both, so the exported contract's minutes are the checkpoint's to the second
-    # (a second snapshot after a slow save reads a later clock).
-    final = fit_state()
-    _save_checkpoint(ckpt_path, final)
     if final["weight_average"] is not None:
         backbone, aggregator = modules_from(net_cfg, final["weight_average"])
-    # (memory_format: see the channels_last call above for the ignore)
-    return _export(backbone.to(memory_format=torch.contiguous_format),  # type: ignore[call-overload]
-                   aggregator, cfg, final, out_dir)
+    try:
+        # (memory_format: see the channels_last call above for the ignore)
+        return _export(backbone.to(memory_format=torch.contiguous_format),  # type: ignore[call-overload]
+                       aggregator, cfg, final, out_dir)
+    except KeyboardInterrupt:
+        # The export is seconds of ONNX tracing, most of a short run's time: a stop there exited
+        # without a word, leaving a checkpoint and weights.npz but no graphs.
+        log.warning("interrupted while exporting the model of step %d: %s is saved, but the model is not "
+                    "exported; run the same command to export it", step, ckpt_path)
+        raise
 
 
 # What makes a run itself: resuming with any of these changed would make a contract that lies

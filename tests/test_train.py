@@ -195,6 +195,46 @@ def test_ctrl_c_keeps_the_steps_since_the_last_checkpoint(logs, tmp_path):
     assert [e["step"] for e in events if e["phase"] == "train"] == [3, 4]
 
 
+def test_ctrl_c_during_the_final_save_or_export_says_what_is_kept_and_how_to_go_on(logs, tmp_path, monkeypatch,
+                                                                                   caplog):
+    # The export is most of a short run's time (seconds of ONNX tracing): a Ctrl-C there exited
+    # 130 without a word, leaving checkpoint.pt and weights.npz and no graphs; one during the final
+    # save lost every step since the last checkpoint, also silently.
+    import estimator.train as train_mod
+
+    cfg = TrainConfig(preset="tiny", max_steps=2, batch_windows=1, warmup_steps=1, checkpoint_every_s=3600.0)
+    save = train_mod._save_checkpoint
+    calls = []
+
+    def save_cut_once(path, state):
+        calls.append(state["step"])
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        save(path, state)
+
+    monkeypatch.setattr(train_mod, "_save_checkpoint", save_cut_once)
+    with caplog.at_level("WARNING"), pytest.raises(KeyboardInterrupt):
+        train(logs, tmp_path / "saved", cfg)
+    assert torch.load(tmp_path / "saved" / CHECKPOINT, weights_only=False)["step"] == 2  # kept, not lost
+    assert "run the same command to resume" in caplog.text
+    monkeypatch.undo()
+    caplog.clear()
+
+    def export_cut(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "exported"
+    monkeypatch.setattr(train_mod, "export_model", export_cut)
+    with caplog.at_level("WARNING"), pytest.raises(KeyboardInterrupt):
+        train(logs, out, cfg)
+    assert f"interrupted while exporting the model of step 2: {out / CHECKPOINT} is saved" in caplog.text
+    assert "run the same command to export it" in caplog.text
+    monkeypatch.undo()
+    events = []
+    train(logs, out, cfg, progress=events.append)  # as it says: the same command exports it
+    assert not any(e["phase"] == "train" for e in events) and (out / "backbone.onnx").is_file()
+
+
 @pytest.mark.slow
 def test_a_stopped_and_resumed_run_ends_on_the_weights_of_one_never_stopped(logs, tmp_path):
     # The draws, dropout, hard-draw errors and optimizer all carry on where they stopped, so the
