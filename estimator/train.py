@@ -59,6 +59,8 @@ import numpy as np
 
 from estimator.calibration import mirrored_angles, mirrored_enu
 from estimator.contract import (
+    AGGREGATOR_FILE,
+    BACKBONE_FILE,
     CHECKPOINT,
     CONTRACT_REMEDY,
     MAX_CROPS_PER_FRAME,
@@ -1309,11 +1311,14 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
         what = "is a file, not a model folder" if Path(model_dir).exists() else "does not exist"
         raise ValidationError(f"--init {model_dir} {what}; pass a model folder written by `sunrig train`, "
                               "e.g. the shipped model's")
+    graphs = all((Path(model_dir) / name).is_file() for name in (BACKBONE_FILE, AGGREGATOR_FILE))
+    # A run stopped before its end exports nothing; one stopped in its export has weights.npz
+    # (written first) and no graphs, where the runtime's refusal named --model.
+    if not (path.is_file() and graphs) and (Path(model_dir) / CHECKPOINT).is_file():
+        raise ValidationError(f"--init {model_dir} holds a training run that has not exported its model yet; "
+                              f"export it with `sunrig train --out {model_dir} --export-only DIR` and pass "
+                              "--init DIR, or let the run finish")
     if not path.is_file():
-        if (Path(model_dir) / CHECKPOINT).is_file():  # a run stopped before its end exports nothing
-            raise ValidationError(f"--init {model_dir} holds a training run that has not exported its model yet; "
-                                  f"export it with `sunrig train --out {model_dir} --export-only DIR` and pass "
-                                  "--init DIR, or let the run finish")
         raise ValidationError(f"--init {model_dir}: no {WEIGHTS_FILE} there; pass a model folder written by "
                               "`sunrig train` (the shipped model has one)")
     try:

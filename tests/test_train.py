@@ -1434,6 +1434,11 @@ def test_an_init_folder_of_a_run_not_yet_exported_says_how_to_export_it(tmp_path
     with pytest.raises(ValidationError, match=r"holds a training run that has not exported its model yet; "
                                               r"export it with `sunrig train --out .*run --export-only DIR`"):
         check_init(run, nets.TINY)
+    # A run stopped during its export has weights.npz (written first) and no graphs: the runtime's
+    # refusal came through, telling to pass --model DIR, which train does not have.
+    (run / "weights.npz").write_bytes(b"")
+    with pytest.raises(ValidationError, match=r"not exported its model yet; export it with .* and pass --init DIR"):
+        check_init(run, nets.TINY)
 
 
 @pytest.mark.parametrize("other", [
