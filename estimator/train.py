@@ -1336,8 +1336,10 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
         which = f"--preset {preset}" if preset in nets.PRESETS else "the preset it was trained with"
         if recipe.get("layers"):
             which += f" --layers {recipe['layers']}"
-        elif "layers" in diff:
-            which += " without --layers"  # the start has its preset's depth
+        elif "layers" in diff and net_cfg not in nets.PRESETS.values():
+            # The start has its preset's depth and this run was given --layers (net_config names no
+            # preset then); a depth differing only with the preset is no flag to leave out.
+            which += " without --layers"
         raise ValidationError(f"--init {model_dir}: its architecture differs from this preset in {', '.join(diff)}; "
                               f"pass {which}")
     # Loaded into networks of its architecture now, not after minutes of loading data: weights.npz

@@ -932,6 +932,20 @@ def test_a_run_may_stack_more_transformer_layers_than_its_preset(logs, tmp_path)
                                                    batch_windows=1))
 
 
+def test_an_init_of_another_preset_names_that_preset_and_no_layers_flag_not_given():
+    # --preset tiny --init shipped was told "pass --preset fast without --layers", with no --layers
+    # given: the depth differs only because the presets do.
+    from estimator import nets
+    from estimator.models import resolve_init_dir
+    from estimator.train import check_init
+
+    shipped = resolve_init_dir("shipped")
+    with pytest.raises(ValidationError, match=r"; pass --preset fast$"):
+        check_init(shipped, nets.TINY)
+    with pytest.raises(ValidationError, match=r"; pass --preset fast without --layers$"):  # given, it is named
+        check_init(shipped, replace(nets.TINY, layers=3))
+
+
 @pytest.mark.slow
 def test_naming_the_presets_own_depth_is_the_same_run(logs, tmp_path):
     from estimator import nets
