@@ -1215,15 +1215,21 @@ def _resumable_state(out_dir: Path, cfg: TrainConfig) -> dict[str, Any] | None:
         if value(asked) and value(asked) != value(ran_with):
             differs.append(f"{flag} {as_flag(ran_with)}, not {as_flag(asked)}")
     old_data, new_data = was.get("data", {}).get("fingerprint"), cfg.data.get("fingerprint")
-    if old_data and new_data and old_data != new_data:
-        differs.append(f"logs with fingerprint {old_data}, not {new_data}")
+    other_logs = bool(old_data and new_data and old_data != new_data)
+    if other_logs:
+        n_was, n_now = was.get("data", {}).get("logs"), cfg.data.get("logs")
+        differs.append(f"logs with fingerprint {old_data}{f' ({n_was} logs)' if n_was is not None else ''}, "
+                       f"not {new_data} ({f'{n_now} logs: ' if n_now is not None else ''}a log added, removed or "
+                       "changed since the run began)")
     if differs:
         # A default may have changed since the run began (--mirror-share did), so its own command
         # alone may not resume it: name the settings to give as well.
         give = f" with `{' '.join(f'{_RUN_IDENTITY[key]} {ran[key]}' for key in changed)}`" if changed else ""
+        # Its own command names folders whose logs may have changed since (a drive recorded into one).
+        began = " on the logs it began with" if other_logs else ""
         raise ValidationError(f"--out {out_dir} holds a run with {'; '.join(differs)}. To resume it, run its own "
-                              f"command (`{was.get('command') or 'see its checkpoint'}`){give}; for a new run "
-                              "pass another --out")
+                              f"command (`{was.get('command') or 'see its checkpoint'}`){give}{began}; for a new "
+                              "run pass another --out")
     return state
 
 

@@ -768,9 +768,14 @@ def test_out_must_be_this_runs_folder_or_a_new_one(logs, tmp_path):
     with pytest.raises(ValidationError, match=r"--lr 0.0003, not 0.001.*--seed 0, not 5.*another --out"):
         train(logs, out, replace(cfg, max_steps=2, lr=1e-3, seed=5))
     out_on_data = tmp_path / "run_on_data"
-    train(logs, out_on_data, replace(cfg, data={"fingerprint": data_fingerprint(logs)}))
-    with pytest.raises(ValidationError, match="logs with fingerprint"):
-        train(logs[:2], out_on_data, replace(cfg, max_steps=2, data={"fingerprint": data_fingerprint(logs[:2])}))
+    train(logs, out_on_data, replace(cfg, data={"fingerprint": data_fingerprint(logs), "logs": 3}))
+    # Its own command is not the remedy when a folder it named has changed (a drive recorded into
+    # it since): the refusal told to run the very command it refused.
+    with pytest.raises(ValidationError, match=r"logs with fingerprint \w+ \(3 logs\), not \w+ \(2 logs: a log added, "
+                                              r"removed or changed since the run began\)\. To resume it, run its own "
+                                              r"command \(`.*`\) on the logs it began with;"):
+        train(logs[:2], out_on_data, replace(cfg, max_steps=2, data={"fingerprint": data_fingerprint(logs[:2]),
+                                                                     "logs": 2}))
 
 
 def test_the_fingerprint_of_native_logs_is_their_names_and_sizes_as_shipped_models_recorded(tmp_path):
