@@ -95,8 +95,9 @@ def check_pair(camera: CameraSpec, heading: HeadingSpec) -> None:
         raise SourceError(f"--heading oak-imu is the OAK's own IMU: use it with --camera oak, or pass "
                           f"--heading {_headings_for(camera)} for --camera {camera}")
     if heading.kind == "log" and camera.kind != "file":
+        # The default heading: a config that sets only [source] camera to a live one comes here.
         raise SourceError(f"--heading log is a log's recorded heading: --camera {camera} has none; pass "
-                          f"--heading {_headings_for(camera)}")
+                          f"--heading {_headings_for(camera)} (or set [source] heading in --config)")
     if heading.kind == "nmea" and (camera.kind == "file" or _is_video_file(camera)):
         # A recording's frames carry the times of the session (or file) that made them: a
         # compass read now cannot be matched to them.

@@ -508,3 +508,11 @@ def test_run_a_video_with_visual_heading(video, tmp_path, tiny_model_dir):
                  str(tiny_model_dir), "--jsonl", str(out), "--fast", "--quiet"]) == 0
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert rows and all(r["heading_ref"] == "relative" for r in rows)
+
+
+def test_a_live_camera_left_with_the_default_heading_is_told_where_to_set_one():
+    # A service's config that sets only [source] camera gets the default heading, a log's: the
+    # refusal named only the flag, which a service never passes.
+    with pytest.raises(SourceError) as err:
+        check_pair(parse_camera("opencv:0"), parse_heading("log"))
+    assert str(err.value).endswith("pass --heading nmea:PORT, visual or none (or set [source] heading in --config)")
