@@ -764,9 +764,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    from rig.config import dump_toml
+    from drivers.sources import check_pair, parse_camera, parse_heading
+    from rig.config import ConfigError, dump_toml
 
-    print(dump_toml(_effective_config(args)), end="")
+    cfg = _effective_config(args)
+    camera, heading = cfg["source"]["camera"], cfg["source"]["heading"]
+    if camera:  # unset: `run` asks for one
+        # Needs no device, so checked here as boot would: a live camera left with the default
+        # heading (a log's) is the usual first mistake in a service's config.
+        try:
+            check_pair(parse_camera(camera), parse_heading(heading))
+        except SunrigError as exc:
+            where = f"{args.config}: " if args.config else ""
+            raise ConfigError(f"{where}[source] camera {camera} with heading {heading}: {exc}") from None
+    print(dump_toml(cfg), end="")
     return 0
 
 

@@ -921,6 +921,22 @@ def test_config_print_merges_file_and_flags(tmp_path):
     assert "baud = 9600" in res.stdout and "span_s = 6.0" in res.stdout and "[rig]" in res.stdout
 
 
+def test_config_print_refuses_a_camera_and_heading_that_do_not_go_together(tmp_path, capsys):
+    # A service's config with a live camera and the default heading (a log's): `config --print`
+    # passed it, and boot refused it.
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[source]\ncamera = "opencv:0"\nhfov_deg = 70.0\n')
+    rc, captured = _main_in_process(["config", "--print", "--config", str(cfg)], capsys)
+    assert rc == 2 and captured.out == ""
+    assert captured.err.strip().splitlines() == [
+        f"sunrig: error: {cfg}: [source] camera opencv:0 with heading log: --heading log is a log's recorded "
+        "heading: --camera opencv:0 has none; pass --heading nmea:PORT, visual or none (or set [source] heading "
+        "in --config)"]
+    cfg.write_text('[source]\ncamera = "opencv:0"\nhfov_deg = 70.0\nheading = "visual"\n')
+    rc, captured = _main_in_process(["config", "--print", "--config", str(cfg)], capsys)
+    assert rc == 0 and 'heading = "visual"' in captured.out, captured.err
+
+
 @pytest.mark.torch
 @pytest.mark.slow
 def test_train_init_errors_are_one_line_before_any_data_loads(tmp_path):
