@@ -160,7 +160,7 @@ class OnnxModel:
             if (root / CHECKPOINT).is_file():
                 raise ModelError(f"{root} holds a training run that has not exported its model yet; export it as it "
                                  f"stands with `sunrig train --out {root} --export-only DIR` and pass --model DIR, "
-                                 "or let the run finish")
+                                 "or run its `sunrig train` command again to finish and export it")
             raise ModelError(
                 f"model folder {str(root)!r} lacks {' and '.join(missing)}; a model folder holds "
                 f"{BACKBONE_FILE} and {AGGREGATOR_FILE} as written by `sunrig train`"

@@ -1323,7 +1323,7 @@ def _checked_init(model_dir: Path, net_cfg: nets.NetConfig) -> tuple[Path, Any]:
     if not (path.is_file() and graphs) and (Path(model_dir) / CHECKPOINT).is_file():
         raise ValidationError(f"--init {model_dir} holds a training run that has not exported its model yet; "
                               f"export it with `sunrig train --out {model_dir} --export-only DIR` and pass "
-                              "--init DIR, or let the run finish")
+                              "--init DIR, or run its `sunrig train` command again to finish and export it")
     if not path.is_file():
         raise ValidationError(f"--init {model_dir}: no {WEIGHTS_FILE} there; pass a model folder written by "
                               "`sunrig train` (the shipped model has one)")

@@ -314,6 +314,8 @@ def test_refuses_a_folder_without_graphs(tmp_path):
     (tmp_path / "checkpoint.pt").write_bytes(b"")  # an interrupted `sunrig train --out` folder
     message = refusal(ModelError, tmp_path)
     assert f"sunrig train --out {tmp_path} --export-only DIR" in message and "--model DIR" in message
+    # Not "let the run finish": a stopped run does not finish by itself, its command run again does.
+    assert message.endswith("or run its `sunrig train` command again to finish and export it")
 
 
 def test_refuses_random_bytes(tmp_path):
