@@ -63,6 +63,7 @@ DEFAULT_UTC_OFFSET_H = 2.0
 CAMERA = "image_02"
 CALIB_FILE = "calib_cam_to_cam.txt"
 _DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_sync$")
+_DATE_RE = re.compile(r"^\d{4}_\d{2}_\d{2}$")
 _TIMESTAMP_RE = re.compile(r"^\d{4}-\d{2}-\d{2} \d{2}:\d{2}:\d{2}(\.\d{1,9})?$")
 _MAX_WARNINGS = 5
 # A synced drive's image and OXTS record of one frame are stamped within a few ms (13 ms at most in
@@ -294,6 +295,23 @@ def drive_files(date_dir: Path, drive_dir: Path) -> list[Path]:
     return used
 
 
+def _missing_calib_message(date_dir: Path, drive_dir: Path) -> str:
+    """What to do when the date folder lacks its calibration. KITTI's YYYY_MM_DD_calib.zip holds
+    its files under the date (YYYY_MM_DD/calib_cam_to_cam.txt ...), as the drive zips hold
+    YYYY_MM_DD/*_sync/: it is unzipped in the date folder's parent, and unzipped in the date
+    folder itself it puts them one folder too deep (which the advice "unzip it there" did)."""
+    match = _DRIVE_RE.match(drive_dir.name)
+    date = match.group(1) if match else date_dir.name if _DATE_RE.match(date_dir.name) else "YYYY_MM_DD"
+    for deep in (date_dir / date / CALIB_FILE, *sorted(date_dir.glob(f"*/{CALIB_FILE}"))):
+        if deep.is_file() and deep.parent != drive_dir:
+            return f"{drive_dir}: {deep} is one folder too deep; move {deep.parent}/calib_*.txt up into {date_dir}"
+    head = f"{drive_dir}: no {CALIB_FILE} in its date folder {date_dir}"
+    if date_dir.name == date:
+        return f"{head}; unzip {date}_calib.zip in {date_dir.parent} (it holds {date}/calib_*.txt)"
+    return (f"{head}; take the calib_*.txt files out of the drive's {date}_calib.zip (under its {date}/) "
+            "and put them there")
+
+
 def find_drive(path: str | Path) -> tuple[Path, Path]:
     """(date folder, drive folder) for a date folder holding one drive, or a drive folder."""
     p = Path(path)
@@ -317,9 +335,7 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
                 f"folders (e.g. {p}/*_sync) so that each drive is a log of its own")
         date_dir, drive_dir = p, drives[0]
     if not (date_dir / CALIB_FILE).is_file():
-        date = _DRIVE_RE.match(drive_dir.name)
-        zip_name = f"{date.group(1)}_calib.zip" if date else "the date's calib zip"
-        raise LogError(f"{drive_dir}: no {CALIB_FILE} in its date folder {date_dir}; unzip {zip_name} there")
+        raise LogError(_missing_calib_message(date_dir, drive_dir))
     for sub in (CAMERA, "oxts"):
         if not (drive_dir / sub).is_dir():
             raise LogError(f"{drive_dir}: no {sub}/ folder; is it a complete *_sync drive?")

@@ -18,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import cv2
@@ -259,6 +260,40 @@ def test_missing_calibration(kitti_date):
     text = _one_line_log_error(kitti_date, "calib_cam_to_cam.txt")
     assert "2011_09_26_calib.zip" in text
     _one_line_log_error(kitti_date / DRIVE, "calib_cam_to_cam.txt")
+
+
+def _calib_zip(folder: Path) -> Path:
+    """KITTI's 2011_09_26_calib.zip as the dataset ships it: its files under the date's folder
+    (2011_09_26/calib_cam_to_cam.txt ...), as the drive zips hold 2011_09_26/*_sync/."""
+    z = folder / f"{DATE}_calib.zip"
+    with zipfile.ZipFile(z, "w") as out:
+        for f in sorted((FIXTURE / DATE).glob("calib_*.txt")):
+            out.write(f, f"{DATE}/{f.name}")
+    return z
+
+
+def test_missing_calibration_says_where_to_unzip_it_and_that_works(kitti_date, tmp_path):
+    # The zip holds 2011_09_26/calib_*.txt: unzipped in the date folder, as the message said, it
+    # made 2011_09_26/2011_09_26/calib_cam_to_cam.txt and the same error again.
+    for f in kitti_date.glob("calib_*.txt"):
+        f.unlink()
+    text = _one_line_log_error(kitti_date / DRIVE, f"unzip {DATE}_calib.zip in {kitti_date.resolve().parent}")
+    with zipfile.ZipFile(_calib_zip(tmp_path)) as z:
+        z.extractall(kitti_date.parent)
+    assert len(open_kitti(kitti_date / DRIVE, utc_offset_h=2.0)) == N_FRAMES, text
+
+
+def test_calibration_unzipped_one_folder_too_deep_says_to_move_it_up(kitti_date, tmp_path):
+    for f in kitti_date.glob("calib_*.txt"):
+        f.unlink()
+    with zipfile.ZipFile(_calib_zip(tmp_path)) as z:
+        z.extractall(kitti_date)  # the old message's advice: unzip it in the date folder
+    deep = kitti_date.resolve() / DATE
+    _one_line_log_error(kitti_date / DRIVE, f"{deep / 'calib_cam_to_cam.txt'} is one folder too deep; "
+                                            f"move {deep}/calib_*.txt up into {kitti_date.resolve()}")
+    for f in deep.glob("calib_*.txt"):
+        f.rename(kitti_date / f.name)
+    assert len(open_kitti(kitti_date / DRIVE, utc_offset_h=2.0)) == N_FRAMES
 
 
 def test_image_and_oxts_counts_disagree(kitti_date):
