@@ -63,6 +63,7 @@ DEFAULT_UTC_OFFSET_H = 2.0
 CAMERA = "image_02"
 CALIB_FILE = "calib_cam_to_cam.txt"
 _DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_sync$")
+_EXTRACT_RE = re.compile(r"^(\d{4}_\d{2}_\d{2}_drive_\d{4})_extract$")
 _DATE_RE = re.compile(r"^\d{4}_\d{2}_\d{2}$")
 _TIMESTAMP_RE = re.compile(r"^\d{4}-\d{2}-\d{2} \d{2}:\d{2}:\d{2}(\.\d{1,9})?$")
 _MAX_WARNINGS = 5
@@ -312,11 +313,21 @@ def _missing_calib_message(date_dir: Path, drive_dir: Path) -> str:
             "and put them there")
 
 
+def _unsynced_message(folder: Path, drive: str) -> str:
+    """An *_extract drive ("unsynced+unrectified data") has distorted images, which P_rect does not
+    describe, and OXTS records at 100 Hz, not one per image: only its _sync twin can be read."""
+    return (f"{folder}: an unsynced, unrectified KITTI drive (its images are not rectified, its OXTS runs at "
+            f"100 Hz); sunrig reads synced+rectified data: download {drive}_sync.zip and pass its {drive}_sync folder")
+
+
 def find_drive(path: str | Path) -> tuple[Path, Path]:
     """(date folder, drive folder) for a date folder holding one drive, or a drive folder."""
     p = Path(path)
     if not p.is_dir():
         raise LogError(f"{p}: not a folder; a KITTI drive is a YYYY_MM_DD/ folder or one of its *_drive_NNNN_sync/")
+    extract = _EXTRACT_RE.match(p.name)
+    if extract:
+        raise LogError(_unsynced_message(p, extract.group(1)))
     if looks_like_drive(p):
         date_dir, drive_dir = p.resolve().parent, p
     else:
@@ -325,6 +336,11 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
         if logs:  # a folder of recordings, given where one log is read
             raise LogError(f"{p}: a folder of {len(logs)} native logs, where one log is read; pass one of them "
                            f"(e.g. {logs[0]}), or the folder to sunrig eval / train")
+        extracts = [] if drives or logs else sorted(q for q in p.iterdir() if _EXTRACT_RE.match(q.name))
+        if extracts:
+            match = _EXTRACT_RE.match(extracts[0].name)
+            assert match is not None  # as filtered just above
+            raise LogError(_unsynced_message(extracts[0], match.group(1)))
         if not drives:
             raise LogError(
                 f"{p}: not a KITTI raw drive (no *_drive_NNNN_sync/ folder in it, and it is not one) and not a "

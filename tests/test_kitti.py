@@ -660,6 +660,18 @@ def test_a_date_folder_with_another_folder_beside_its_drive_still_opens(tmp_path
     assert drive.path.name == DRIVE and len(drive) == 3
 
 
+def test_an_unsynced_extract_drive_is_refused_naming_the_sync_zip(tmp_path):
+    # An *_extract drive holds unrectified images (1392 x 512, distorted) and OXTS at 100 Hz: read
+    # with P_rect_02 it was graded with the wrong intrinsics when its counts happened to agree,
+    # and told to "re-extract the drive" when they did not.
+    date = make_drive(tmp_path, 3)
+    extract = date / "2011_09_26_drive_0001_extract"
+    (date / DRIVE).rename(extract)
+    want = "download 2011_09_26_drive_0001_sync.zip and pass its 2011_09_26_drive_0001_sync folder"
+    _one_line_log_error(extract, want)
+    _one_line_log_error(date, want)  # the date folder holding only that drive
+
+
 def test_a_drive_folder_under_another_name_opens_by_its_contents(tmp_path):
     # A drive folder copied under a name of one's own still has oxts/ and image_02/: it is a drive,
     # and its date folder (with the calibration) is its parent.
