@@ -329,7 +329,9 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
     if extract:
         raise LogError(_unsynced_message(p, extract.group(1)))
     if looks_like_drive(p):
-        date_dir, drive_dir = p.resolve().parent, p
+        # A drive given as "." or "..", whose name is "" or "..", is named by its folder's own name:
+        # every message about the drive begins with that name.
+        date_dir, drive_dir = p.resolve().parent, p if p.name not in ("", "..") else p.resolve()
     else:
         drives = drive_folders(p)
         logs = [] if drives else sorted(p.glob("*.mcap"))

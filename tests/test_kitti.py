@@ -672,6 +672,18 @@ def test_an_unsynced_extract_drive_is_refused_naming_the_sync_zip(tmp_path):
     _one_line_log_error(date, want)  # the date folder holding only that drive
 
 
+@pytest.mark.parametrize("where", [".", "image_02/.."])
+def test_a_drive_given_as_dot_is_named_by_its_folder(tmp_path, monkeypatch, where):
+    # `cd drive && sunrig replay .`: Path(".").name is "", and every message about the drive began
+    # ": 5 images, ..." with nothing to say which drive.
+    date = make_drive(tmp_path, 5)
+    monkeypatch.chdir(date / DRIVE)
+    assert open_kitti(where, utc_offset_h=2.0).path.name == DRIVE
+    (date / DRIVE / "oxts" / "data" / "0000000004.txt").unlink()
+    text = _one_line_log_error(where, "4 OXTS records")
+    assert text.startswith(f"{DRIVE}: 5 images"), text
+
+
 def test_a_drive_folder_under_another_name_opens_by_its_contents(tmp_path):
     # A drive folder copied under a name of one's own still has oxts/ and image_02/: it is a drive,
     # and its date folder (with the calibration) is its parent.
