@@ -328,6 +328,12 @@ def find_drive(path: str | Path) -> tuple[Path, Path]:
     extract = _EXTRACT_RE.match(p.name)
     if extract:
         raise LogError(_unsynced_message(p, extract.group(1)))
+    drive_above = next((q for q in (p.parent, p.parent.parent) if looks_like_drive(q)), None) \
+        if not looks_like_drive(p) and p.name != ".." else None
+    if drive_above is not None:  # drive/image_03, drive/image_02/data, drive/oxts
+        drive_above = drive_above if drive_above.name not in ("", "..") else drive_above.resolve()
+        raise LogError(f"{p}: is inside the KITTI drive {drive_above}; pass that drive folder (its image_02 (the left "
+                       "colour camera, the paper's) is read; no other camera can be chosen)")
     if looks_like_drive(p):
         # A drive given as "." or "..", whose name is "" or "..", is named by its folder's own name:
         # every message about the drive begins with that name.

@@ -684,6 +684,17 @@ def test_a_drive_given_as_dot_is_named_by_its_folder(tmp_path, monkeypatch, wher
     assert text.startswith(f"{DRIVE}: 5 images"), text
 
 
+@pytest.mark.parametrize("sub", ["image_03", "image_02", "image_02/data", "oxts"])
+def test_a_folder_inside_a_drive_says_to_pass_the_drive(tmp_path, sub):
+    # A user after the right colour camera passes drive/image_03: it was "not a KITTI raw drive
+    # ... pass a .mcap file, a KITTI date folder YYYY_MM_DD/ or one of its drive folders", which
+    # neither named the drive nor said which camera is read.
+    date = make_drive(tmp_path, 3)
+    (date / DRIVE / "image_03" / "data").mkdir(parents=True)
+    text = _one_line_log_error(date / DRIVE / sub, f"is inside the KITTI drive {date / DRIVE}; pass that drive folder")
+    assert "image_02 (the left colour camera" in text
+
+
 def test_a_drive_folder_under_another_name_opens_by_its_contents(tmp_path):
     # A drive folder copied under a name of one's own still has oxts/ and image_02/: it is a drive,
     # and its date folder (with the calibration) is its parent.
