@@ -87,6 +87,7 @@ class VoConfig:
     rotation_only_frac: float = 0.1  # ... or to this fraction of the motion: no usable translation parallax
     max_step_rad: float = math.radians(45.0)  # a larger turn between two frames is taken as a failed fit
     shift_min_response: float = 0.05  # phase correlation peak below this: no usable image shift
+    min_contrast: float = 2.0  # grey-level std below this: a featureless image (black, a covered lens), no shift
     coarse_tol_rad: float = math.radians(3.0)  # a fit further than this from the coarse image-shift yaw ...
     coarse_tol_frac: float = 0.5  # ... and than this fraction of it is rejected
     max_gap_s: float = 1.0  # frames further apart: the turn between them is unknown, a new epoch starts
@@ -99,6 +100,8 @@ class VoConfig:
             raise ValidationError(f"VoConfig.refresh_fraction: expected within (0, 1), got {self.refresh_fraction}")
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise ValidationError(f"VoConfig.max_gap_s: expected a number of seconds > 0, got {self.max_gap_s!r}")
+        if not (math.isfinite(self.min_contrast) and self.min_contrast >= 0):
+            raise ValidationError(f"VoConfig.min_contrast: expected grey levels >= 0, got {self.min_contrast!r}")
         if self.ransac not in _ESTIMATORS:
             raise ValidationError(f"VoConfig.ransac: expected one of {', '.join(_ESTIMATORS)}, got {self.ransac!r}")
 
@@ -278,6 +281,7 @@ class VisualOdometry:
         self._k = np.eye(3)
         self._scale = 1.0
         self._window: np.ndarray | None = None  # Hanning window of the phase correlation
+        self._prev_flat = False  # the previous image was featureless (below min_contrast)
         self._forget_images()
 
     @property
@@ -301,12 +305,15 @@ class VisualOdometry:
             self._forget_images()
         if intrinsics != self._intrinsics:  # the first frame's, or a restart's (forgotten above)
             self._set_camera(intrinsics)
-        gray = self._gray(image_bgr)
+        gray, flat = self._gray(image_bgr)
+        prev_flat, self._prev_flat = self._prev_flat, flat  # this frame is the next one's previous, on every path
         if self._prev_gray is None:
             self._new_keyframe(gray, self._last_heading)
             return self._sample(t_mono_s, self._last_heading)
 
-        shift = self._dominant_shift(gray) if cfg.predict else None
+        # Two featureless images phase-correlate on the Hanning window alone (a peak of response 1
+        # at 0 px): that is no image shift, and a black stretch would carry it as a turn.
+        shift = self._dominant_shift(gray) if cfg.predict and not (flat or prev_flat) else None
         # A coarse yaw from the shift of the whole image: far things move by fx * tan(turn).
         coarse_step = None if shift is None else -math.atan2(shift[0], self._k[0, 0])
         if self._coarse_since_key is not None:
@@ -357,16 +364,18 @@ class VisualOdometry:
         s = self._scale
         self._k = np.array([[intr.fx * s, 0.0, intr.cx * s], [0.0, intr.fy * s, intr.cy * s], [0.0, 0.0, 1.0]])
 
-    def _gray(self, image_bgr: np.ndarray) -> np.ndarray:
+    def _gray(self, image_bgr: np.ndarray) -> tuple[np.ndarray, bool]:
+        """The working image, and whether it is featureless (contrast below ``min_contrast``)."""
         gray = cv2.cvtColor(np.ascontiguousarray(image_bgr), cv2.COLOR_BGR2GRAY)
         if self._scale < 1.0:
             gray = cv2.resize(gray, None, fx=self._scale, fy=self._scale, interpolation=cv2.INTER_AREA)
+        mean, std = cv2.meanStdDev(gray)
+        flat = float(std[0, 0]) < self.config.min_contrast
         if self.config.normalize:
             # Auto-exposure changes the gain between frames; optical flow assumes it does not.
-            mean, std = cv2.meanStdDev(gray)
             gain = 48.0 / max(float(std[0, 0]), 1.0)
             gray = cv2.convertScaleAbs(gray, alpha=gain, beta=128.0 - gain * float(mean[0, 0]))
-        return gray
+        return gray, flat
 
     def _sample(self, t_mono_s: float, heading: float) -> HeadingSample:
         self._last_heading = heading

@@ -293,6 +293,21 @@ def test_a_loss_with_no_rough_turn_starts_a_new_epoch_at_zero():
     assert vo.stats["lost"] == vo.stats["carried"] + vo.stats["uncarried"]
 
 
+@pytest.mark.parametrize("level", [0, 128])
+def test_a_featureless_stretch_carries_no_turn_on_any_of_its_frames(level):
+    # A dashcam clip with a black stretch (or a covered lens): two uniform images phase-correlate
+    # on the Hanning window alone, a peak of response 1.0 at a shift of about 0 px, and every frame
+    # of the stretch after its first was counted "carried" (a 2 s black stretch at 30 fps: 61
+    # carried, 2 uncarried) as if a rough turn had been seen across it (docs/drivers.md: a dark or
+    # featureless stretch is "uncarried").
+    base = textured()
+    flat = np.full_like(base, level)
+    vo = VisualOdometry()
+    vo.update(0.0, base, INTR)
+    assert all(vo.update(0.1 * k, flat, INTR) is None for k in range(1, 5))
+    assert vo.stats["lost"] == 4 and vo.stats["carried"] == 0 and vo.stats["uncarried"] == 4
+
+
 def test_a_fit_that_disagrees_with_the_image_shift_and_the_rotation_only_fit_is_rejected():
     # With both tolerances of VisualOdometry._plausible at 0 an essential-matrix fit (the drive
     # moves forward: no rotation-only frame, measured) never equals the coarse or rotation-only yaw,
