@@ -296,7 +296,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     pubs = _publishers(serial=args.serial, baud=args.baud, fmt=args.format, jsonl=args.jsonl,
                        rule=estimator.status_rule(), stop=args.stop)
     stats = OfflineStats()
-    progress = Progress(f"replay {Path(log_path).name}", enabled=None if not args.quiet else False)
+    # resolve(): a KITTI drive is often replayed from inside it (`sunrig replay .`), whose name is "".
+    progress = Progress(f"replay {Path(log_path).resolve().name}", enabled=None if not args.quiet else False)
     frames = paced(source) if args.realtime else source
     errors = []
     interrupted = False

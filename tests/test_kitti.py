@@ -877,3 +877,14 @@ def test_times_count_from_the_first_frame_kept(tmp_path):
     frames = list(open_kitti(date, utc_offset_h=2.0))
     assert [f.seq for f in frames] == list(range(1, 12))
     assert frames[0].t_mono_s == 0.0 and frames[1].t_mono_s == pytest.approx(0.1)
+
+
+@pytest.mark.torch
+def test_replay_of_a_drive_from_inside_it_names_the_drive(kitti_date, tiny_model_dir, monkeypatch, capsys):
+    # `cd drive && sunrig replay .`: the summary said "replay : 30 frames", the name of "." being "".
+    from rig.cli import main
+
+    monkeypatch.chdir(kitti_date / DRIVE)
+    assert main(["replay", ".", "--utc-offset", "2", "--model", str(tiny_model_dir)]) == 0
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert said.startswith(f"replay {DRIVE}: "), said
