@@ -251,8 +251,10 @@ class VisualOdometry:
     ``rotation_only``, ``still``; ``prior``: the essential fit chosen by the motion prior); frames
     without heading (``lost``), of which ``rejected`` had a fit that disagreed with both the image
     shift and the rotation-only fit; ``carried``: losses over which a rough turn was carried, and
-    ``uncarried``: those with none; ``restarts`` (the intrinsics changed) and ``gaps`` (frames more
-    than ``max_gap_s`` apart).
+    ``uncarried``: those with none; ``restarts`` (the intrinsics changed) and ``gaps`` (new images
+    more than ``max_gap_s`` apart); ``repeated``: frames identical to the one before (a dashcam or
+    stream that repeats frames), given that frame's heading and otherwise ignored, so a freeze
+    longer than ``max_gap_s`` is a gap.
 
     A restart, a gap or an uncarried loss hides the turn made meanwhile, so the heading cannot go
     on: the frame after it starts a new epoch (:attr:`epoch`, carried by each sample) at heading 0, as the first frame
@@ -260,7 +262,7 @@ class VisualOdometry:
     """
 
     STATS = ("frames", "keyframes", "essential", "rotation_only", "still", "prior", "lost", "rejected", "carried",
-             "uncarried", "restarts", "gaps")
+             "uncarried", "restarts", "gaps", "repeated")
 
     # The tracking state, set by _forget_images and each keyframe.
     _heading_key: float
@@ -282,6 +284,7 @@ class VisualOdometry:
         self._scale = 1.0
         self._window: np.ndarray | None = None  # Hanning window of the phase correlation
         self._prev_flat = False  # the previous image was featureless (below min_contrast)
+        self._prev_given: float | None = None  # the heading the previous frame was given (None: it had none)
         self._forget_images()
 
     @property
@@ -293,7 +296,18 @@ class VisualOdometry:
         """The heading of this frame, or None when it cannot be measured on it (see ``stats``)."""
         cfg = self.config
         self.stats["frames"] += 1
-        restart = self._intrinsics is not None and intrinsics != self._intrinsics
+        same_camera = intrinsics == self._intrinsics
+        gray: np.ndarray | None = None
+        if same_camera and self._prev_gray is not None and self._prev_given is not None:
+            gray, flat = self._gray(image_bgr)
+            if not flat and np.array_equal(gray, self._prev_gray):
+                # The previous image again (a dashcam or stream that repeats frames: 15 fps in a
+                # 30 fps file, or frozen while it drops them). Same view, same heading; fitting it
+                # again only adds noise. It is no new image either, so the gap rule counts from
+                # the last new one: a freeze longer than max_gap_s hides a turn as a gap does.
+                self.stats["repeated"] += 1
+                return self._sample(t_mono_s, self._prev_given)
+        restart = self._intrinsics is not None and not same_camera
         gap = self._last_t_s is not None and t_mono_s - self._last_t_s > cfg.max_gap_s
         self._last_t_s = t_mono_s
         if restart or gap:
@@ -303,9 +317,10 @@ class VisualOdometry:
             self.epoch += 1
             self._last_heading = 0.0
             self._forget_images()
-        if intrinsics != self._intrinsics:  # the first frame's, or a restart's (forgotten above)
+        if not same_camera:  # the first frame's, or a restart's (forgotten above)
             self._set_camera(intrinsics)
-        gray, flat = self._gray(image_bgr)
+        if gray is None:
+            gray, flat = self._gray(image_bgr)
         prev_flat, self._prev_flat = self._prev_flat, flat  # this frame is the next one's previous, on every path
         if self._prev_gray is None:
             self._new_keyframe(gray, self._last_heading)
@@ -379,6 +394,7 @@ class VisualOdometry:
 
     def _sample(self, t_mono_s: float, heading: float) -> HeadingSample:
         self._last_heading = heading
+        self._prev_given = heading
         return HeadingSample(t_mono_s=t_mono_s, heading_rad=heading, reference=HeadingRef.RELATIVE, pitch_rad=None,
                              roll_rad=None, source_sentence=SOURCE_NAME, utc_ns=None, epoch=self.epoch)
 
@@ -390,6 +406,7 @@ class VisualOdometry:
         good enough to give this frame a heading.
         """
         self.stats["lost"] += 1
+        self._prev_given = None
         if carry_rad is not None:
             self.stats["carried"] += 1
             self._last_heading += carry_rad

@@ -56,6 +56,14 @@ def textured(seed: int = 0, size=(240, 320)) -> np.ndarray:
     return cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
 
 
+def other_exposure(image: np.ndarray, k: int) -> np.ndarray:
+    """The same view in another frame: one pixel differs, as sensor noise would make it (an
+    identical image is a repeated frame, VisualOdometry's ``repeated``)."""
+    out = image.copy()
+    out[0, 0] ^= np.uint8(k % 255 + 1)
+    return out
+
+
 def rotated_view(image: np.ndarray, intr: Intrinsics, yaw_rad: float) -> np.ndarray:
     """What a camera sees after turning right by ``yaw_rad`` on the spot (a homography K R K^-1)."""
     k = k_matrix(intr)
@@ -156,7 +164,7 @@ def test_turning_on_the_spot_gives_the_turn_with_its_sign(step_deg):
 def test_a_still_camera_keeps_its_heading():
     vo = VisualOdometry()
     image = textured(3)
-    out = [vo.update(k * 0.1, image, INTR) for k in range(4)]
+    out = [vo.update(k * 0.1, other_exposure(image, k), INTR) for k in range(4)]
     assert all(s is not None and s.heading_rad == 0.0 for s in out)
     assert vo.stats["still"] == 3
 
@@ -183,14 +191,14 @@ def test_new_intrinsics_or_a_gap_start_a_new_epoch_at_zero():
     restarted = vo.update(0.1, image, other)
     assert restarted is not None and restarted.heading_rad == 0.0 and restarted.attitude().epoch == 1
     assert vo.stats["restarts"] == 1
-    after = vo.update(0.2, image, other)
+    after = vo.update(0.2, other_exposure(image, 1), other)
     assert after is not None and after.attitude().epoch == 1
     vo._last_heading = 0.5
-    resumed = vo.update(0.2 + vo.config.max_gap_s + 0.01, image, other)
+    resumed = vo.update(0.2 + vo.config.max_gap_s + 0.01, other_exposure(image, 2), other)
     assert resumed is not None and resumed.heading_rad == 0.0 and resumed.attitude().epoch == 2
     assert vo.stats["gaps"] == 1
     # A frame within the gap allowance goes on in its epoch.
-    kept = vo.update(0.3 + vo.config.max_gap_s, image, other)
+    kept = vo.update(0.3 + vo.config.max_gap_s, other_exposure(image, 3), other)
     assert kept is not None and kept.attitude().epoch == 2 and vo.stats["gaps"] == 1
 
 
@@ -306,6 +314,40 @@ def test_a_featureless_stretch_carries_no_turn_on_any_of_its_frames(level):
     vo.update(0.0, base, INTR)
     assert all(vo.update(0.1 * k, flat, INTR) is None for k in range(1, 5))
     assert vo.stats["lost"] == 4 and vo.stats["carried"] == 0 and vo.stats["uncarried"] == 4
+
+
+def test_a_repeated_frame_gets_the_heading_of_the_frame_it_repeats_and_changes_nothing():
+    # A dashcam that repeats frames (15 fps in a 30 fps file, or frozen while it drops them): each
+    # repeat was fitted again from the keyframe, or counted "still" (heading_key, not the previous
+    # frame's heading), and phase-correlated at 0.5 px, a phantom turn summed into the coarse yaw.
+    base = textured()
+    vo = VisualOdometry()
+    out = []
+    for k in range(4):
+        view = rotated_view(base, INTR, math.radians(3.0 * k))
+        out += [vo.update(k / 15, view, INTR), vo.update(k / 15 + 1 / 30, view.copy(), INTR)]
+    assert all(s is not None for s in out)
+    assert [s.heading_rad for s in out[1::2]] == [s.heading_rad for s in out[0::2]]
+    assert vo.stats["repeated"] == 4 and vo.stats["rotation_only"] + vo.stats["essential"] == 3
+    assert vo.stats["still"] == 0 and vo._coarse_since_key is not None
+    assert abs(math.degrees(vo._coarse_since_key + vo._heading_key) - 9.0) < 1.0
+
+
+def test_a_frozen_stretch_longer_than_max_gap_is_a_gap():
+    # A dashcam frozen for 1.2 s repeats its last image at 30 fps: no frame is further apart than
+    # max_gap_s, yet no new image came for longer than that, and the turn meanwhile is as unknown
+    # as across a gap in the frames. The frame after it went on in the old epoch.
+    base = textured()
+    vo = VisualOdometry()
+    frozen = rotated_view(base, INTR, math.radians(3.0))
+    vo.update(0.0, base, INTR)
+    last = vo.update(1 / 30, frozen, INTR)
+    assert last is not None
+    repeats = [vo.update(k / 30, frozen, INTR) for k in range(2, 38)]
+    assert all(s is not None and s.heading_rad == last.heading_rad and s.epoch == 0 for s in repeats)
+    after = vo.update(38 / 30, rotated_view(base, INTR, math.radians(6.0)), INTR)
+    assert after is not None and after.epoch == 1 and after.heading_rad == 0.0
+    assert vo.stats["gaps"] == 1 and vo.stats["repeated"] == 36
 
 
 def test_a_fit_that_disagrees_with_the_image_shift_and_the_rotation_only_fit_is_rejected():
