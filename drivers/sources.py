@@ -123,6 +123,12 @@ def _headings_for(camera: CameraSpec) -> str:
     return ", ".join(names) + " or none"
 
 
+def is_recording(camera: CameraSpec) -> bool:
+    """A ``file:`` log or an ``opencv:`` video file: its frames come as fast as they are read,
+    stamped with the recording's own time (so that, not the wall clock, says how long it ran)."""
+    return camera.kind == "file" or _is_video_file(camera)
+
+
 def _is_video_file(camera: CameraSpec) -> bool:
     if camera.kind != "opencv":
         return False

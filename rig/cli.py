@@ -619,6 +619,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     Ctrl-C (or SIGTERM, SIGHUP) ends the recording, and the log is finished (summary and index);
     one while a frame (or the summary) is being written lets that write finish first (rig.stopping).
     """
+    from drivers.sources import is_recording
     from rig.recorder import check_recording_path, discard_if_empty, open_recording
 
     cfg = _effective_config(args)
@@ -635,9 +636,10 @@ def cmd_record(args: argparse.Namespace) -> int:
     next_status = start + 5.0
     interrupted = False
     disk_full: OSError | None = None
-    # A log is read as fast as it can be: its own time, not the wall clock, says how much of it
-    # --seconds keeps, and no wall-clock backstop cuts a slow re-recording (visual odometry) short.
-    replayed = source.camera.kind == "file"
+    # A log or a video file is read as fast as it can be: its own time, not the wall clock, says how
+    # much of it --seconds keeps, and no wall-clock backstop cuts a slow re-recording (visual
+    # odometry) short.
+    replayed = is_recording(source.camera)
     first_t_s: float | None = None
     # A backstop for --seconds: a camera that stops sending frames must not keep the recording open.
     deadline = (threading.Timer(args.seconds + 2.0, source.stop)
@@ -1383,7 +1385,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "An existing file is refused unless --overwrite")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--seconds", type=_positive_float, metavar="N",
-                   help="stop after N seconds, of the log's own time for a file: camera (default: Ctrl-C "
+                   help="stop after N seconds, of the recording's own time for a log or video file (default: Ctrl-C "
                         "or the end)")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="stop after N frames")
     p.add_argument("--jpeg-quality", type=_int_in(1, 100), default=90, metavar="Q",

@@ -324,3 +324,24 @@ def test_record_seconds_of_a_log_counts_the_logs_own_time(tmp_path, capsys):
                "--quiet"])
     assert rc == 0, capsys.readouterr().err
     assert [f.seq for f in read_frames(out)] == within_1s
+
+
+def test_record_seconds_of_a_video_file_counts_the_videos_own_time(tmp_path, capsys):
+    # A video file is read as fast as a log is, its frames stamped with its own time: `--seconds 1`
+    # of a 10 fps clip kept every frame read within a wall-clock second, all 30 of them.
+    import cv2
+
+    from rig.cli import main
+    from tests.test_opencv_camera import FPS, H, W, clip_image
+
+    clip = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+    for k in range(30):
+        writer.write(clip_image(k % 12))
+    writer.release()
+    out = tmp_path / "first-second.mcap"
+    rc = main(["record", "--camera", f"opencv:{clip}", "--hfov-deg", "60", "--heading", "none", "--out", str(out),
+               "--seconds", "1", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    times = [f.t_mono_s for f in read_frames(out)]
+    assert len(times) == 11 and times[-1] - times[0] == pytest.approx(1.0, abs=1e-3), times
