@@ -99,7 +99,8 @@ def test_every_heading_a_refusal_suggests_works_with_that_camera(camera, heading
 
     with pytest.raises(SourceError) as info:
         check_pair(parse_camera(camera), parse_heading(heading))
-    suggested = re.search(r"(?:pass|use) --heading (.+?)(?: for --camera|$)", str(info.value)).group(1)
+    suggested = re.search(r"(?:pass|use) --heading (.+?)(?: for --camera| \(or set \[source\]|$)",
+                          str(info.value)).group(1)
     names = [n.strip() for n in re.split(r",| or ", suggested) if n.strip()]
     assert names, str(info.value)
     for name in names:
