@@ -744,6 +744,12 @@ def _source_summary(stats: dict) -> str:
     vo = stats.get("visual_odometry") or {}
     if vo.get("lost"):
         parts.append(f"visual odometry lost {vo['lost']} of {vo['frames']} frames")
+    # Each new zero (docs/drivers.md) refills the windows: what a user sees as a stretch of partial ones.
+    new_zeros = sum(vo.get(key, 0) for key in ("gaps", "uncarried", "restarts"))
+    if new_zeros:
+        parts.append(f"visual odometry started {new_zeros} new heading zero{'s' if new_zeros > 1 else ''}")
+    if vo.get("repeated"):
+        parts.append(f"camera repeated {vo['repeated']} frames")
     return ", ".join(parts)
 
 

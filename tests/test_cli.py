@@ -1921,3 +1921,15 @@ def test_the_exit_report_says_what_a_suspend_cost_the_heading_port():
 
     assert _source_summary({"gnss": {"suspends": 1, "stale_bytes": 412, "reopens": 0}}) == (
         "heading port suspends 1, heading port stale bytes 412")
+
+
+def test_the_exit_report_says_how_often_visual_odometry_started_a_new_zero():
+    # A black stretch or a frozen camera starts a new zero, and the windows refill from it: the
+    # report said only how many frames were lost, not that the heading had started again.
+    from rig.cli import _source_summary
+
+    vo = {"frames": 240, "lost": 63, "gaps": 1, "uncarried": 61, "restarts": 0, "repeated": 30}
+    assert _source_summary({"visual_odometry": vo}) == (
+        "visual odometry lost 63 of 240 frames, visual odometry started 62 new heading zeros, "
+        "camera repeated 30 frames")
+    assert _source_summary({"visual_odometry": {"frames": 240, "lost": 0, "gaps": 0}}) == ""
