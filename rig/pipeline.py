@@ -260,7 +260,9 @@ class RigPipeline:
             log.warning("abandoned stage(s) %s that did not stop within %.0f s", ", ".join(stuck), _JOIN_S)
         if self._failure is not None:
             stage, exc = self._failure
-            raise PipelineError(f"{stage} stage failed: {type(exc).__name__}: {exc}") from exc
+            # A SunrigError's words are for the user and say what to do; a bug's class is for its report.
+            cause = str(exc) if isinstance(exc, SunrigError) else f"{type(exc).__name__}: {exc}"
+            raise PipelineError(f"{stage} stage failed: {cause}") from exc
         return self.stats
 
     def _stop_stages(self, threads: list[threading.Thread], stages: dict[str, threading.Event],

@@ -176,6 +176,22 @@ def test_a_stage_that_raises_ends_the_pipeline_with_the_error(model, where):
     assert str(info.value).startswith(f"{stage} stage failed")
 
 
+def test_a_stage_that_fails_with_a_said_error_passes_its_words_on(model):
+    # A camera whose calibration is for another aspect ratio fails on its first frame with an
+    # error that says what to do; the rig prefixed the class name: "capture stage failed:
+    # CameraError: the calibration is for ...". A bug keeps its class name, for the report.
+    from rig.errors import CameraError
+
+    def miscalibrated():
+        raise CameraError("the calibration is for 128x144 but the stream is 64x48; calibrate at this resolution")
+        yield  # a generator
+
+    with pytest.raises(PipelineError) as info:
+        run_pipeline(miscalibrated(), SunEstimator(model), [Collect()])
+    assert str(info.value) == ("capture stage failed: the calibration is for 128x144 but the stream is 64x48; "
+                               "calibrate at this resolution")
+
+
 def test_a_publisher_that_raises_loses_its_estimates_not_the_others(model, caplog):
     broken, healthy = Collect(fail_after=2), Collect()
     with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
