@@ -173,10 +173,13 @@ class RigPipeline:
         # Why frames fail the exposure gate (None: they pass), said when that changes; a verdict that
         # flips at every frame (a scene at a threshold, light through trees) is summed up once a minute.
         self._exposure = LastingCondition(None)
-        self._warned_sparse = False  # said that windows cannot fill (_warn_if_sparse), until they do again
+        # "sparse" while windows cannot fill (_log_sparse), "failing" while they fail (_log_failing):
+        # each said when it changes; one that flips at every window is summed up once a minute.
+        self._sparse = LastingCondition(None)
+        self._failing = LastingCondition(None)
+        self._failing_since_seq = 0  # the window that began the stretch of failures last said
+        self._last_failure = ""  # what the newest failed window raised
         self._status_error: str | None = None  # what the last status line that failed raised
-        self._failing_since: int | None = None  # the seq whose window began a stretch of failed windows
-        self._failed_in_stretch = 0
         # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
         # what its publish() raised on, and whether its reader is gone.
         self._names: list[str] = []
@@ -362,20 +365,59 @@ class RigPipeline:
             except Exception as exc:  # noqa: BLE001 - one broken output must not silence the others
                 self._raised[i].add(exc, est.seq)
 
-    def _warn_if_sparse(self, candidates: list[FrameFeatures], window: list[FrameFeatures],
-                        newest: FrameFeatures) -> None:
-        """Once a stretch: a partial window although the ring reaches back past the window's span with
-        frames of the newest one's heading zero. Fewer frames than a window holds come in a span
-        (a slow camera, or frames dropped for a slow estimator), so no window is ever full and
-        every estimate goes out flagged partial, for as long as that lasts."""
-        same_zero = self.policy.same_zero(candidates)
-        if not same_zero or newest.frame.t_mono_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
-            return  # still filling (start-up, or a new heading zero)
-        self._warned_sparse = True
-        log.warning("windows hold %d of the model's %d frames: fewer frames than that come in [window] span_s "
-                    "(%g s), so every estimate goes out flagged as a partial window; raise span_s or the "
-                    "camera's frame rate, or lighten the load that drops frames", len(window), self.policy.n_frames,
-                    self.policy.span_s)
+    def _log_sparse(self, candidates: list[FrameFeatures], window: list[FrameFeatures],
+                    newest: FrameFeatures) -> None:
+        """Say when windows stop filling and when they fill again: a partial window although the ring
+        reaches back past the window's span with frames of the newest one's heading zero. Fewer
+        frames than a window holds come in a span (a slow camera, or frames dropped for a slow
+        estimator), so every estimate goes out flagged partial, for as long as that lasts. A window
+        still filling (start-up, a new heading zero) changes nothing."""
+        partial = len(window) < self.policy.n_frames
+        if partial:
+            same_zero = self.policy.same_zero(candidates)
+            if not same_zero or newest.frame.t_mono_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
+                return  # still filling
+        said = self._sparse.update("sparse" if partial else None, newest.frame.t_mono_s)
+        if said is None:
+            return
+        if said.kind == "change" and said.changes == 1:
+            if partial:
+                log.warning("windows hold %d of the model's %d frames: fewer frames than that come in [window] "
+                            "span_s (%g s), so every estimate goes out flagged as a partial window; raise span_s or "
+                            "the camera's frame rate, or lighten the load that drops frames", len(window),
+                            self.policy.n_frames, self.policy.span_s)
+            else:
+                log.info("from seq %d windows are full again", newest.frame.seq)
+            return
+        log.warning("windows are full and partial in turn: %d changes in %.0f s, %d of %d windows partial; from seq "
+                    "%d %s (said once a minute while it goes on; the camera's frame rate is at the edge of [window] "
+                    "span_s)", said.changes, newest.frame.t_mono_s - said.since_s, said.counts.get("sparse", 0),
+                    sum(said.counts.values()), newest.frame.seq, "partial" if partial else "full")
+
+    def _log_failing(self, feats: FrameFeatures, exc: EstimationError | None) -> None:
+        """Say when windows start failing and when estimates come again: a model answering NaN fails
+        every window, said 10 times a second for as long as it lasted; one failing every other
+        window is summed up once a minute."""
+        seq = feats.frame.seq
+        if exc is not None:
+            self._last_failure = str(exc)
+        said = self._failing.update(None if exc is None else "failing", feats.frame.t_mono_s)
+        if said is None:
+            return
+        failed = said.counts.get("failing", 0)
+        if said.kind == "change" and said.changes == 1:
+            if exc is not None:
+                self._failing_since_seq = seq
+                log.warning("no estimate for seq %d: %s (the windows that fail after it are counted, and said "
+                            "when estimates come again)", seq, exc)
+            else:
+                log.info("from seq %d estimates again: %d windows failed since seq %d", seq, failed,
+                         self._failing_since_seq)
+            return
+        log.warning("windows fail and succeed in turn: %d changes in %.0f s, %d of %d windows failed (last: %s); "
+                    "from seq %d %s (said once a minute while it goes on)", said.changes,
+                    feats.frame.t_mono_s - said.since_s, failed, sum(said.counts.values()), self._last_failure, seq,
+                    "failing" if exc is not None else "estimating")
 
     def _log_exposure(self, frame: Frame, reason: str | None) -> None:
         # Once per change, not per frame: a night is one message, not one per frame. By the frames'
@@ -426,30 +468,14 @@ class RigPipeline:
             feats, arrived = item
             candidates = [f for f in self.ring.snapshot() if f.frame.t_mono_s <= feats.frame.t_mono_s]
             window = self.policy.select(candidates)
-            if len(window) < self.policy.n_frames:
-                if not self._warned_sparse:
-                    self._warn_if_sparse(candidates, window, feats)
-            elif self._warned_sparse:
-                # Once per change, as the exposure messages: a later stretch of partial windows
-                # (the camera slowing again, a new load) is said again, not hidden by an early one.
-                self._warned_sparse = False
-                log.info("from seq %d windows are full again", feats.frame.seq)
+            self._log_sparse(candidates, window, feats)
             try:
                 est = self.estimator.estimate(window)
             except EstimationError as exc:
                 self.stats.estimates_failed += 1
-                self._failed_in_stretch += 1
-                # Once per stretch, as the exposure and partial-window messages: a model answering
-                # NaN fails every window, and was said 10 times a second for as long as it lasted.
-                if self._failing_since is None:
-                    self._failing_since = feats.frame.seq
-                    log.warning("no estimate for seq %d: %s (the windows that fail after it are counted, and said "
-                                "when estimates come again)", feats.frame.seq, exc)
+                self._log_failing(feats, exc)
                 continue
-            if self._failing_since is not None:
-                log.info("from seq %d estimates again: %d windows failed since seq %d", feats.frame.seq,
-                         self._failed_in_stretch, self._failing_since)
-                self._failing_since, self._failed_in_stretch = None, 0
+            self._log_failing(feats, None)
             self._publish(est)
             self.stats.estimates += 1
             self.stats.latency.add(self.clock() - arrived)

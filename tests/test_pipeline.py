@@ -4,6 +4,7 @@ import dataclasses
 import itertools
 import logging
 import math
+import re
 import threading
 import time
 
@@ -671,3 +672,59 @@ def test_a_stretch_of_failed_windows_is_said_once_and_counted(model, caplog):
     assert [r.levelno for r in said] == [logging.WARNING, logging.INFO, logging.WARNING], [r.getMessage() for r in said]
     assert said[0].getMessage().startswith("no estimate for seq 0: the model gave 1 of 32")
     assert said[1].getMessage().startswith("from seq 10 estimates again: 10 windows failed")
+
+
+def test_windows_failing_every_other_time_are_said_a_few_times_then_summed_up(model, caplog):
+    # A stretch was said when it started and when it ended: a model failing every other window
+    # wrote two lines per two windows, ten a second into the journal. As the exposure gate's verdict:
+    # four changes at once, then a line a minute (by the frames' clock) summing up.
+    from estimator.calibration import EstimationError
+
+    attempted = threading.Semaphore(0)
+
+    class FailsEveryOther(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            try:
+                if max(f.frame.seq for f in window) % 2:
+                    raise EstimationError("the model gave 3 of 32 token vectors that are not finite")
+                return super().estimate(window, aggregator)
+            finally:
+                attempted.release()
+
+    def one_window_each():
+        for f in frames(1300):  # 130 s at 10 Hz
+            if f.seq > 0:
+                assert attempted.acquire(timeout=10.0)
+            yield f
+
+    with caplog.at_level(logging.INFO, logger="rig.pipeline"):
+        _, stats = run_pipeline(one_window_each(), FailsEveryOther(model), [Collect()], queue_size=100)
+    assert stats.estimates_failed == 650 and stats.estimates == 650
+    said = [r.getMessage() for r in caplog.records if "estimate" in r.getMessage() or "fail" in r.getMessage()]
+    assert said[0] == ("no estimate for seq 1: the model gave 3 of 32 token vectors that are not finite (the windows "
+                       "that fail after it are counted, and said when estimates come again)")
+    assert said[1].startswith("from seq 2 estimates again: 1 windows failed since seq 1")
+    assert len(said) == 6, said
+    for line in said[4:]:
+        changes, failed, tried = map(int, re.findall(r"(\d+) changes in \d+ s, (\d+) of (\d+) windows failed", line)[0])
+        assert 590 <= changes <= 600 and abs(2 * failed - tried) <= 1 and changes == tried - 1, line
+        assert "last: the model gave 3 of 32" in line, line
+
+
+def test_windows_full_and_partial_in_turn_are_said_a_few_times_then_summed_up(model, caplog):
+    # A camera at the edge of a window's span (8 frames in 3.95 s, then 7 in 4.1 s, in turn): the
+    # partial-window warning and "full again" were said at every window.
+    def edge():
+        t = 0.0
+        for frame in frames(300):  # about 172 s
+            yield dataclasses.replace(frame, t_mono_s=t)
+            t += 0.5 if frame.seq % 2 else 0.65
+
+    with caplog.at_level(logging.INFO, logger="rig.pipeline"):
+        run_pipeline(edge(), SunEstimator(model), [Collect()], queue_size=400)
+    said = [r.getMessage() for r in caplog.records if "window" in r.getMessage() and "seq" in r.getMessage()
+            or "partial window" in r.getMessage()]
+    assert said[0].startswith("windows hold 7 of the model's 8 frames"), said
+    assert said[1].startswith("from seq ") and said[1].endswith("windows are full again"), said
+    assert 5 <= len(said) <= 7, said  # four changes at once, then about one a minute
+    assert all("full and partial in turn" in line for line in said[4:]), said
