@@ -36,8 +36,9 @@ from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
 from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
+from rig.lasting import LastingCondition
 from rig.pacing import Pacer
-from rig.publishers import ErrorTally, LastingCondition, Publisher, failed_writes, publisher_name
+from rig.publishers import ErrorTally, Publisher, failed_writes, publisher_name
 from rig.ring import DEFAULT_MAX_AGE_S, DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing
 from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
