@@ -179,6 +179,58 @@ def test_rotation_vector_golden(name, mount, q, h, p, r):
     assert abs(rr - math.radians(r)) < GOLDEN_Q_RAD, (name, deg(rr))
 
 
+# The compass points and a 10 deg pitch and roll, as a user checks a rig, worked by hand for the
+# default (OAK-D-PRO) mount. q_north = (1/2, 1/2, 1/2, -1/2) (above). Turning the camera clockwise
+# by h is q_z(-h) (x) q_north with q_z(-h) = (cos h/2, 0, 0, -sin h/2); with c, s = cos h/2, sin h/2:
+#   q = (c - s, c + s, c - s, -(c + s)) / 2.
+#   south (c = 0, s = 1): (-1/2, 1/2, -1/2, -1/2), the same rotation as (1/2, -1/2, 1/2, 1/2):
+#     R = [[0,-1,0],[0,0,1],[-1,0,0]]: IMU x down, y west (right of south), z north (behind).
+#   west (c = -s = -sqrt 1/2): (-sqrt 1/2, 0, -sqrt 1/2, 0) = (sqrt 1/2, 0, sqrt 1/2, 0), 90 deg
+#     about north: IMU x down, y north (right of west), z east (behind).
+# Nose up by 10 deg is a turn about the camera's right axis, east when it looks north: q_x(+10) (x)
+# q_north with c, s = cos 5, sin 5 deg gives (c - s, c + s, c + s, -(c - s)) / 2 =
+#   (0.4545195, 0.5416752, 0.5416752, -0.4545195): IMU x (down) = (0, sin 10, -cos 10).
+# Right side down by 10 deg is a turn about the optical axis, north: q_y(+10) (x) q_north =
+#   (c - s, c - s, c + s, -(c + s)) / 2 = (0.4545195, 0.4545195, 0.5416752, -0.5416752):
+#   R[0, 0] = 1 - 2 (y^2 + z^2) = -sin 10 (IMU x, down, leans west as the right side dips east).
+GOLDEN_USER = [
+    # (name, (real, i, j, k), heading, pitch, roll) in degrees, OAK-D-PRO mount
+    ("north", (0.5, 0.5, 0.5, -0.5), 0.0, 0.0, 0.0),
+    ("east", (0.0, R2, 0.0, -R2), 90.0, 0.0, 0.0),
+    ("south", (0.5, -0.5, 0.5, 0.5), 180.0, 0.0, 0.0),
+    ("west", (R2, 0.0, R2, 0.0), 270.0, 0.0, 0.0),
+    ("south as DepthAI may send it (-q)", (-0.5, 0.5, -0.5, -0.5), 180.0, 0.0, 0.0),
+    ("north, nose up 10", (0.4545195, 0.5416752, 0.5416752, -0.4545195), 0.0, 10.0, 0.0),
+    ("north, right side down 10", (0.4545195, 0.4545195, 0.5416752, -0.5416752), 0.0, 0.0, 10.0),
+]
+
+
+@pytest.mark.parametrize(("name", "q", "h", "p", "r"), GOLDEN_USER, ids=[g[0] for g in GOLDEN_USER])
+def test_rotation_vector_compass_points_pitch_and_roll_through_the_tracker(name, q, h, p, r):
+    """What `--heading oak-imu` reports for a level camera at each compass point and for a 10 deg
+    pitch or roll, per docs/conventions.md (heading clockwise from north, pitch nose up, roll
+    right side down); a declination of +5 deg (east) moves only the heading, by +5."""
+    for decl_deg, ref in ((None, HeadingRef.MAGNETIC), (5.0, HeadingRef.TRUE)):
+        decl = None if decl_deg is None else math.radians(decl_deg)
+        tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, declination_rad=decl)
+        assert tr.add_rotation_vector(2.0, q, accuracy_rad=0.05)
+        att, reason = tr.attitude_at(2.0)
+        assert reason == OK and att.reference is ref and att.epoch == 0
+        want_h = math.radians(h + (decl_deg or 0.0))
+        assert ang_diff(att.heading_rad, want_h) < GOLDEN_Q_RAD, (name, decl_deg, deg(att.heading_rad))
+        assert abs(att.pitch_rad - math.radians(p)) < GOLDEN_Q_RAD, (name, deg(att.pitch_rad))
+        assert abs(att.roll_rad - math.radians(r)) < GOLDEN_Q_RAD, (name, deg(att.roll_rad))
+
+
+def test_the_same_rotation_vector_reads_half_a_turn_apart_on_the_two_mounts():
+    """An OAK-D (IMU z forward) looking north sends what an OAK-D-PRO (IMU z backward) sends
+    looking south: IMU x down, y west, z north. The mount decides the heading's sign of forward."""
+    q = (0.5, -0.5, 0.5, 0.5)
+    h_oak_d = attitude_from_world_from_cam(world_from_cam_of_imu(q, CAM_FROM_IMU_OAK_D))[0]
+    h_pro = attitude_from_world_from_cam(world_from_cam_of_imu(q, CAM_FROM_IMU_OAK_D_PRO))[0]
+    assert ang_diff(h_oak_d, 0.0) < EXACT_F64 and ang_diff(h_pro, math.pi) < EXACT_F64
+
+
 def test_mounts_are_rotations_and_differ_by_a_half_turn_about_down():
     for m in (CAM_FROM_IMU_OAK_D, CAM_FROM_IMU_OAK_D_PRO):
         validate_rotation("mount", m)
