@@ -215,7 +215,8 @@ def test_rotation_vector_compass_points_pitch_and_roll_through_the_tracker(name,
         tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, declination_rad=decl)
         assert tr.add_rotation_vector(2.0, q, accuracy_rad=0.05)
         att, reason = tr.attitude_at(2.0)
-        assert reason == OK and att.reference is ref and att.epoch == 0
+        assert reason == OK and att is not None and att.pitch_rad is not None and att.roll_rad is not None
+        assert att.reference is ref and att.epoch == 0
         want_h = math.radians(h + (decl_deg or 0.0))
         assert ang_diff(att.heading_rad, want_h) < GOLDEN_Q_RAD, (name, decl_deg, deg(att.heading_rad))
         assert abs(att.pitch_rad - math.radians(p)) < GOLDEN_Q_RAD, (name, deg(att.pitch_rad))
