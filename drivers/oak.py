@@ -427,16 +427,27 @@ class OakSession:
                 log.debug("OAK teardown step failed: %s", exc)
 
 
+def _in_use_error(info: Any) -> OakError:
+    return OakError(f"OAK {info.getDeviceId()} ({info.name}) is in use by another program (state {info.state.name}): "
+                    "close it (another sunrig, a DepthAI viewer) or wait a few seconds after it exits, then try again")
+
+
 def _find_device(dai: Any, device_id: str | None) -> Any:
-    """The DeviceInfo to open, found without DepthAI's ~10 s search when nothing is connected."""
-    infos = dai.Device.getAllAvailableDevices()
+    """The DeviceInfo to open, found without DepthAI's ~10 s search when nothing is connected.
+
+    DepthAI's available devices are its connected ones less those already booted: a device that
+    another program holds is connected but not available, and is named as in use, not as missing.
+    One search (about 0.5 s) serves both: getAllAvailableDevices() is the same search, filtered."""
+    connected = dai.Device.getAllConnectedDevices()
+    infos = [i for i in connected if i.state != dai.XLinkDeviceState.X_LINK_BOOTED]
+    wanted = [i for i in infos if device_id is None or device_id in (i.getDeviceId(), i.name)]
+    if wanted:
+        return wanted[0]
+    busy = [i for i in connected if device_id is None or device_id in (i.getDeviceId(), i.name)]
+    if busy:
+        raise _in_use_error(busy[0])
     if device_id is None:
-        if not infos:
-            raise OakError(NO_DEVICE_MESSAGE)
-        return infos[0]
-    for info in infos:
-        if device_id in (info.getDeviceId(), info.name):
-            return info
+        raise OakError(NO_DEVICE_MESSAGE)
     found = ", ".join(f"{i.getDeviceId()} ({i.name})" for i in infos) or "none"
     raise OakError(f"no OAK device {device_id!r} found (available: {found}); check the id and the cable")
 

@@ -461,6 +461,52 @@ def test_no_device_fails_at_once_with_what_to_do():
     assert time.monotonic() - t0 < 5.0  # no 10 s device search
 
 
+def device_info(device_id: str, name: str, state):
+    return dai.DeviceInfo(name, device_id, state, dai.XLinkProtocol.X_LINK_USB_VSC,
+                          dai.XLinkPlatform.X_LINK_MYRIAD_X, dai.XLinkError_t.X_LINK_SUCCESS)
+
+
+class FakeDeviceList:
+    """FAKE: depthai's device search (``dai.Device.getAllConnectedDevices``) with devices in the
+    states a real search reports. Needed because no OAK is attached here; the DeviceInfo objects
+    and the state enum are depthai's own. (DepthAI's getAllAvailableDevices() is this search
+    without the devices in X_LINK_BOOTED, depthai-core DeviceBase.cpp: a device another program
+    holds is connected, not available.)"""
+
+    XLinkDeviceState = dai.XLinkDeviceState
+
+    def __init__(self, *infos) -> None:
+        self.Device = self
+        self._infos = list(infos)
+
+    def getAllConnectedDevices(self):  # noqa: N802 - depthai's name
+        return list(self._infos)
+
+
+def test_a_device_in_use_by_another_program_is_named_as_such():
+    """It was 'no OAK device found; check the USB cable and permissions': the search for available
+    devices leaves out one that another program (a second sunrig, a viewer) has booted."""
+    from drivers.oak import _find_device
+
+    busy = device_info("18443010A1B2C3D4E5", "1.3", dai.XLinkDeviceState.X_LINK_BOOTED)
+    free = device_info("1844301011F0E1D2C3", "1.4", dai.XLinkDeviceState.X_LINK_UNBOOTED)
+    for device_id in (None, "18443010A1B2C3D4E5", "1.3"):
+        with pytest.raises(OakError) as err:
+            _find_device(FakeDeviceList(busy), device_id)
+        message = str(err.value)
+        assert "\n" not in message and "18443010A1B2C3D4E5" in message, message
+        assert "in use by another program" in message and "close" in message, message
+        assert "USB cable" not in message, message
+    assert _find_device(FakeDeviceList(busy, free), None).getDeviceId() == "1844301011F0E1D2C3"
+    with pytest.raises(OakError, match="in use by another program"):
+        _find_device(FakeDeviceList(busy, free), "18443010A1B2C3D4E5")
+    with pytest.raises(OakError) as err:
+        _find_device(FakeDeviceList(), None)
+    assert str(err.value) == NO_DEVICE_MESSAGE
+    with pytest.raises(OakError, match=r"no OAK device 'X1' found \(available: 1844301011F0E1D2C3 \(1.4\)\)"):
+        _find_device(FakeDeviceList(busy, free), "X1")
+
+
 def test_waiting_for_a_device_never_hangs_and_close_is_idempotent():
     opener = host_sessions()  # nothing to open, ever
     cam = OakCamera(OakConfig(**FAST), open_session=opener, wait_for_device=True)
