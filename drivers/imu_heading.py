@@ -60,8 +60,9 @@ _ROTATION_TOL = 1e-3  # how far a calibration matrix may be from a proper rotati
 _MISMATCH_SMOOTHING = 0.05  # exponential smoothing of the gravity check (about 20 reports)
 _VERTICAL_SIN = math.sin(math.radians(1.0))  # optical axis within 1 deg of vertical: no heading
 # Lookup results (AttitudeTracker.attitude_at reasons). Only "ok" carries an attitude.
-OK, NO_IMU_YET, TOO_OLD, IMU_PENDING, IMU_GAP, VERTICAL = (
-    "ok", "no_imu_yet", "too_old", "imu_pending", "imu_gap", "vertical")
+OK, NO_IMU_YET, TOO_OLD, IMU_PENDING, IMU_GAP, VERTICAL, INACCURATE = (
+    "ok", "no_imu_yet", "too_old", "imu_pending", "imu_gap", "vertical", "inaccurate")
+_MAX_INACCURATE_RUNS = 64  # stretches of refused rotation vectors remembered (within history_s)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -539,6 +540,10 @@ class AttitudeTracker:
         self._accel: tuple[float, np.ndarray] | None = None
         self._zero_rad: float | None = None
         self.gravity_mismatch_rad: float | None = None  # smoothed check, at rest only (fusion modes)
+        # Stretches [first_t, last_t] of rotation vectors refused as inaccurate, oldest first: a
+        # frame among them has no heading because of them, and waiting for more reports is no use.
+        self._inaccurate_runs: deque[list[float]] = deque(maxlen=_MAX_INACCURATE_RUNS)
+        self._in_inaccurate_run = False
         self.counts = {"rotation_vectors": 0, "gyro_reports": 0, "accel_reports": 0, "inaccurate": 0,
                        "ignored": 0}
 
@@ -561,6 +566,7 @@ class AttitudeTracker:
         self.counts["rotation_vectors"] += 1
         if self.mode is ImuMode.ROTATION_VECTOR and accuracy_rad > self.max_accuracy_rad:
             self.counts["inaccurate"] += 1
+            self._note_inaccurate(float(t_s))
             return False
         q = quat_normalize(q_wxyz)
         if self._accel is not None and abs(self._accel[0] - t_s) < 0.05:
@@ -570,7 +576,24 @@ class AttitudeTracker:
                 # Smoothed: one jolt must not look like a wrong frame; a wrong frame is there always.
                 old = self.gravity_mismatch_rad
                 self.gravity_mismatch_rad = g if old is None else old + _MISMATCH_SMOOTHING * (g - old)
-        return self._store(t_s, q)
+        stored = self._store(t_s, q)
+        if stored:
+            self._in_inaccurate_run = False
+        return stored
+
+    def _note_inaccurate(self, t_s: float) -> None:
+        runs = self._inaccurate_runs
+        if self._in_inaccurate_run and runs and t_s > runs[-1][1]:
+            runs[-1][1] = t_s
+        elif not runs or t_s > runs[-1][1]:
+            runs.append([t_s, t_s])
+        self._in_inaccurate_run = True
+        while runs and runs[0][1] < t_s - self.buffer.history_s:
+            runs.popleft()
+
+    def _among_inaccurate(self, t_s: float) -> bool:
+        """Whether ``t_s`` lies inside a stretch of refused reports, or up to max_gap_s before one."""
+        return any(first - self.buffer.max_gap_s <= t_s <= last for first, last in self._inaccurate_runs)
 
     def add_accelerometer(self, t_s: float, accel_imu_m_s2) -> None:
         self.counts["accel_reports"] += 1
@@ -593,9 +616,12 @@ class AttitudeTracker:
 
     def attitude_at(self, t_s: float) -> tuple[Attitude | None, str]:
         """The camera's attitude at monotonic ``t_s`` (interpolated, never extrapolated), or
-        (None, reason): ``no_imu_yet``, ``too_old``, ``imu_pending``, ``imu_gap`` or ``vertical``."""
+        (None, reason): ``no_imu_yet``, ``too_old``, ``imu_pending``, ``imu_gap``, ``vertical``, or
+        ``inaccurate`` where rotation vectors came but were refused as too inaccurate."""
         q, reason = self.buffer.at(t_s)
         if q is None:
+            if reason in (NO_IMU_YET, IMU_PENDING, IMU_GAP) and self._among_inaccurate(t_s):
+                return None, INACCURATE  # the IMU reported there, too inaccurately to use
             return None, reason
         r = world_from_cam_of_imu(q, self.cam_from_imu, self._enu_from_sensor)
         if math.hypot(r[0, 2], r[1, 2]) < _VERTICAL_SIN:
@@ -610,6 +636,8 @@ class AttitudeTracker:
         """Forget everything (a new device session): relative headings restart from a new zero,
         in a new epoch."""
         self._accel = None
+        self._inaccurate_runs.clear()
+        self._in_inaccurate_run = False
         self._new_zero()
         if self.gyro is not None:
             self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=self.gyro.tilt_gain)

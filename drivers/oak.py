@@ -62,7 +62,7 @@ log = logging.getLogger(__name__)
 NO_DEVICE_MESSAGE = (
     "no OAK device found; check the USB cable and permissions (udev rules), or use --camera opencv:N"
 )
-_HEADING_REASONS = ("no_imu", "no_imu_yet", "too_old", "imu_pending", "imu_gap", "vertical")
+_HEADING_REASONS = ("no_imu", "no_imu_yet", "too_old", "imu_pending", "imu_gap", "vertical", "inaccurate")
 HANDLER_COUNTS = (
     "frames_in",  # ImgFrames received
     "frames_out",  # Frames made
@@ -748,9 +748,14 @@ class OakCamera:
                 self._warn_once("gravity", "OAK: the rotation vector's up and the accelerometer's disagree by "
                                 "%.0f deg: its world frame is not %s (set sensor_world; docs/oak.md)",
                                 math.degrees(g), tracker.sensor_world)
-        if tracker.counts["inaccurate"] and not tracker.buffer.counts["added"]:
-            self._warn_once("accuracy", "OAK: the IMU's rotation vector is not accurate yet (magnetometer not "
-                            "calibrated): move the camera in a figure-eight, or use imu_mode game_rotation_vector")
+        with self._cond:
+            lost = self._counts["no_heading_inaccurate"]
+        if lost:  # at the start (not calibrated yet) or mid-run (disturbed): said when it costs frames
+            self._warn_once("accuracy", "OAK: the IMU's rotation vector is not accurate (its own estimate worse "
+                            "than max_rv_accuracy_deg %g: magnetometer not calibrated, or disturbed by steel or "
+                            "currents nearby): frames go without heading until it is (no_heading_inaccurate); "
+                            "move the camera in a figure-eight, or use imu_mode game_rotation_vector",
+                            self.config.max_rv_accuracy_deg)
 
     def _publish(self, frames: list[Frame]) -> None:
         if not frames:

@@ -494,10 +494,38 @@ def test_tracker_rotation_vector_magnetic_then_true():
 def test_tracker_skips_inaccurate_rotation_vectors():
     tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, max_accuracy_rad=math.radians(30))
     assert tr.add_rotation_vector(1.0, q_heading(0.0), accuracy_rad=math.pi) is False  # BNO: "uncalibrated"
-    assert tr.counts["inaccurate"] == 1 and tr.attitude_at(1.0) == (None, NO_IMU_YET)
+    assert tr.counts["inaccurate"] == 1 and tr.attitude_at(1.0) == (None, "inaccurate")
     # Only reports *worse* than the limit are refused: one exactly at it is used.
     assert tr.add_rotation_vector(2.0, q_heading(0.0), accuracy_rad=math.radians(30)) is True
     assert tr.counts["inaccurate"] == 1 and tr.attitude_at(2.0)[1] == OK
+
+
+def test_a_frame_whose_rotation_vectors_were_too_inaccurate_says_so():
+    """The magnetometer disturbed mid-run (a vehicle's steel, a passing truck): the BNO's accuracy
+    estimate goes past the limit and its reports are not used. A frame they cover has no heading
+    because of that, said as 'inaccurate', not 'imu_pending' (its reports came, and waiting for
+    more does not help) nor 'imu_gap' nor 'no_imu_yet'."""
+    tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, max_accuracy_rad=math.radians(30))
+    for k in range(3):  # accurate at 1.00 .. 1.02
+        assert tr.add_rotation_vector(1.0 + 0.01 * k, q_heading(40.0), accuracy_rad=0.1)
+    for k in range(3, 40):  # inaccurate from 1.03 to 1.39
+        assert not tr.add_rotation_vector(1.0 + 0.01 * k, q_heading(40.0), accuracy_rad=math.pi)
+    assert tr.attitude_at(1.01)[1] == OK  # before it turned inaccurate: interpolated as ever
+    assert tr.attitude_at(1.025)[1] == "inaccurate"  # bracketed by an accurate and an inaccurate report
+    assert tr.attitude_at(1.2) == (None, "inaccurate")  # was imu_pending
+    assert tr.attitude_at(1.5) == (None, IMU_PENDING)  # after the newest report: its reports may yet come
+    for k in range(50, 53):  # accurate again from 1.50: the stretch between is not a gap in the reports
+        assert tr.add_rotation_vector(1.0 + 0.01 * k, q_heading(40.0), accuracy_rad=0.1)
+    assert tr.attitude_at(1.2) == (None, "inaccurate")  # was imu_gap
+    assert tr.attitude_at(1.45) == (None, IMU_GAP)  # 1.39 to 1.50: no report at all
+    assert tr.attitude_at(1.51)[1] == OK
+    # Inaccurate from the first report: was no_imu_yet.
+    tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO)
+    tr.add_rotation_vector(1.0, q_heading(0.0), accuracy_rad=math.pi)
+    tr.add_rotation_vector(1.1, q_heading(0.0), accuracy_rad=math.pi)
+    assert tr.attitude_at(1.05) == (None, "inaccurate") and tr.attitude_at(1.2) == (None, NO_IMU_YET)
+    tr.reset()  # a new session: the old session's reports say nothing of its frames
+    assert tr.attitude_at(1.05) == (None, NO_IMU_YET)
 
 
 def test_tracker_game_rotation_vector_is_relative_to_its_first_report():

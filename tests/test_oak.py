@@ -311,6 +311,36 @@ def test_handler_a_frame_before_the_first_imu_report_waits_for_it():
     assert alone.attitude is None and no_tracker_yet.counts["no_heading_no_imu_yet"] == 1
 
 
+def test_handler_a_frame_covered_by_inaccurate_rotation_vectors_goes_at_once_counted_as_such():
+    # It waited imu_wait_s for reports that had come (and been refused), then was counted
+    # no_heading_imu_pending: 150 ms of latency per frame, and a reason that hid the magnetometer.
+    h = OakMessageHandler(INTR, AttitudeTracker(ImuMode.ROTATION_VECTOR, MOUNT), imu_wait_s=0.15)
+    h.on_imu(imu_rv(BASE_S, q_level(40.0)))
+    for k in range(1, 10):
+        h.on_imu(imu_rv(BASE_S + 0.01 * k, q_level(40.0), accuracy_rad=math.pi))
+    h.on_frame(img_frame(0, BASE_S + 0.055), now_s=10.0)  # mid-exposure at +0.050
+    [frame] = h.ready(10.0)
+    assert frame.attitude is None
+    assert h.counts["no_heading_inaccurate"] == 1 and h.counts["no_heading_imu_pending"] == 0
+
+
+def test_a_rotation_vector_that_turns_inaccurate_mid_run_is_said(caplog):
+    """The warning came only when no report had ever been accurate: a magnetometer disturbed after
+    a good start left frames without heading and the log silent."""
+    msgs = [m for m in script(20) if m[1] == "video"]
+    for i in range(int(0.6 * 100)):
+        t = BASE_S + i / 100
+        msgs.append((t, "imu", imu_rv(t, q_level(40.0), accuracy_rad=0.05 if t < BASE_S + 0.2 else math.pi)))
+    msgs.sort(key=lambda m: (m[0], m[1] == "video"))
+    with caplog.at_level(logging.WARNING, logger="drivers.oak"), \
+            OakCamera(OakConfig(**FAST), open_session=host_sessions(msgs)) as cam:
+        frames = collect(cam, 20)
+        stats = cam.stats()
+    assert len(frames) == 20 and stats["frames_with_heading"] >= 1 and stats["no_heading_inaccurate"] >= 10, stats
+    said = [r.getMessage() for r in caplog.records if "not accurate" in r.getMessage()]
+    assert len(said) == 1 and "figure-eight" in said[0] and "45" in said[0], said
+
+
 def test_handler_gyro_mode_from_imudata_gyroscope_reports():
     """A BMI270-like IMU: gyro + accelerometer reports, integrated on the host, relative heading."""
     tracker = AttitudeTracker(ImuMode.GYRO, MOUNT)
