@@ -204,6 +204,29 @@ def unused_declination_warning(declination_deg: float | None, mode: ImuMode, imu
             "GNSS compass (--heading nmea:PORT); or drop --declination-deg")
 
 
+# What a USB link carries of an OAK's stream in practice, bytes/s, by dai.UsbSpeed name: about half
+# the bus rate (protocol and XLink overhead, other devices on the hub). USB3 (SUPER, SUPER_PLUS)
+# and PoE (UNKNOWN) carry any colour stream this driver asks for.
+_USB_BYTES_S = {"LOW": 0.1e6, "FULL": 0.7e6, "HIGH": 30e6}
+_USB_NAMES = {"LOW": "USB1 (low speed, 1.5 Mbit/s)", "FULL": "USB1 (full speed, 12 Mbit/s)",
+              "HIGH": "USB2 (480 Mbit/s)"}
+
+
+def usb_bandwidth_warning(usb_speed: str, width: int, height: int, fps: float,
+                          bytes_per_px: float = 1.5) -> str | None:
+    """What to tell a user whose USB link (``dai.UsbSpeed`` name) cannot carry the colour stream
+    (NV12: 1.5 bytes a pixel), or None. Too slow a link makes the device drop frames, which
+    otherwise show only as ``frames_dropped_device``."""
+    budget = _USB_BYTES_S.get((usb_speed or "").upper())
+    need = width * height * bytes_per_px * fps
+    if budget is None or need <= budget:
+        return None
+    return (f"the OAK is connected over {_USB_NAMES[usb_speed.upper()]}: {width}x{height} at {fps:g} fps needs "
+            f"about {need / 1e6:.0f} MB/s, more than the about {budget / 1e6:g} MB/s it carries, so the device "
+            "will drop frames (frames_dropped_device); plug it into a USB3 port with a USB3 cable, or lower "
+            "--width/--height/--fps")
+
+
 # ---------------------------------------------------------------------------------------------
 # Calibration (real dai.CalibrationHandler objects; no device needed)
 # ---------------------------------------------------------------------------------------------
@@ -411,6 +434,7 @@ class OakSession:
     cam_from_imu_source: str = ""
     imu_name: str = ""
     description: str = "OAK"
+    usb_speed: str = ""  # dai.UsbSpeed name of the link (HIGH is USB2, SUPER USB3; UNKNOWN for PoE)
     on_close: list[Callable[[], None]] = field(default_factory=list)  # e.g. device.close
 
     def close(self) -> None:
@@ -475,6 +499,10 @@ def open_device_session(config: OakConfig) -> OakSession:
         except RuntimeError:  # older EEPROMs carry no product name: the default mount then applies
             product = ""
         imu_name = device.getConnectedIMU()
+        try:
+            usb_speed = device.getUsbSpeed().name
+        except RuntimeError:  # not a USB device
+            usb_speed = "UNKNOWN"
         intrinsics = config.intrinsics or read_intrinsics(calib, socket, config.width, config.height)
         mode = choose_imu_mode(imu_name, config.imu_mode)
         cam_from_imu, source = None, ""
@@ -504,7 +532,8 @@ def open_device_session(config: OakConfig) -> OakSession:
         raise OakError(f"cannot set up OAK {info.getDeviceId()}: {exc}") from None
     return OakSession(pipeline=pipeline, video=video, imu=imu_out, intrinsics=intrinsics, imu_mode=mode,
                       cam_from_imu=cam_from_imu, cam_from_imu_source=source, imu_name=imu_name,
-                      description=f"{product or 'OAK'} {info.getDeviceId()}", on_close=[device.close])
+                      description=f"{product or 'OAK'} {info.getDeviceId()}", usb_speed=usb_speed,
+                      on_close=[device.close])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -548,9 +577,9 @@ class OakCamera:
         self._frames: deque[Frame] = deque()
         self._counts = dict.fromkeys(HANDLER_COUNTS, 0)
         self._counts.update(dict.fromkeys(CAMERA_COUNTS, 0))
-        self._info: dict[str, Any] = {"device": None, "imu": None, "imu_mode": None, "heading_ref": None,
-                                      "cam_from_imu_source": None, "gravity_mismatch_deg": None,
-                                      "imu_counts": {}}
+        self._info: dict[str, Any] = {"device": None, "usb_speed": None, "imu": None, "imu_mode": None,
+                                      "heading_ref": None, "cam_from_imu_source": None,
+                                      "gravity_mismatch_deg": None, "imu_counts": {}}
         self._last_error: str | None = None
         self._failure: str | None = None
         self._next_seq = 0
@@ -696,11 +725,15 @@ class OakCamera:
         dai = _dai()
         cfg = self.config
         tracker = self._tracker(session)
+        bpp = 3.0 if cfg.frame_type and "888" in cfg.frame_type else 1.5  # BGR/RGB888 vs NV12
+        usb = usb_bandwidth_warning(session.usb_speed, cfg.width, cfg.height, cfg.fps, bpp)
+        if usb is not None:
+            self._warn_once(f"usb_{session.usb_speed}", "OAK %s: %s", session.description, usb)
         handler = OakMessageHandler(session.intrinsics, tracker, imu_wait_s=cfg.imu_wait_s,
                                     first_seq=self._next_seq, counts=self._counts)
         with self._cond:
             self._counts["sessions"] += 1
-            self._info.update(device=session.description, imu=session.imu_name,
+            self._info.update(device=session.description, usb_speed=session.usb_speed or None, imu=session.imu_name,
                               imu_mode=None if tracker is None else tracker.mode.value,
                               heading_ref=None if tracker is None else tracker.heading_ref.value,
                               cam_from_imu_source=session.cam_from_imu_source or None)

@@ -447,6 +447,32 @@ def test_a_declination_a_relative_imu_mode_cannot_use_is_said_once(mode, declina
         assert part in message, (part, message)
 
 
+def test_a_usb2_link_too_slow_for_the_stream_is_said_at_open():
+    """An OAK on a USB2 port or cable (dai.UsbSpeed.HIGH, 480 Mbit/s) cannot carry a large colour
+    stream: the device drops frames, which showed only as frames_dropped_device, with no why."""
+    from drivers.oak import usb_bandwidth_warning  # here: a module without it fails this test only
+
+    message = usb_bandwidth_warning("HIGH", 1920, 1080, 30.0)  # NV12: 1920 * 1080 * 1.5 * 30 = 93 MB/s
+    assert message is not None and "\n" not in message
+    for part in ("USB2", "1920x1080 at 30 fps", "93 MB/s", "frames_dropped_device", "USB3"):
+        assert part in message, (part, message)
+    assert "USB1" in (usb_bandwidth_warning("FULL", 640, 400, 15.0) or "")  # 12 Mbit/s: 5.8 MB/s is too much
+    assert usb_bandwidth_warning("HIGH", 640, 400, 15.0) is None  # 5.8 MB/s: USB2 carries it
+    for speed in ("SUPER", "SUPER_PLUS", "UNKNOWN", ""):  # USB3; a PoE device has no USB speed
+        assert usb_bandwidth_warning(speed, 1920, 1080, 30.0) is None
+    # The session's link speed is in stats (set here as open_device_session reads it from the device).
+    opener = host_sessions(script(2))
+
+    def on_usb2(config: OakConfig) -> OakSession:
+        session = opener(config)
+        session.usb_speed = "HIGH"
+        return session
+
+    with OakCamera(OakConfig(**FAST), open_session=on_usb2) as cam:
+        assert len(collect(cam, 2)) == 2
+        assert cam.stats()["usb_speed"] == "HIGH"
+
+
 def test_the_unused_declination_advice_fits_the_imu():
     from drivers.oak import unused_declination_warning  # here, not at the top: a module without it fails this test only
 
