@@ -703,6 +703,12 @@ class OakCamera:
         if session.cam_from_imu_source.startswith("default"):
             self._warn_once("mount", "OAK %s: IMU-to-camera rotation is the %s: check it (docs/oak.md) or set "
                             "cam_from_imu", session.description, session.cam_from_imu_source)
+        if session.imu_mode is ImuMode.ROTATION_VECTOR and cfg.declination_deg is None:
+            # Said, not silent: the estimates' world is then turned by the site's declination.
+            self._warn_once("magnetic", "OAK %s: headings are referenced to magnetic north (no declination_deg): "
+                            "estimates carry heading_ref magnetic and are off true north by the site's declination; "
+                            "pass --declination-deg (east positive, from a geomagnetic model such as NOAA's) for "
+                            "true north", session.description)
         unused = unused_declination_warning(cfg.declination_deg, session.imu_mode, session.imu_name)
         if unused is not None:
             # Keyed by mode: a reconnect in the same mode says nothing new, another device's may.

@@ -473,6 +473,24 @@ def test_a_usb2_link_too_slow_for_the_stream_is_said_at_open():
         assert cam.stats()["usb_speed"] == "HIGH"
 
 
+def test_a_magnetic_heading_without_a_declination_is_said_once(caplog):
+    """`--heading oak-imu` on a BNO08x without --declination-deg: every estimate is in a
+    magnetic-north world, off true north by the site's declination (tens of degrees in places),
+    and nothing said so but the 'M' in the output."""
+    cfg = OakConfig(**{**FAST, "declination_deg": None})
+    opener = host_sessions(script(3), script(3, first_seq=10), then=("stop", "idle"))
+    with caplog.at_level(logging.WARNING, logger="drivers.oak"), OakCamera(cfg, open_session=opener) as cam:
+        frames = collect(cam, 6)
+    assert len(frames) == 6 and all(f.attitude.reference is HeadingRef.MAGNETIC for f in frames)
+    said = [r.getMessage() for r in caplog.records if "magnetic north" in r.getMessage()]
+    assert len(said) == 1 and "--declination-deg" in said[0] and "east positive" in said[0], said
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="drivers.oak"), \
+            OakCamera(OakConfig(**FAST), open_session=host_sessions(script(3))) as cam:  # declination 5
+        assert len(collect(cam, 3)) == 3
+    assert not [r for r in caplog.records if "magnetic north" in r.getMessage()]
+
+
 def test_the_unused_declination_advice_fits_the_imu():
     from drivers.oak import unused_declination_warning  # here, not at the top: a module without it fails this test only
 
