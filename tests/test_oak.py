@@ -17,6 +17,7 @@ import threading
 import time
 import traceback
 from datetime import timedelta
+from typing import Any
 
 import numpy as np
 import pytest
@@ -123,7 +124,7 @@ def ramp_deg(t_s: float) -> float:
 
 
 def script(n_frames: int, first_seq: int = 0, fps: float = 50.0, exposure_us: int = 10_000,
-           imu_hz: float = 100.0) -> list[tuple[float, str, object]]:
+           imu_hz: float = 100.0) -> list[tuple[float, str, Any]]:
     """Frames (end-of-exposure stamps) and rotation vectors covering them, in message-time order."""
     out = []
     t_end = [BASE_S + 0.1 + k / fps for k in range(n_frames)]
@@ -140,7 +141,7 @@ def script(n_frames: int, first_seq: int = 0, fps: float = 50.0, exposure_us: in
 # --- a host-only source ---------------------------------------------------------------------
 
 
-class ScriptedSource(dai.node.ThreadedHostNode):
+class ScriptedSource(dai.node.ThreadedHostNode):  # type: ignore[name-defined]  # dai comes from importorskip
     """Sends its script's messages on ``video`` and ``imu``; then stops the pipeline (a lost
     device) or idles (a stalled one). An exception escaping run() aborts the whole process in
     depthai 3.12, so none may."""
@@ -174,7 +175,7 @@ def host_sessions(*scripts, then=("idle",), imu_mode=ImuMode.ROTATION_VECTOR, mo
     it raises OakError like a machine with nothing plugged in."""
     pending = list(scripts)
     thens = list(then) + [then[-1]] * len(scripts)
-    opened = []
+    opened: list[Any] = []
 
     def open_session(config: OakConfig) -> OakSession:
         if not pending:
@@ -188,12 +189,13 @@ def host_sessions(*scripts, then=("idle",), imu_mode=ImuMode.ROTATION_VECTOR, mo
                           cam_from_imu=None if imu_mode is None else mount, cam_from_imu_source="test",
                           imu_name=imu_name, description=f"host-{len(opened)}")
 
-    open_session.opened = opened
+    open_session.opened = opened  # type: ignore[attr-defined]  # the sources, for the tests to look at
     return open_session
 
 
 def collect(cam: OakCamera, n: int, timeout_s: float = HANG_GUARD_S) -> list:
-    frames, deadline = [], time.monotonic() + timeout_s
+    frames: list[Any] = []
+    deadline = time.monotonic() + timeout_s
     while len(frames) < n and time.monotonic() < deadline:
         f = cam.get(0.1)
         if f is not None:
@@ -201,7 +203,7 @@ def collect(cam: OakCamera, n: int, timeout_s: float = HANG_GUARD_S) -> list:
     return frames
 
 
-FAST = dict(queue_size=32, backoff_s=(0.05, 0.1), poll_s=0.02, imu_wait_s=0.3, declination_deg=5.0,
+FAST: dict[str, Any] = dict(queue_size=32, backoff_s=(0.05, 0.1), poll_s=0.02, imu_wait_s=0.3, declination_deg=5.0,
             width=W, height=H)
 
 
@@ -263,7 +265,7 @@ def test_handler_frames_wait_for_the_imu_then_get_the_interpolated_heading():
     [frame] = h.ready(50.2)
     assert frame.seq == 100 and frame.t_mono_s == pytest.approx(BASE_S + 0.010, abs=TIME_S)
     np.testing.assert_array_equal(frame.image_bgr, image(7))
-    assert frame.attitude.reference is HeadingRef.TRUE
+    assert frame.attitude is not None and frame.attitude.reference is HeadingRef.TRUE
     assert math.degrees(frame.attitude.heading_rad) == pytest.approx(ramp_deg(BASE_S + 0.01) + 5.0, abs=HEADING_DEG)
     assert frame.attitude.pitch_rad == pytest.approx(0.0, abs=1e-5)
 
@@ -352,7 +354,7 @@ def test_handler_gyro_mode_from_imudata_gyroscope_reports():
         h.on_imu(imu_gyro(t, r.T @ np.array([0.0, 0.0, -rate]), r.T @ np.array([0.0, 0.0, 9.81])))
     h.on_frame(img_frame(0, BASE_S + 0.505, exposure_us=10_000), now_s=0.0)
     [frame] = h.ready(0.0)
-    assert frame.attitude.reference is HeadingRef.RELATIVE
+    assert frame.attitude is not None and frame.attitude.reference is HeadingRef.RELATIVE
     assert math.degrees(frame.attitude.heading_rad) == pytest.approx(10.0, abs=0.05)
 
 
@@ -726,7 +728,12 @@ def test_stdout_is_swapped_for_the_first_depthai_import_only(monkeypatch):
     import drivers.oak as oak
 
     oak._dai()
-    swaps = []
-    monkeypatch.setattr(oak, "_stdout_to_stderr", lambda: swaps.append(1) or contextlib.nullcontext())
+    swaps: list[int] = []
+
+    def counted() -> contextlib.nullcontext:
+        swaps.append(1)
+        return contextlib.nullcontext()
+
+    monkeypatch.setattr(oak, "_stdout_to_stderr", counted)
     oak._dai()
     assert swaps == []
