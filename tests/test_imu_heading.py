@@ -481,6 +481,7 @@ def test_tracker_rotation_vector_magnetic_then_true():
     tr.add_rotation_vector(1.00, q_heading(80.0), 0.1)
     tr.add_rotation_vector(1.01, q_heading(82.0), 0.1)
     att, reason = tr.attitude_at(1.005)
+    assert att is not None and att.pitch_rad is not None and att.roll_rad is not None
     assert reason == OK and att.reference is HeadingRef.MAGNETIC
     assert deg(att.heading_rad) == pytest.approx(81.0, abs=1e-6)
     assert att.pitch_rad == pytest.approx(0.0, abs=1e-9) and att.roll_rad == pytest.approx(0.0, abs=1e-9)
@@ -488,6 +489,7 @@ def test_tracker_rotation_vector_magnetic_then_true():
     tr = AttitudeTracker(ImuMode.ROTATION_VECTOR, CAM_FROM_IMU_OAK_D_PRO, declination_rad=math.radians(-3.0))
     tr.add_rotation_vector(1.00, q_heading(1.0))
     att, _ = tr.attitude_at(1.00)
+    assert att is not None
     assert att.reference is HeadingRef.TRUE and deg(att.heading_rad) == pytest.approx(358.0, abs=1e-6)
 
 
@@ -533,8 +535,10 @@ def test_tracker_game_rotation_vector_is_relative_to_its_first_report():
     tr.add_rotation_vector(5.0, q_heading(200.0))
     tr.add_rotation_vector(5.1, q_heading(230.0))
     att, _ = tr.attitude_at(5.0)
+    assert att is not None
     assert att.reference is HeadingRef.RELATIVE and deg(att.heading_rad) == pytest.approx(0.0, abs=1e-6)
     att, _ = tr.attitude_at(5.1)
+    assert att is not None
     assert deg(att.heading_rad) == pytest.approx(30.0, abs=1e-6)  # the declination means nothing here
     tr.reset()
     assert tr.attitude_at(5.1) == (None, NO_IMU_YET)
@@ -549,6 +553,7 @@ def test_tracker_vertical_optical_axis_has_no_heading():
     assert tr.attitude_at(1.0) == (None, VERTICAL)
     tr.add_rotation_vector(2.0, quat_from_rotation(world_from_cam(0.3, math.radians(88.5)) @ CAM_FROM_IMU_OAK_D_PRO))
     att, reason = tr.attitude_at(2.0)
+    assert att is not None and att.pitch_rad is not None and att.roll_rad is not None
     assert reason == OK and att.heading_rad == pytest.approx(0.3, abs=1e-9)
     assert deg(att.pitch_rad) == pytest.approx(88.5, abs=1e-9)
 
@@ -613,10 +618,11 @@ def test_gyro_integration_turns_clockwise_and_keeps_level():
         tr.add_gyro(t, r.T @ w_world)
     for t, want in ((t0, 0.0), (t0 + 1.005, 30.15), (t0 + 3.0, 90.0)):
         att, reason = tr.attitude_at(t)
+        assert att is not None and att.pitch_rad is not None and att.roll_rad is not None
         assert reason == OK and att.reference is HeadingRef.RELATIVE
         assert ang_diff(att.heading_rad, math.radians(want)) < GYRO_RAD, (t, deg(att.heading_rad))
         assert abs(att.pitch_rad) < TILT_RAD and abs(att.roll_rad) < TILT_RAD
-    assert tr.gyro.counts["gyro_steps"] == 300
+    assert tr.gyro is not None and tr.gyro.counts["gyro_steps"] == 300
 
 
 def test_gyro_tilt_follows_the_accelerometer():
@@ -696,12 +702,13 @@ def test_tracker_gyro_integrates_body_rates_about_each_axis(w_cam, want_deg):
     level and looking at its own north (relative 0). A constant rate about a fixed body axis
     integrates exactly, even in 1.5 deg steps (20 Hz)."""
     tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D)
-    assert not tr.gyro.initialized
+    assert tr.gyro is not None and not tr.gyro.initialized
     w_imu = CAM_FROM_IMU_OAK_D.T @ (math.radians(30.0) * np.array(w_cam))
     for k in range(21):  # 1 s
         assert tr.add_gyro(k * 0.05, w_imu) is True
         assert tr.gyro.initialized
     att, reason = tr.attitude_at(1.0)
+    assert att is not None and att.pitch_rad is not None and att.roll_rad is not None
     assert reason == OK and tr.counts["gyro_reports"] == 21
     assert ang_diff(att.heading_rad, math.radians(want_deg[0])) < ANGLE_RAD_F64
     assert abs(att.pitch_rad - math.radians(want_deg[1])) < ANGLE_RAD_F64
@@ -727,6 +734,7 @@ def test_gyro_starts_even_when_the_camera_looks_straight_up_or_down():
         for sign in (1.0, -1.0):  # looking up: gravity's up is the optical axis; looking down: minus it
             accel = sign * 9.81 * (mount.T @ np.array([0.0, 0.0, 1.0]))
             q = GyroIntegrator(mount).update(0.0, np.zeros(3), accel)
+            assert q is not None
             _, p, _ = attitude_from_world_from_cam(world_from_cam_of_imu(q, mount))
             assert np.all(np.isfinite(q)) and p == pytest.approx(sign * math.pi / 2, abs=1e-9)
 
@@ -745,6 +753,7 @@ def test_tracker_gyro_tilt_converges_at_the_documented_gain():
         tr.add_accelerometer(k * 0.01, pitched.T @ g_up)
         tr.add_gyro(k * 0.01, np.zeros(3))
     att, _ = tr.attitude_at(2.0)
+    assert att is not None and att.pitch_rad is not None and att.roll_rad is not None
     want = math.radians(10.0) - 2.0 * math.atan(math.tan(math.radians(5.0)) * math.exp(-1.0))
     assert abs(att.pitch_rad - want) < GYRO_RAD, deg(att.pitch_rad)
     assert ang_diff(att.heading_rad, 0.0) < GYRO_RAD and abs(att.roll_rad) < GYRO_RAD
