@@ -729,9 +729,14 @@ def _source_summary(stats: dict) -> str:
     """The counters worth a user's attention: drops, read failures, frames without heading and why."""
     parts = []
     camera = stats.get("camera") or {}
-    for key in ("dropped", "frames_dropped_consumer", "read_failures", "reconnects", "device_lost"):
+    for key in ("dropped", "frames_dropped_consumer", "frames_dropped_device", "read_failures", "reconnects",
+                "device_lost"):
         if camera.get(key):
             parts.append(f"camera {key.replace('_', ' ')} {camera[key]}")
+    # An OAK attaches its own IMU's heading: the frames it gave none, by why (drivers/oak.py).
+    for key, n in camera.items():
+        if key.startswith("no_heading_") and n:
+            parts.append(f"camera frames without heading ({key.removeprefix('no_heading_').replace('_', ' ')}) {n}")
     pairing = stats.get("pairing") or {}
     for key in ("gap", "before", "after", "stale", "mixed", "ahead", "overflow"):
         if pairing.get(key):

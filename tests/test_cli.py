@@ -1933,3 +1933,13 @@ def test_the_exit_report_says_how_often_visual_odometry_started_a_new_zero():
         "visual odometry lost 63 of 240 frames, visual odometry started 62 new heading zeros, "
         "camera repeated 30 frames")
     assert _source_summary({"visual_odometry": {"frames": 240, "lost": 0, "gaps": 0}}) == ""
+
+
+def test_the_exit_report_says_what_an_oak_lost_on_the_device_and_why_frames_had_no_heading():
+    # The OAK counts frames it never sent (a slow USB link) and frames its IMU gave no heading, by
+    # reason; the report showed none of it.
+    from rig.cli import _source_summary
+
+    camera = {"frames_dropped_device": 12, "no_heading_inaccurate": 40, "no_heading_gap": 0, "reconnects": 1}
+    assert _source_summary({"camera": camera}) == (
+        "camera frames dropped device 12, camera reconnects 1, camera frames without heading (inaccurate) 40")
