@@ -55,6 +55,12 @@ def check_recording_path(template: str | Path, *, overwrite: bool = False) -> No
         raise RecordingRefused(path, "folder")
     if os.path.lexists(path) and not overwrite:  # lexists: a dangling link is taken too
         raise RecordingRefused(path, "exists")
+    if overwrite and path.is_symlink():
+        # Replacing writes through the link: to a file in a folder that may not exist, found only
+        # once the devices were open. Named by where it points, which is what the user must make.
+        target = Path(os.path.realpath(path))
+        if not target.parent.is_dir():
+            raise RecordingRefused(target, "no folder")
 
 
 def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool = False) -> LogWriter:

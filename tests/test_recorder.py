@@ -79,6 +79,19 @@ def test_a_dangling_link_is_a_taken_name(tmp_path):
     refused("exists", check_recording_path, link)
 
 
+def test_overwriting_a_link_into_a_missing_folder_is_refused_before_devices_open(tmp_path):
+    # With --overwrite a dangling link was let through; the camera opened, and then the log could not
+    # be made ("cannot create log ... No such file or directory").
+    link = tmp_path / "drive.mcap"
+    os.symlink(tmp_path / "gone" / "drive.mcap", link)
+    refused("no folder", check_recording_path, link, overwrite=True)
+    (tmp_path / "gone").mkdir()  # made where it points: it is written through the link
+    check_recording_path(link, overwrite=True)
+    with open_recording(link, start_utc=START, overwrite=True):
+        pass
+    assert (tmp_path / "gone" / "drive.mcap").read_bytes().startswith(MCAP_MAGIC)
+
+
 def test_overwrite_replaces_an_existing_file(tmp_path):
     old = tmp_path / "drive.mcap"
     old.write_bytes(b"yesterday's drive")
