@@ -215,6 +215,11 @@ def _write_held(out: Path, *, drives: int, frames: int, seed: int, intrinsics: I
             with multiprocessing.get_context("spawn").Pool(jobs, _start_worker, (os.getpid(),)) as pool:
                 for _, n in pool.imap_unordered(_write_one, todo):
                     bar.advance(n)
+                # Let the workers leave on the pool's sentinel: the with's terminate would SIGTERM
+                # those still exiting, and one caught in its atexit handlers printed a traceback.
+                # Left only on an error or a signal, terminate stops workers that are rendering.
+                pool.close()
+                pool.join()
     finally:
         bar.close()
     return paths
