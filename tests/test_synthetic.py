@@ -707,6 +707,28 @@ def test_a_finished_parallel_run_lets_its_workers_exit_without_a_signal(tmp_path
     assert all(p.exists() for p in paths) and stopped == []
 
 
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_progress_counts_the_frames_of_a_drive_being_rendered(tmp_path, monkeypatch, jobs):
+    # The counter moved only when a whole drive was written: `--drives 1 --frames 5000` showed
+    # "0/5000 frames (0.0/s)" for the two minutes of its drive, and off a terminal, the line due
+    # every minute waited for the drive's end.
+    import replay.synthetic as synthetic
+    from rig.progress import Progress
+
+    seen: list[int] = []
+    real = Progress.update
+
+    def update(self, done, extra=""):
+        seen.append(done)
+        real(self, done, extra)
+
+    monkeypatch.setattr(Progress, "update", update)
+    monkeypatch.setattr(synthetic, "PROGRESS_POLL_S", 0.001)  # the parent looks at its workers' count
+    synthetic.write_synthetic_logs(tmp_path, drives=2, frames=12, seed=4, intrinsics=SMALL, progress=False, jobs=jobs)
+    assert seen[-1] == 24 and seen == sorted(seen)
+    assert [n for n in seen if n % 12], seen  # counts within a drive, not only whole drives
+
+
 def test_a_finished_drive_is_on_the_disk_before_it_takes_its_name(tmp_path, disk_events):
     # A drive was renamed from its .part with its data still in memory: after a power loss the
     # folder could hold the drive's name on an empty or cut file, which a resume refuses until it

@@ -22,9 +22,10 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -66,8 +67,10 @@ def drive_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint32)[0])
 
 
-def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> tuple[Path, int]:
-    """Render one drive into ``path`` via a temporary name, so an existing file is always whole."""
+def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float],
+               on_frame: Callable[[], None] | None = None) -> tuple[Path, int]:
+    """Render one drive into ``path`` via a temporary name, so an existing file is always whole;
+    ``on_frame`` is called as each frame is written (the progress counter)."""
     from replay.native import LogWriter
 
     path, dseed, frames, intrinsics, render_scale, fps = job
@@ -78,6 +81,8 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
         with LogWriter(tmp, metadata={RENDER_SCALE_KEY: repr(float(render_scale))}) as writer:
             for frame in drive.frames():
                 writer.write_frame(frame)
+                if on_frame is not None:
+                    on_frame()
         # On the disk before it takes the drive's name, and the name on the disk after: renamed
         # with its data still in memory, a power loss could leave the name on an empty or cut
         # drive, which a resume refuses (_kept) until it is deleted by hand.
@@ -93,11 +98,28 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> t
 
 # How often a worker looks whether the run that started it is still there (_watch_parent).
 PARENT_POLL_S = 0.2
+# How often a ``jobs`` run redraws its progress from its workers' frame count between drives.
+PROGRESS_POLL_S = 0.2
+# A worker's count of the frames it wrote, shared with the run (_start_worker).
+_frames_written: Any = None
 
 
-def _start_worker(parent_pid: int) -> None:
+def _count_frame() -> None:
+    with _frames_written.get_lock():
+        _frames_written.value += 1
+
+
+def _write_in_worker(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> tuple[Path, int]:
+    return _write_one(job, _count_frame)
+
+
+def _start_worker(parent_pid: int, frames_written: Any) -> None:
     """The initializer of a ``jobs`` worker of :func:`write_synthetic_logs`: it renders only while
-    the run that started it (``parent_pid``) runs, and a drive it is stopped in leaves no .part."""
+    the run that started it (``parent_pid``) runs, and a drive it is stopped in leaves no .part.
+    It adds each frame it writes to ``frames_written``, the run's progress, which otherwise moved
+    only as whole drives came back (minutes apart for long drives)."""
+    global _frames_written
+    _frames_written = frames_written
     # The pool stops its workers with SIGTERM (terminate, on the run's Ctrl-C or SIGTERM), whose
     # default action ended a worker at once with its .part left: an exception instead, which
     # _write_one cleans up after.
@@ -204,17 +226,26 @@ def _write_held(out: Path, *, drives: int, frames: int, seed: int, intrinsics: I
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
             for i, p in enumerate(paths) if p not in kept]
     bar = Progress("synth", total=drives * frames, unit="frames", enabled=None if progress else False)
-    bar.skip((drives - len(todo)) * frames)  # kept from an earlier run: not part of the rate
+    kept_frames = (drives - len(todo)) * frames
+    bar.skip(kept_frames)  # kept from an earlier run: not part of the rate
     try:
         if jobs == 1 or len(todo) <= 1:
             for job in todo:
-                bar.advance(_write_one(job)[1])
+                _write_one(job, bar.advance)  # frame by frame: a long drive takes minutes
         else:
             import multiprocessing
 
-            with multiprocessing.get_context("spawn").Pool(jobs, _start_worker, (os.getpid(),)) as pool:
-                for _, n in pool.imap_unordered(_write_one, todo):
-                    bar.advance(n)
+            context = multiprocessing.get_context("spawn")
+            written = context.Value("q", 0)
+            with context.Pool(jobs, _start_worker, (os.getpid(), written)) as pool:
+                results, left = pool.imap_unordered(_write_in_worker, todo), len(todo)
+                while left:
+                    try:
+                        results.next(timeout=PROGRESS_POLL_S)
+                        left -= 1
+                    except multiprocessing.TimeoutError:
+                        pass  # no drive finished yet: redraw the frames written within drives
+                    bar.update(kept_frames + written.value)
                 # Let the workers leave on the pool's sentinel: the with's terminate would SIGTERM
                 # those still exiting, and one caught in its atexit handlers printed a traceback.
                 # Left only on an error or a signal, terminate stops workers that are rendering.
