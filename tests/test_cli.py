@@ -1829,17 +1829,29 @@ def test_eval_that_grades_nothing_draws_no_empty_figure(tmp_path, capsys):
 
 def test_eval_stopped_before_any_window_draws_no_figure_and_says_so(tmp_path, capsys, monkeypatch):
     # "interrupted after 0 windows ...; the JSON and figures hold those": an empty chart was saved.
-    import estimator.evaluate
+    # The evaluation is the real one, stopped by a real Ctrl-C as it reads the log's first frame.
+    import signal
 
-    def stopped_at_once(sources, *args, **kwargs):
-        return estimator.evaluate.EvalResult(errors_deg={"mean": []}, flags={"mean": []}, elevation_deg={"mean": []},
-                                             logs=[name for name, _ in sources][:1], interrupted=True)
+    import replay.sources
 
-    monkeypatch.setattr(estimator.evaluate, "evaluate", stopped_at_once)
+    real_open_frames = replay.sources.open_frames
+
+    def ctrl_c_at_the_first_frame(path, **kwargs):
+        frames = real_open_frames(path, **kwargs)
+
+        def read():
+            signal.raise_signal(signal.SIGINT)
+            yield from frames
+
+        return read()
+
+    monkeypatch.setattr(replay.sources, "open_frames", ctrl_c_at_the_first_frame)
     png, out = tmp_path / "e.png", tmp_path / "e.json"
     rc, captured = _main_in_process(["eval", str(_write_log(tmp_path / "d.mcap")), "--aggregators", "mean",
                                      "--json", str(out), "--plot", str(png)], capsys)
-    assert rc == 130 and not png.exists() and json.loads(out.read_text())["interrupted"] is True
+    summary = json.loads(out.read_text())
+    assert rc == 130 and not png.exists() and summary["interrupted"] is True
+    assert summary["aggregators"]["mean"]["n_windows"] == 0 and summary["logs"] == [str(tmp_path / "d.mcap")]
     assert captured.err == "eval: interrupted before any window was graded; the JSON holds what was counted, " \
                            "and no figure was drawn\n"
 
