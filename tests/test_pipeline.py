@@ -714,17 +714,40 @@ def test_windows_failing_every_other_time_are_said_a_few_times_then_summed_up(mo
 def test_windows_full_and_partial_in_turn_are_said_a_few_times_then_summed_up(model, caplog):
     # A camera at the edge of a window's span (8 frames in 3.95 s, then 7 in 4.1 s, in turn): the
     # partial-window warning and "full again" were said at every window.
-    def edge():
-        t = 0.0
+    attempted = threading.Semaphore(0)
+
+    class Tried(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            try:
+                return super().estimate(window, aggregator)
+            finally:
+                attempted.release()
+
+    def t_of(seq):  # frames 0.65 s and 0.5 s apart in turn
+        return seq // 2 * 1.15 + (0.65 if seq % 2 else 0.0)
+
+    def edge():  # the next frame once the last one's window was tried: none skipped, whatever the load
         for frame in frames(300):  # about 172 s
-            yield dataclasses.replace(frame, t_mono_s=t)
-            t += 0.5 if frame.seq % 2 else 0.65
+            if frame.seq > 0:
+                assert attempted.acquire(timeout=10.0)
+            yield dataclasses.replace(frame, t_mono_s=t_of(frame.seq))
 
     with caplog.at_level(logging.INFO, logger="rig.pipeline"):
-        run_pipeline(edge(), SunEstimator(model), [Collect()], queue_size=400)
+        _, stats = run_pipeline(edge(), Tried(model), [Collect()], queue_size=400)
+    assert stats.windows_skipped == 0 and stats.estimates == 300
     said = [r.getMessage() for r in caplog.records if "window" in r.getMessage() and "seq" in r.getMessage()
             or "partial window" in r.getMessage()]
     assert said[0].startswith("windows hold 7 of the model's 8 frames"), said
     assert said[1].startswith("from seq ") and said[1].endswith("windows are full again"), said
-    assert 5 <= len(said) <= 7, said  # four changes at once, then about one a minute
-    assert all("full and partial in turn" in line for line in said[4:]), said
+    assert [line.startswith("windows hold 7") for line in said[:4]] == [True, False, True, False], said
+    assert len(said) == 6, said  # four changes at once, then one a minute of the frames' clock
+    at_s = []
+    for line in said[4:]:
+        changes, seconds, partial, tried, seq = map(int, re.findall(
+            r"full and partial in turn: (\d+) changes in (\d+) s, (\d+) of (\d+) windows partial; from seq (\d+)",
+            line)[0])
+        # Every window changes the verdict, half of them partial, one window per frame 0.575 s apart.
+        assert changes == tried - 1 and abs(2 * partial - tried) <= 1, line
+        assert abs(tried * 0.575 - seconds) <= 1.5, line
+        at_s.append(t_of(seq))
+    assert abs(at_s[1] - at_s[0] - 60.0) <= 0.65, at_s  # a minute apart, to within a frame
