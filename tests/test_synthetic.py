@@ -729,6 +729,36 @@ def test_progress_counts_the_frames_of_a_drive_being_rendered(tmp_path, monkeypa
     assert [n for n in seen if n % 12], seen  # counts within a drive, not only whole drives
 
 
+def test_a_worker_stopped_mid_drive_exits_even_when_its_log_fails_to_close(tmp_path, monkeypatch):
+    # On a full disk, `--jobs 2` hung for good: the pool's SIGTERM reached a worker rendering, and
+    # the log's close (ENOSPC) replaced its SystemExit with an OSError, which the pool took as the
+    # drive's result; the worker went back for work with SIGTERM now ignored, and the run waited
+    # in the pool's join forever, holding OUT.
+    import errno
+    import multiprocessing
+    import signal
+
+    import replay.synthetic as synthetic
+    from replay.native import LogWriter
+
+    def stopped(self, frame):
+        synthetic._exit_on_signal(signal.SIGTERM, None)  # as if the pool's SIGTERM came now
+
+    def disk_full(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(signal, "signal", lambda *args: None)  # this process's SIGTERM is left alone
+    monkeypatch.setattr(synthetic, "_frames_written", multiprocessing.Value("q", 0))
+    monkeypatch.setattr(synthetic, "_stop_signal", 0)
+    monkeypatch.setattr(LogWriter, "write_frame", stopped)
+    monkeypatch.setattr(LogWriter, "close", disk_full)
+    path = tmp_path / "drive_9_0000.mcap"
+    with pytest.raises(SystemExit) as stop:
+        synthetic._write_in_worker((path, drive_seed(9, 0), 2, SMALL, 0.5, 10.0))
+    assert stop.value.code == 128 + signal.SIGTERM
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_finished_drive_is_on_the_disk_before_it_takes_its_name(tmp_path, disk_events):
     # A drive was renamed from its .part with its data still in memory: after a power loss the
     # folder could hold the drive's name on an empty or cut file, which a resume refuses until it

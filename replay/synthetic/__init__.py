@@ -102,6 +102,8 @@ PARENT_POLL_S = 0.2
 PROGRESS_POLL_S = 0.2
 # A worker's count of the frames it wrote, shared with the run (_start_worker).
 _frames_written: Any = None
+# The signal that stopped this worker (_exit_on_signal), 0 while none has.
+_stop_signal = 0
 
 
 def _count_frame() -> None:
@@ -110,7 +112,14 @@ def _count_frame() -> None:
 
 
 def _write_in_worker(job: tuple[Path, int, int, Intrinsics | None, float, float]) -> tuple[Path, int]:
-    return _write_one(job, _count_frame)
+    try:
+        return _write_one(job, _count_frame)
+    finally:
+        # A stop's SystemExit can be replaced on its way out by an error of the clean-up (the
+        # log's close on a full disk), which the pool sends back as the drive's result: the worker
+        # then waited for work with SIGTERM ignored, and the run waited in the pool's join forever.
+        if _stop_signal:
+            raise SystemExit(128 + _stop_signal)
 
 
 def _start_worker(parent_pid: int, frames_written: Any) -> None:
@@ -133,7 +142,9 @@ def _start_worker(parent_pid: int, frames_written: Any) -> None:
 
 
 def _exit_on_signal(signum: int, frame: FrameType | None) -> NoReturn:
+    global _stop_signal
     signal.signal(signum, signal.SIG_IGN)  # once: a second signal must not cut the clean-up short
+    _stop_signal = signum
     # SystemExit ends a multiprocessing worker without a traceback; Exception would be sent back.
     raise SystemExit(128 + signum)
 
