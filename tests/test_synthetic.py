@@ -893,3 +893,39 @@ def test_synth_with_jobs_stopped_or_killed_leaves_no_worker_rendering_and_no_par
         for pid in workers:
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_synth_with_jobs_whose_worker_is_killed_stops_in_one_line_and_leaves_no_part_file(tmp_path):
+    # A worker killed alone (the out-of-memory killer: a long drive takes gigabytes) was replaced
+    # by the pool, but its drive was never handed out again: the run waited for it forever,
+    # holding OUT, with the dead worker's .part beside it.
+    import signal
+    import subprocess
+    from pathlib import Path
+
+    if not os.path.isdir("/proc/self"):
+        pytest.skip("finds the workers in /proc (Linux)")
+    out = tmp_path / "synth"
+    parent = subprocess.Popen(_synth(out, "--drives", "4", "--frames", "1000", "--jobs", "2"), stderr=subprocess.PIPE,
+                              text=True, cwd=Path(__file__).resolve().parents[1], start_new_session=True)
+    workers = []
+    try:
+        _wait_for(lambda: len(list(out.glob("*.part"))) == 2)  # both workers are rendering
+        workers = _children(parent.pid)
+        worker = next(pid for pid in workers if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text())
+        os.kill(worker, signal.SIGKILL)
+        try:
+            code = parent.wait(20)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the run waited for the killed worker's drive")
+        said = parent.stderr.read() if parent.stderr else ""
+        assert code == 2 and said.count("\n") == 1 and "worker" in said and "run the command again" in said, said
+        assert [p.name for p in out.iterdir() if p.suffix != ".mcap"] == []  # no .part, no lock
+    finally:
+        workers += _children(parent.pid)
+        parent.kill()
+        parent.wait()
+        for pid in workers:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+

@@ -31,7 +31,7 @@ import numpy as np
 
 from replay.synthetic.camera import CameraEffects
 from replay.synthetic.drive import KITTI_INTRINSICS, Drive, DriveParams, kitti_intrinsics, plan_drive, synth_drive
-from rig.errors import ValidationError
+from rig.errors import SunrigError, ValidationError
 from rig.files import folder_lock, make_output_folder, sync_to_disk
 from rig.progress import Progress
 from rig.types import Intrinsics
@@ -122,13 +122,16 @@ def _write_in_worker(job: tuple[Path, int, int, Intrinsics | None, float, float]
             raise SystemExit(128 + _stop_signal)
 
 
-def _start_worker(parent_pid: int, frames_written: Any) -> None:
+def _start_worker(parent_pid: int, frames_written: Any, workers_started: Any) -> None:
     """The initializer of a ``jobs`` worker of :func:`write_synthetic_logs`: it renders only while
     the run that started it (``parent_pid``) runs, and a drive it is stopped in leaves no .part.
     It adds each frame it writes to ``frames_written``, the run's progress, which otherwise moved
-    only as whole drives came back (minutes apart for long drives)."""
+    only as whole drives came back (minutes apart for long drives), and counts itself in
+    ``workers_started``: more than ``jobs`` means the pool replaced a worker that died."""
     global _frames_written
     _frames_written = frames_written
+    with workers_started.get_lock():
+        workers_started.value += 1
     # The pool stops its workers with SIGTERM (terminate, on the run's Ctrl-C or SIGTERM), whose
     # default action ended a worker at once with its .part left: an exception instead, which
     # _write_one cleans up after.
@@ -247,21 +250,33 @@ def _write_held(out: Path, *, drives: int, frames: int, seed: int, intrinsics: I
             import multiprocessing
 
             context = multiprocessing.get_context("spawn")
-            written = context.Value("q", 0)
-            with context.Pool(jobs, _start_worker, (os.getpid(), written)) as pool:
-                results, left = pool.imap_unordered(_write_in_worker, todo), len(todo)
-                while left:
-                    try:
-                        results.next(timeout=PROGRESS_POLL_S)
-                        left -= 1
-                    except multiprocessing.TimeoutError:
-                        pass  # no drive finished yet: redraw the frames written within drives
-                    bar.update(kept_frames + written.value)
-                # Let the workers leave on the pool's sentinel: the with's terminate would SIGTERM
-                # those still exiting, and one caught in its atexit handlers printed a traceback.
-                # Left only on an error or a signal, terminate stops workers that are rendering.
-                pool.close()
-                pool.join()
+            written, started = context.Value("q", 0), context.Value("i", 0)
+            try:
+                with context.Pool(jobs, _start_worker, (os.getpid(), written, started)) as pool:
+                    results, left = pool.imap_unordered(_write_in_worker, todo), len(todo)
+                    while left:
+                        try:
+                            results.next(timeout=PROGRESS_POLL_S)
+                            left -= 1
+                        except multiprocessing.TimeoutError:
+                            pass  # no drive finished yet: redraw the frames written within drives
+                        bar.update(kept_frames + written.value)
+                        # The pool replaces a worker that died (killed alone, as the out-of-memory
+                        # killer does) but never hands its drive out again: the run waited forever.
+                        if started.value > jobs:
+                            raise SunrigError(
+                                "synth: a --jobs worker died while rendering (killed, perhaps for want of memory); run "
+                                "the command again to resume, with fewer --jobs if it happens again")
+                    # Let the workers leave on the pool's sentinel: the with's terminate would SIGTERM
+                    # those still exiting, and one caught in its atexit handlers printed a traceback.
+                    # Left only on an error or a signal, terminate stops workers that are rendering.
+                    pool.close()
+                    pool.join()
+            except BaseException:
+                # The pool is stopped: a worker killed with its drive left that drive's .part.
+                for job in todo:
+                    job[0].with_name(job[0].name + ".part").unlink(missing_ok=True)
+                raise
     finally:
         bar.close()
     return paths
