@@ -791,6 +791,26 @@ def test_a_drive_that_fills_the_disk_leaves_no_part_file(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drive_9_0000.mcap"]
 
 
+def test_a_full_disk_names_the_drive_it_could_not_write(tmp_path, monkeypatch):
+    # The log writer's ENOSPC named no file, and the CLI said "No space left on device; free
+    # space on that disk" without saying which disk: OUT may be on another disk than the shell.
+    import errno
+
+    from replay.native import LogWriter
+    from replay.synthetic import write_synthetic_logs
+    from rig.cli import _machine_error
+
+    def fills_the_disk(self, frame):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(LogWriter, "write_frame", fills_the_disk)
+    with pytest.raises(OSError) as full:
+        write_synthetic_logs(tmp_path, drives=1, frames=2, seed=9, intrinsics=SMALL, progress=False)
+    assert full.value.errno == errno.ENOSPC
+    assert _machine_error(full.value) == (f"{tmp_path / 'drive_9_0000.mcap'}: No space left on device; free space on "
+                                          "that disk, or write elsewhere")
+
+
 def _synth(out, *args):
     import sys
 

@@ -88,9 +88,13 @@ def _write_one(job: tuple[Path, int, int, Intrinsics | None, float, float],
         # drive, which a resume refuses (_kept) until it is deleted by hand.
         sync_to_disk(tmp)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         # A drive cut short (a full disk, Ctrl-C, a worker stopped) would only hold its space.
         tmp.unlink(missing_ok=True)
+        # The log writer's errors (a full disk) name no file, and OUT may be on any disk: the
+        # drive's, not its .part, which the user never named.
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
     sync_to_disk(path.parent)
     return path, frames
