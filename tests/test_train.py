@@ -200,6 +200,9 @@ def test_ctrl_c_during_the_final_save_or_export_says_what_is_kept_and_how_to_go_
     # The export is most of a short run's time (seconds of ONNX tracing): a Ctrl-C there exited
     # 130 without a word, leaving checkpoint.pt and weights.npz and no graphs; one during the final
     # save lost every step since the last checkpoint, also silently.
+    # A real Ctrl-C (SIGINT, through Python's own handler) lands at the start of each.
+    import signal
+
     import estimator.train as train_mod
 
     cfg = TrainConfig(preset="tiny", max_steps=2, batch_windows=1, warmup_steps=1, checkpoint_every_s=3600.0)
@@ -209,19 +212,23 @@ def test_ctrl_c_during_the_final_save_or_export_says_what_is_kept_and_how_to_go_
     def save_cut_once(path, state):
         calls.append(state["step"])
         if len(calls) == 1:
-            raise KeyboardInterrupt
+            signal.raise_signal(signal.SIGINT)
         save(path, state)
 
     monkeypatch.setattr(train_mod, "_save_checkpoint", save_cut_once)
     with caplog.at_level("WARNING"), pytest.raises(KeyboardInterrupt):
         train(logs, tmp_path / "saved", cfg)
+    assert calls == [2, 2]  # the final save, cut; then the save of the same step on the way out
     assert torch.load(tmp_path / "saved" / CHECKPOINT, weights_only=False)["step"] == 2  # kept, not lost
     assert "run the same command to resume" in caplog.text
     monkeypatch.undo()
     caplog.clear()
 
+    export = train_mod.export_model
+
     def export_cut(*args, **kwargs):
-        raise KeyboardInterrupt
+        signal.raise_signal(signal.SIGINT)
+        return export(*args, **kwargs)
 
     out = tmp_path / "exported"
     monkeypatch.setattr(train_mod, "export_model", export_cut)
