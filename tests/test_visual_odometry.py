@@ -297,7 +297,8 @@ def test_a_loss_with_no_rough_turn_starts_a_new_epoch_at_zero():
     turned = rotated_view(base, INTR, math.radians(30.0))
     assert vo.update(0.2, turned, INTR) is None  # nothing tracks out of the grey keyframe either
     after = vo.update(0.3, rotated_view(base, INTR, math.radians(33.0)), INTR)
-    assert after is not None and after.attitude().epoch >= 1
+    # Each of the two losses carried nothing, and each started a new zero.
+    assert after is not None and after.attitude().epoch == vo.stats["uncarried"] == 2
     # Its zero is the frame tracking started again from, not the first frame: 3 deg on from there.
     assert math.degrees(math.remainder(after.heading_rad, 2 * math.pi)) == pytest.approx(3.0, abs=WARP_TOL_DEG)
     assert vo.stats["lost"] == vo.stats["carried"] + vo.stats["uncarried"]
