@@ -413,6 +413,9 @@ def test_a_figure_cut_short_by_a_full_disk_leaves_the_one_that_was_there(tmp_pat
 
     real_savefig = Figure.savefig
 
+    # FAKE full disk (no disk here can be filled): the save of the figure `failing` (under the name
+    # asked for or a hidden sibling's) writes a few bytes and fails as on a full disk. (A comment, not
+    # a docstring: matplotlib refuses a savefig with a docstring of its own.)
     def disk_full_on(self, fname, *args, **kwargs):
         if Path(fname).name.replace(".tmp", "").lstrip(".") == failing:
             Path(fname).write_bytes(b"\x89PNG torn")

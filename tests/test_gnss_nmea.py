@@ -656,9 +656,10 @@ def test_heading_samples_carry_the_boot_offset_so_pairing_does_not_bridge_a_susp
 
 
 class SuspendablePort:
-    """A port whose bytes wait in a buffer until read, as in the kernel's tty buffer. ``freeze()``
-    parks the reader's next read until ``thaw()``, as the host's suspend freezes the thread in it;
-    that read then returns one byte (a read(1) that was waiting), and the rest waits for the next."""
+    """FAKE serial port (no host can be suspended under a test): its bytes wait in a buffer until
+    read, as in the kernel's tty buffer. ``freeze()`` parks the reader's next read until ``thaw()``,
+    as the host's suspend freezes the thread in it; that read then returns one byte (a read(1) that
+    was waiting), and the rest waits for the next."""
 
     def __init__(self) -> None:
         self.is_open = True
