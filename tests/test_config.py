@@ -398,6 +398,15 @@ def test_docs_deploy_lists_every_option_with_its_default(tmp_path):
         assert _same(tomllib.loads(f"v = {default}")["v"], printed[section][key]), (section, key, default)
 
 
+def _refused(tmp_path, text: str) -> tuple[object, str]:
+    """A config file of ``text``, and what load_config's refusal of it says."""
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    return path, str(info.value)
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [
@@ -416,11 +425,8 @@ def test_a_source_the_drivers_do_not_know_is_named_as_the_files_option(tmp_path,
     # `camera = "bogus:0"` passed `config --print` (which deploy.md says checks the file "as it would
     # be at boot"), and at boot was "--camera bogus:0: unknown camera", a flag the service never passed,
     # with no word of the file.
-    path = tmp_path / "rig.toml"
-    path.write_text(text)
-    with pytest.raises(ConfigError) as info:
-        load_config(path)
-    assert str(info.value).startswith(f"{path}: {message}")
+    path, said = _refused(tmp_path, text)
+    assert said.startswith(f"{path}: {message}")
 
 
 def test_every_source_the_drivers_know_loads_and_an_unset_camera_stays_unset(tmp_path):
@@ -462,11 +468,8 @@ def test_a_ring_shorter_than_the_window_span_is_refused_as_the_file_is_read(tmp_
 def test_an_option_under_another_section_says_where_it_belongs(tmp_path, text, message):
     # It was refused as any typo is ("unknown option [output] camera; known: serial, baud, ..."),
     # a list without it, that left the user looking for the spelling mistake there was none of.
-    path = tmp_path / "rig.toml"
-    path.write_text(text)
-    with pytest.raises(ConfigError) as info:
-        load_config(path)
-    assert str(info.value) == f"{path}: {message}"
+    path, said = _refused(tmp_path, text)
+    assert said == f"{path}: {message}"
 
 
 def test_the_service_in_docs_deploy_can_open_what_its_config_names(tmp_path):
