@@ -246,8 +246,9 @@ def drive_frames(seed: int, first: int, last: int) -> list[Frame]:
                          ids=["right", "left"])
 def test_relative_yaw_tracks_a_synthetic_turn(seed, first, last, turn_deg):
     frames = drive_frames(seed, first, last)
-    truth = np.unwrap([f.attitude.heading_rad for f in frames if f.attitude is not None])
-    truth = np.degrees(truth - truth[0])
+    headings = [f.attitude.heading_rad for f in frames if f.attitude is not None]
+    assert len(headings) == len(frames)  # truth[k] is frame k's, as the errors below take it
+    truth = np.degrees(np.unwrap(headings) - headings[0])
     assert truth[-1] == pytest.approx(turn_deg, abs=2.0)  # the drive turns as the test says
 
     vo = VisualOdometry()
