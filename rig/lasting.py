@@ -4,7 +4,8 @@ A rig runs for hours, and a condition it reports (an output whose writes fail, f
 gate refuses, windows that cannot fill or fail) may last that long, or flip at every event. Said at
 every change, a flipping one wrote a line per frame into the journal; said once, a second stretch
 hid behind the first. :class:`LastingCondition` says each change at once while a small budget
-allows, sums up the changes between when it does not, and reminds of a bad state that lasts.
+allows, then sums up the changes since the last change it said (counts that grow from one summary
+to the next, with the seconds they took), and reminds of a bad state that lasts.
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ class LastingCondition:
 
     A change of state is said at once while a budget allows: ``burst`` changes, refilled one per
     ``refill_s``. A condition flipping on every event (a scene at a threshold, a link failing every
-    other write) is then counted, not said: one line per ``refill_s`` sums up the changes since, with
+    other write) is then counted, not said: one line per ``refill_s`` sums up the changes since the
+    last change said (cumulative: the next summary counts from the same point), with
     the state it is in. Two real changes, a lens covered and then uncovered, are each said at once.
     A state other than ``ok`` that lasts is said again after ``remind_s``, then after doubling
     intervals up to ``remind_max_s`` (None: never).
