@@ -1273,8 +1273,7 @@ def test_a_finished_recording_whose_camera_sent_nothing_holds_no_frames(tmp_path
     assert source.stats.corrupt_skipped == 1 and caplog.records
 
 
-@pytest.mark.parametrize("layout", ["heading_counts_its_own_sequence"])
-def test_per_frame_messages_that_match_no_image_are_warned_about(tmp_path, caplog, layout):
+def test_per_frame_messages_that_match_no_image_are_warned_about(tmp_path, caplog):
     # Another writer's /heading with a sequence counted per channel (as publishers number their
     # messages) rather than the image's. Every heading was dropped without a word, and replay then
     # told the user to record with a heading source, of a log that has one. (A heading after its
@@ -1285,11 +1284,9 @@ def test_per_frame_messages_that_match_no_image_are_warned_about(tmp_path, caplo
         w, ids = _foreign_writer(f)
         for i, fr in enumerate(frames):
             t = native.ns_from_s(fr.t_mono_s)
-            heading_seq = i if layout == "heading_counts_its_own_sequence" else fr.seq
-            messages = [(TOPIC_IMAGE, fr.seq, native.encode_image(fr.image_bgr, t, 90)),
-                        (TOPIC_HEADING, heading_seq, native.encode_attitude(fr.attitude, heading_seq))]
-            if layout == "heading_counts_its_own_sequence":
-                messages.reverse()
+            heading_seq = i  # its own count, not its image's sequence
+            messages = [(TOPIC_HEADING, heading_seq, native.encode_attitude(fr.attitude, heading_seq)),
+                        (TOPIC_IMAGE, fr.seq, native.encode_image(fr.image_bgr, t, 90))]
             if i == 0:
                 messages.insert(0, (TOPIC_CALIBRATION, fr.seq, encode_calibration(INTR, t)))
             for topic, seq, data in messages:
