@@ -54,6 +54,7 @@ from drivers.imu_heading import (
     validate_rotation,
 )
 from rig.errors import OakError, ValidationError
+from rig.lasting import LastingCondition
 from rig.portio import Backoff, begin_stop, join_worker
 from rig.types import Frame, Intrinsics
 
@@ -586,6 +587,10 @@ class OakCamera:
         self._stop = threading.Event()
         self._finished = threading.Event()
         self._warned: set[str] = set()
+        # Whether the rotation vector is too inaccurate for a heading: said when that starts and ends,
+        # each time (a magnetometer disturbed mid-run, then clear again), not once a run.
+        self._accuracy = LastingCondition(None)
+        self._seen_inaccurate = self._seen_with_heading = 0
         self._got_frame = False  # the current session has delivered a frame (resets the backoff)
         self._last_tracker: AttitudeTracker | None = None  # the last session's: its epoch is taken
         first = None if wait_for_device else self._open(self.config)
@@ -788,13 +793,26 @@ class OakCamera:
                                 "%.0f deg: its world frame is not %s (set sensor_world; docs/oak.md)",
                                 math.degrees(g), tracker.sensor_world)
         with self._cond:
-            lost = self._counts["no_heading_inaccurate"]
-        if lost:  # at the start (not calibrated yet) or mid-run (disturbed): said when it costs frames
-            self._warn_once("accuracy", "OAK: the IMU's rotation vector is not accurate (its own estimate worse "
-                            "than max_rv_accuracy_deg %g: magnetometer not calibrated, or disturbed by steel or "
-                            "currents nearby): frames go without heading until it is (no_heading_inaccurate); "
-                            "move the camera in a figure-eight, or use imu_mode game_rotation_vector",
-                            self.config.max_rv_accuracy_deg)
+            inaccurate, with_heading = self._counts["no_heading_inaccurate"], self._counts["frames_with_heading"]
+        lost, kept = inaccurate - self._seen_inaccurate, with_heading - self._seen_with_heading
+        self._seen_inaccurate, self._seen_with_heading = inaccurate, with_heading
+        if not (lost or kept):
+            return  # no frame since: nothing to judge by
+        # At the start (not calibrated yet) or mid-run (disturbed): said when it costs frames.
+        said = self._accuracy.update("inaccurate" if lost else None, self._clock())
+        if said is None:
+            return
+        if said.kind == "change" and said.changes == 1 and lost:
+            log.warning("OAK: the IMU's rotation vector is not accurate (its own estimate worse than "
+                        "max_rv_accuracy_deg %g: magnetometer not calibrated, or disturbed by steel or currents "
+                        "nearby): frames go without heading until it is (no_heading_inaccurate); move the camera in "
+                        "a figure-eight, or use imu_mode game_rotation_vector", self.config.max_rv_accuracy_deg)
+        elif said.kind == "change" and said.changes == 1:
+            log.info("OAK: the IMU's rotation vector is accurate again, after %.1f s in which frames went without "
+                     "heading", self._clock() - said.since_s)
+        else:
+            log.warning("OAK: the IMU's rotation vector goes between accurate and not: %d changes in %.0f s; %s now",
+                        said.changes, self._clock() - said.since_s, "not accurate" if lost else "accurate")
 
     def _publish(self, frames: list[Frame]) -> None:
         if not frames:

@@ -343,6 +343,25 @@ def test_a_rotation_vector_that_turns_inaccurate_mid_run_is_said(caplog):
     assert len(said) == 1 and "figure-eight" in said[0] and "45" in said[0], said
 
 
+def test_a_rotation_vector_inaccurate_twice_is_said_each_time_and_when_it_recovers(caplog):
+    """Said once a run, a second disturbance (a truck beside the camera after a bridge) went unsaid,
+    and so did the recovery between them."""
+    msgs = [m for m in script(60) if m[1] == "video"]  # 1.2 s of frames at 50 fps
+    bad = [(0.2, 0.5), (0.8, 1.0)]  # seconds after BASE_S while the rotation vector is inaccurate
+    for i in range(int(1.3 * 100)):
+        t = BASE_S + i / 100
+        inaccurate = any(a <= t - BASE_S < b for a, b in bad)
+        msgs.append((t, "imu", imu_rv(t, q_level(40.0), accuracy_rad=math.pi if inaccurate else 0.05)))
+    msgs.sort(key=lambda m: (m[0], m[1] == "video"))
+    with caplog.at_level(logging.INFO, logger="drivers.oak"), \
+            OakCamera(OakConfig(**FAST), open_session=host_sessions(msgs)) as cam:
+        frames = collect(cam, 60)
+    assert len(frames) == 60
+    said = [r.getMessage() for r in caplog.records if "accurate" in r.getMessage()]
+    assert [("not accurate" in m, "accurate again" in m) for m in said] == [(True, False), (False, True),
+                                                                             (True, False), (False, True)], said
+
+
 def test_handler_gyro_mode_from_imudata_gyroscope_reports():
     """A BMI270-like IMU: gyro + accelerometer reports, integrated on the host, relative heading."""
     tracker = AttitudeTracker(ImuMode.GYRO, MOUNT)
