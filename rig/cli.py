@@ -1091,11 +1091,23 @@ def cmd_quantize(args: argparse.Namespace) -> int:
 def cmd_synth(args: argparse.Namespace) -> int:
     from replay.synthetic import write_synthetic_logs
 
+    kept = 0
+
+    def say_kept(n_kept: int) -> None:
+        # Said before the render, which can take hours: a user who meant a fresh set (a reused
+        # folder) learns at once that it is a resume, and how much of it is left.
+        nonlocal kept
+        kept = n_kept
+        if kept and not args.quiet:
+            print(f"synth: {kept} of the {args.drives} drives are in {args.out} from an earlier run: kept, "
+                  f"rendering {args.drives - kept}", file=sys.stderr)
+
     paths = write_synthetic_logs(args.out, drives=args.drives, frames=args.frames, seed=args.seed,
                                  progress=not args.quiet, fps=args.fps, jobs=args.jobs,
-                                 render_scale=args.render_scale)
+                                 render_scale=args.render_scale, on_kept=say_kept)
     if not args.quiet:
-        print(f"synth: {len(paths)} logs of {args.frames} frames in {args.out}", file=sys.stderr)
+        print(f"synth: {len(paths)} logs of {args.frames} frames in {args.out}"
+              + (f" ({kept} kept from an earlier run)" if kept else ""), file=sys.stderr)
     return 0
 
 

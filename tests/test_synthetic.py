@@ -606,6 +606,24 @@ def test_a_resumed_set_keeps_its_drives_and_refuses_drives_of_another_length(tmp
     assert again[1].read_bytes() == whole  # the same drive: a seed always makes the same bytes
 
 
+def test_synth_says_how_many_drives_it_kept_from_an_earlier_run_before_it_renders(tmp_path, capsys):
+    # A resumed `sunrig synth` said "3 logs of 2 frames" whether it rendered three or kept them all:
+    # a user who meant a fresh set (another seed's folder, a forgotten earlier run) could not tell.
+    from rig.cli import main
+
+    out = tmp_path / "s"
+    args = ["synth", str(out), "--frames", "2", "--render-scale", "0.1", "--seed", "9"]
+    assert main([*args, "--drives", "2"]) == 0
+    first = capsys.readouterr().err
+    assert "kept" not in first and f"synth: 2 logs of 2 frames in {out}" in first, first
+    assert main([*args, "--drives", "3"]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[0] == f"synth: 2 of the 3 drives are in {out} from an earlier run: kept, rendering 1", lines
+    assert lines[-1] == f"synth: 3 logs of 2 frames in {out} (2 kept from an earlier run)", lines
+    assert main([*args, "--drives", "3", "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+
+
 def test_a_resumed_set_refuses_drives_of_another_render_scale_and_keeps_drives_that_never_recorded_one(tmp_path):
     # It once kept drives rendered at 0.5 in a set asked for at 1.0: a folder of mixed render scales.
     from replay.native import LogWriter, log_figures

@@ -211,7 +211,8 @@ def _kept(paths: list[Path], frames: int, fps: float, render_scale: float) -> se
 
 def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames: int, seed: int,
                          intrinsics: Intrinsics | None = None, progress: bool = True,
-                         render_scale: float = 0.5, fps: float = 10.0, jobs: int = 1) -> list[Path]:
+                         render_scale: float = 0.5, fps: float = 10.0, jobs: int = 1,
+                         on_kept: Callable[[int], None] | None = None) -> list[Path]:
     """Write ``drives`` native logs of ``frames`` frames each, ``drive_{seed}_{i:04d}.mcap``.
 
     Drive i uses :func:`drive_seed` (seed, i), so any one log can be remade alone, and a drive
@@ -219,7 +220,8 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     frame count, rate or render scale differs is refused). While it runs, the process holds
     ``out_dir``: a second one on it is refused naming this one's pid. ``jobs`` drives
     render in parallel processes, which stop with this one (:func:`_start_worker`), even killed
-    with -9, and leave no .part. Returns the paths in order. Images go through the log
+    with -9, and leave no .part. ``on_kept`` is told how many drives are kept, once they are
+    checked and before any is rendered. Returns the paths in order. Images go through the log
     writer's JPEG encoder.
     """
     if drives < 0 or not 1 <= frames <= MAX_FRAMES or jobs < 1:
@@ -233,14 +235,16 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     # other's drive damaged under its whole name, or deleted its .part.
     with folder_lock(out, name=SYNTH_LOCK, command="sunrig synth", flag="OUT"):
         return _write_held(out, drives=drives, frames=frames, seed=seed, intrinsics=intrinsics, progress=progress,
-                           render_scale=render_scale, fps=fps, jobs=jobs)
+                           render_scale=render_scale, fps=fps, jobs=jobs, on_kept=on_kept)
 
 
 def _write_held(out: Path, *, drives: int, frames: int, seed: int, intrinsics: Intrinsics | None, progress: bool,
-                render_scale: float, fps: float, jobs: int) -> list[Path]:
+                render_scale: float, fps: float, jobs: int, on_kept: Callable[[int], None] | None) -> list[Path]:
     """:func:`write_synthetic_logs` into ``out``, which this process holds (:func:`folder_lock`)."""
     paths = [out / f"drive_{seed}_{i:04d}.mcap" for i in range(drives)]
     kept = _kept(paths, frames, fps, render_scale)
+    if on_kept is not None:
+        on_kept(len(kept))
     todo = [(p, drive_seed(seed, i), frames, intrinsics, render_scale, fps)
             for i, p in enumerate(paths) if p not in kept]
     bar = Progress("synth", total=drives * frames, unit="frames", enabled=None if progress else False)
