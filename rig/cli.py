@@ -174,6 +174,24 @@ def _synth_frames(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{exc} (a longer drive's route takes gigabytes to lay out)") from None
 
 
+def _synth_drives(text: str) -> int:
+    """--drives of synth: at most replay.synthetic.MAX_DRIVES, whose comment says why."""
+    from replay.synthetic import MAX_DRIVES
+
+    try:
+        return _int_in(1, MAX_DRIVES)(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (a bigger set: more folders, each with its own --seed)") from None
+
+
+def _synth_fps(text: str) -> float:
+    """--fps of synth: at least 1 frame in 1000 s and at most replay.synthetic.MAX_FPS, since a
+    drive's timestamps are int64 nanoseconds."""
+    from replay.synthetic import MAX_FPS
+
+    return _float_in(1e-3, MAX_FPS, lo_included=True)(text)
+
+
 def _utc_offset_type(text: str) -> float:
     from replay.kitti import UTC_OFFSET_LIMIT_H
 
@@ -1541,12 +1559,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("synth", parents=[debug], help="write procedural street drives with the true sun as native logs")
     p.add_argument("out", type=_path, help="output folder (drives already there are kept: a run resumes)")
-    p.add_argument("--drives", type=_positive_int, default=10, help="how many drives (default 10)")
+    p.add_argument("--drives", type=_synth_drives, default=10, help="how many drives (default 10, at most 100000)")
     p.add_argument("--frames", type=_synth_frames, default=40, help="frames per drive (default 40, at most 5000)")
     p.add_argument("--seed", type=_nonneg_int, default=0, help="drive i of seed S is always the same drive")
-    # At least 1 frame in 1000 s: a drive's timestamps are int64 nanoseconds.
-    p.add_argument("--fps", type=_float_in(1e-3, lo_included=True), default=10.0,
-                   help="frame rate of the drives (default 10)")
+    p.add_argument("--fps", type=_synth_fps, default=10.0, help="frame rate of the drives (default 10, at most 1000)")
     p.add_argument("--jobs", type=_positive_int, default=1, help="drives rendered in parallel (default 1)")
     p.add_argument("--render-scale", type=_float_in(0.0, 1.0), default=0.5,
                    help="internal render size relative to the output (default 0.5, upsampled)")

@@ -829,6 +829,10 @@ def test_bad_numbers_fail_before_any_file_is_touched(tmp_path):
         (["synth", str(tmp_path / "s"), "--frames", "9" * 400], "argument --frames"),
         (["run", "--camera", f"file:{DEMO_LOG}", "--baud", "9" * 400], "argument --baud"),
         (["synth", str(tmp_path / "s"), "--fps", "1e-300"], "argument --fps"),
+        # Frames 0 ns apart in int64 nanoseconds, written without a word.
+        (["synth", str(tmp_path / "s"), "--fps", "1e12"], "argument --fps"),
+        # A few zeros too many: 4 GB and a minute listing the drives' names before the first frame.
+        (["synth", str(tmp_path / "s"), "--drives", "10000000"], "argument --drives"),
         # numpy was asked for 137 GiB of crops after the data had loaded
         (["train", str(DEMO_LOG), "--out", str(tmp_path / "m"), "--crops", "1000000"],
          "crops per frame: expected at most 256"),

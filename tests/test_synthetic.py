@@ -684,6 +684,17 @@ def test_more_frames_than_synth_takes_are_refused_in_one_line_before_the_folder_
     synth = build_parser()._subparsers._group_actions[0].choices["synth"]  # type: ignore[union-attr]
     (frames,) = (a for a in synth._actions if "--frames" in a.option_strings)
     assert f"at most {MAX_FRAMES}" in frames.help
+    # So do --drives and --fps (their help is written out too, for the same reason).
+    from replay.synthetic import MAX_DRIVES, MAX_FPS
+
+    (drives,) = (a for a in synth._actions if "--drives" in a.option_strings)
+    (fps,) = (a for a in synth._actions if "--fps" in a.option_strings)
+    assert f"at most {MAX_DRIVES})" in drives.help and f"at most {MAX_FPS:g})" in fps.help
+    with pytest.raises(ValidationError, match=f"drives from 0 to {MAX_DRIVES} .* got {MAX_DRIVES + 1}, 2, 1, 10$"):
+        write_synthetic_logs(tmp_path / "u", drives=MAX_DRIVES + 1, frames=2, seed=0, progress=False)
+    with pytest.raises(ValidationError, match=f"fps above 0 to {MAX_FPS:g}, got 1, 2, 1, 1e\\+12$"):
+        write_synthetic_logs(tmp_path / "u", drives=1, frames=2, seed=0, progress=False, fps=1e12)
+    assert not (tmp_path / "u").exists()
 
 
 def test_the_longest_drive_synth_takes_renders():

@@ -38,6 +38,8 @@ from rig.types import Intrinsics
 
 __all__ = [
     "KITTI_INTRINSICS",
+    "MAX_DRIVES",
+    "MAX_FPS",
     "MAX_FRAMES",
     "CameraEffects",
     "Drive",
@@ -58,6 +60,14 @@ RENDER_SCALE_KEY = "render_scale"
 # 8.4 GB at 10 000 (its drive 5), where a frame also took up to 0.2 s. KITTI's longest drive is
 # about 5000 frames.
 MAX_FRAMES = 5000
+# The most drives one set takes: their names are listed and checked for an earlier run's before the
+# first frame, a minute and 4 GB at 10 million (a few zeros too many), and 100 000 drives of 24
+# frames are days of rendering here. A bigger set is several folders with other seeds (drive_seed
+# keeps them apart).
+MAX_DRIVES = 100_000
+# The fastest frame rate of a drive: frames are stamped in int64 nanoseconds, and above 1 GHz they
+# shared a stamp without a word. No camera this rig reads runs faster than 1 kHz.
+MAX_FPS = 1000.0
 # The lock file of a folder being written (rig.files.folder_lock): hidden, and no *.mcap a reader takes.
 SYNTH_LOCK = ".synth.lock"
 
@@ -224,10 +234,11 @@ def write_synthetic_logs(out_dir: str | os.PathLike[str], *, drives: int, frames
     checked and before any is rendered. Returns the paths in order. Images go through the log
     writer's JPEG encoder.
     """
-    if drives < 0 or not 1 <= frames <= MAX_FRAMES or jobs < 1:
+    if not 0 <= drives <= MAX_DRIVES or not 1 <= frames <= MAX_FRAMES or jobs < 1 or not 0 < fps <= MAX_FPS:
         raise ValidationError(
-            f"synthetic logs: expected drives >= 0, frames from 1 to {MAX_FRAMES} (longer routes take gigabytes to "
-            f"lay out) and jobs >= 1, got {drives}, {frames}, {jobs}"
+            f"synthetic logs: expected drives from 0 to {MAX_DRIVES} (more: another folder and seed), frames from 1 "
+            f"to {MAX_FRAMES} (longer routes take gigabytes to lay out), jobs >= 1 and fps above 0 to {MAX_FPS:g}, "
+            f"got {drives}, {frames}, {jobs}, {fps:g}"
         )
     out = make_output_folder(out_dir, what="folder", holds="OUT is the folder the drives are written to")
     # Held to the end: a second synth on the folder (started twice, or resumed while the first
