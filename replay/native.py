@@ -1171,6 +1171,10 @@ def _messages(f: IO[bytes], stats: LogStats, name: str) -> Iterator[tuple[str, M
     """(topic, message) in file order; None where a chunk was lost."""
     topics: dict[int, str] = {}
     ignored: set[int] = set()
+    # sunrig's topics in an encoding it cannot decode (another recorder's /gnss/fix in JSON, say):
+    # topic -> that encoding. Passed over like another tool's channel, but said, or a log with a
+    # heading on such a channel is told to record with a heading source.
+    unread: dict[str, str] = {}
 
     def declare(channel: Channel) -> None:
         spec = CHANNELS.get(channel.topic)
@@ -1179,6 +1183,8 @@ def _messages(f: IO[bytes], stats: LogStats, name: str) -> Iterator[tuple[str, M
             topics[channel.id] = channel.topic
         else:
             ignored.add(channel.id)
+            if spec is not None:
+                unread[channel.topic] = channel.message_encoding
 
     # A finished log's summary repeats every channel: with it, a damaged first chunk (where the
     # data section declares them) loses its own messages only, not every later chunk's.
@@ -1196,6 +1202,13 @@ def _messages(f: IO[bytes], stats: LogStats, name: str) -> Iterator[tuple[str, M
             declare(record)
         elif record is None:
             yield None
+    if unread:
+        logger.warning(
+            "%s: passed over every message on %s; write them in the encoding docs/log-format.md gives",
+            name,
+            ", ".join(f"{topic} in {encoding or 'no'} encoding (sunrig reads {CHANNELS[topic].message_encoding})"
+                      for topic, encoding in sorted(unread.items())),
+        )
 
 
 class NativeLogSource:

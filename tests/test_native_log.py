@@ -1306,3 +1306,40 @@ def test_a_sunrig_log_warns_of_no_unmatched_message(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="replay.native"):
         assert len(list(open_log(path))) == 5
     assert not caplog.records
+
+
+@pytest.mark.parametrize("finish", [True, False])
+def test_a_sunrig_channel_in_an_encoding_it_cannot_read_is_warned_about(tmp_path, caplog, finish):
+    # Another recorder's /gnss/fix in Foxglove's JSON and /time/utc in ROS 2's CDR: every message
+    # on them was passed over as another tool's channel without a word, and the frames replayed
+    # without a place or a time (a /heading so written: "record with a heading source", of a log
+    # that has one).
+    path = tmp_path / "ros.mcap"
+    with open(path, "wb") as f:
+        w, ids = _foreign_writer(f)
+        gnss_json = w.register_channel(TOPIC_GNSS, "json",
+                                       w.register_schema("foxglove.LocationFix", "jsonschema", b"{}"))
+        utc_cdr = w.register_channel(TOPIC_UTC, "cdr", w.register_schema("builtin_interfaces/msg/Time", "ros2msg",
+                                                                          b"int32 sec\nuint32 nanosec"))
+        # another tool's own channel: not sunrig's to read, and not said
+        imu_cdr = w.register_channel("/imu", "cdr", w.register_schema("sensor_msgs/msg/Imu", "ros2msg", b""))
+        for i in range(3):
+            t = 1_700_000_000 * 10**9 + i * 100_000_000
+            if i == 0:
+                w.add_message(ids[TOPIC_CALIBRATION], log_time=t, publish_time=t, sequence=i,
+                              data=encode_calibration(INTR, t))
+            for cid, data in ((gnss_json, b'{"latitude": 49.0}'), (utc_cdr, b"\x00\x01\x00\x00"), (imu_cdr, b"")):
+                w.add_message(cid, log_time=t, publish_time=t, sequence=i, data=data)
+            w.add_message(ids[TOPIC_IMAGE], log_time=t, publish_time=t, sequence=i,
+                          data=native.encode_image(make_image(i, np.random.default_rng(0)), t, 90))
+        if finish:
+            w.finish()
+        else:
+            w.flush()
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        frames = list(open_log(path))
+    assert len(frames) == 3 and all(f.gnss is None and f.utc_ns is None for f in frames)
+    said = [r.getMessage() for r in caplog.records if "encoding" in r.getMessage()]
+    assert len(said) == 1 and "\n" not in said[0] and "ros.mcap" in said[0], caplog.text
+    assert f"{TOPIC_GNSS} in json encoding" in said[0] and f"{TOPIC_UTC} in cdr encoding" in said[0]
+    assert "/imu" not in said[0]
