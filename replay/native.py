@@ -725,13 +725,14 @@ _AUX_FIELDS = {
 class _FrameAssembler:
     """Turns one log's messages, in file order, into Frames. Pure: no I/O, no clock.
 
-    A per-frame message belongs to the image with the same MCAP log time and sequence, whether it
-    comes before the image (sunrig's writer) or after it (another writer's). The sequence alone
-    cannot tell: a writer that leaves every sequence 0 made each heading written after its image
-    the next image's. So a frame is held from its image until the next image (or a gap, or the
-    end) for the messages that follow it; take :meth:`take` after each call. A message that
-    matches no image belonged to a frame whose image was lost, or was stamped otherwise than its
-    image, and is dropped and counted in :attr:`unmatched`. The calibration holds until the next.
+    A per-frame message (the calibration too) belongs to the image with the same MCAP log time and
+    sequence, whether it comes before the image (sunrig's writer) or after it (another writer's).
+    The sequence alone cannot tell: a writer that leaves every sequence 0 made each heading written
+    after its image the next image's. So a frame is held from its image until the next image (or a
+    gap, or the end) for the messages that follow it; take :meth:`take` after each call. An image
+    with no calibration yet waits the same way for one of its own. A message that matches no image
+    belonged to a frame whose image was lost, or was stamped otherwise than its image, and is
+    dropped and counted in :attr:`unmatched`. The calibration holds until the next.
     """
 
     def __init__(self) -> None:
@@ -740,7 +741,11 @@ class _FrameAssembler:
         self._pending: dict[str, tuple[tuple[int, int], Any]] = {}
         self._held: Frame | None = None  # the newest frame, open to messages written after its image
         self._held_key: tuple[int, int] | None = None
+        # An image that came with no calibration before it: (key, image bytes, its per-frame values),
+        # until the next message tells whether its calibration follows it.
+        self._uncalibrated: tuple[tuple[int, int], bytes, dict[str, Any]] | None = None
         self._ready: list[Frame] = []
+        self._skipped: list[tuple[int, str]] = []  # (sequence, why) of images found unusable late
         # Per-frame messages dropped for a sequence and log time no image had, by topic: empty for
         # a sunrig log that lost nothing; in another writer's, the sign of a layout sunrig cannot
         # pair (a heading stamped with a time of its own, or a sequence counted per channel).
@@ -750,6 +755,12 @@ class _FrameAssembler:
         """The frames complete since the last call, in order."""
         ready, self._ready = self._ready, []
         return ready
+
+    def take_skipped(self) -> list[tuple[int, str]]:
+        """(sequence, why) of each image skipped since the last call for want of a calibration: one
+        is known to have none only at the message after it, so it is not raised as it comes."""
+        skipped, self._skipped = self._skipped, []
+        return skipped
 
     def gap(self) -> None:
         """Messages were lost (a skipped chunk): forget state that may no longer be current."""
@@ -768,12 +779,24 @@ class _FrameAssembler:
         if self._held is not None:
             self._ready.append(self._held)
         self._held, self._held_key = None, None
+        if self._uncalibrated is not None:  # its calibration did not follow it
+            self._skipped.append((self._uncalibrated[0][0], "image without a valid calibration before it"))
+            self._uncalibrated = None
 
     def _count_unmatched(self, topic: str) -> None:
         self.unmatched[topic] = self.unmatched.get(topic, 0) + 1
 
+    def _hold(self, key: tuple[int, int], data: bytes, aux: dict[str, Any], intrinsics: Intrinsics) -> None:
+        try:
+            image = decode_image(data)
+            self._held = Frame(t_mono_s=key[1] / 1e9, seq=key[0], image_bgr=image, intrinsics=intrinsics, **aux)
+        except _MESSAGE_ERRORS as exc:  # ValidationError is a ValueError
+            raise _CorruptMessage(f"image: {exc}") from exc
+        self._held_key = key
+
     def feed(self, topic: str, seq: int, log_time_ns: int, data: bytes) -> None:
         """One message; raises :class:`_CorruptMessage` for one that does not decode."""
+        key = (seq, log_time_ns)
         if topic == TOPIC_CALIBRATION:
             try:
                 self.intrinsics = decode_calibration(data)
@@ -781,8 +804,16 @@ class _FrameAssembler:
                 # Better no frames until the next calibration than frames with wrong intrinsics.
                 self.intrinsics = None
                 raise _CorruptMessage(f"calibration: {exc}") from exc
+            if self._uncalibrated is not None and self._uncalibrated[0] == key:  # written after its image
+                _, image, aux = self._uncalibrated
+                self._uncalibrated = None
+                self._hold(key, image, aux, self.intrinsics)
+            elif self._held is not None and key == self._held_key and self._held.intrinsics != self.intrinsics:
+                try:  # a change, written after its image: the held frame's too
+                    self._held = dataclasses.replace(self._held, intrinsics=self.intrinsics)
+                except _MESSAGE_ERRORS as exc:
+                    raise _CorruptMessage(f"calibration: {exc}") from exc
             return
-        key = (seq, log_time_ns)
         decoder = _AUX_DECODERS.get(topic)
         if decoder is not None:
             try:
@@ -797,6 +828,9 @@ class _FrameAssembler:
                 except _MESSAGE_ERRORS as exc:
                     raise _CorruptMessage(f"{topic}: {exc}") from exc
                 return
+            if self._uncalibrated is not None and key == self._uncalibrated[0] and name not in self._uncalibrated[2]:
+                self._uncalibrated[2][name] = value  # written after its image, which waits for its calibration
+                return
             if topic in self._pending:  # a second one before any image: the first matched none
                 self._count_unmatched(topic)
             self._pending[topic] = (key, value)
@@ -808,21 +842,12 @@ class _FrameAssembler:
         for t, (k, _) in pending.items():
             if k != key:
                 self._count_unmatched(t)
+        aux = {_AUX_FIELDS[t]: v for t, (k, v) in pending.items() if k == key}
         if self.intrinsics is None:
-            raise _CorruptMessage("image without a valid calibration before it")
-        try:
-            image = decode_image(data)
-            aux = {_AUX_FIELDS[t]: v for t, (k, v) in pending.items() if k == key}
-            self._held = Frame(
-                t_mono_s=log_time_ns / 1e9,
-                seq=seq,
-                image_bgr=image,
-                intrinsics=self.intrinsics,
-                **aux,
-            )
-        except _MESSAGE_ERRORS as exc:  # ValidationError is a ValueError
-            raise _CorruptMessage(f"image: {exc}") from exc
-        self._held_key = key
+            # Its calibration may follow it (another writer's layout): known at the next message.
+            self._uncalibrated = (key, data, aux)
+            return
+        self._hold(key, data, aux, self.intrinsics)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1237,6 +1262,14 @@ class NativeLogSource:
         stats = self.stats = LogStats(bytes_total=size)
         assembler = _FrameAssembler()
         warned = 0
+
+        def skipped(seq: int, why: object) -> None:
+            nonlocal warned
+            stats.corrupt_skipped += 1
+            if warned < _MAX_WARNINGS:
+                warned += 1
+                logger.warning("%s: skipped a corrupt message at seq %d: %s", name, seq, why)
+
         with f:
             for item in _messages(f, stats, name):
                 if item is None:
@@ -1246,16 +1279,17 @@ class NativeLogSource:
                     try:
                         assembler.feed(topic, msg.sequence, msg.log_time, msg.data)
                     except _CorruptMessage as exc:
-                        stats.corrupt_skipped += 1
-                        if warned < _MAX_WARNINGS:
-                            warned += 1
-                            logger.warning(
-                                "%s: skipped a corrupt message at seq %d: %s", name, msg.sequence, exc
-                            )
+                        for seq, why in assembler.take_skipped():  # the images before it, first
+                            skipped(seq, why)
+                        skipped(msg.sequence, exc)
+                for seq, why in assembler.take_skipped():
+                    skipped(seq, why)
                 for frame in assembler.take():
                     stats.frames_read += 1
                     yield frame
             assembler.end()
+            for seq, why in assembler.take_skipped():
+                skipped(seq, why)
             for frame in assembler.take():
                 stats.frames_read += 1
                 yield frame

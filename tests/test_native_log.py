@@ -1343,3 +1343,56 @@ def test_a_sunrig_channel_in_an_encoding_it_cannot_read_is_warned_about(tmp_path
     assert len(said) == 1 and "\n" not in said[0] and "ros.mcap" in said[0], caplog.text
     assert f"{TOPIC_GNSS} in json encoding" in said[0] and f"{TOPIC_UTC} in cdr encoding" in said[0]
     assert "/imu" not in said[0]
+
+
+@pytest.mark.parametrize("finish", [True, False])
+def test_a_calibration_written_after_its_image_keeps_the_frame(tmp_path, caplog, finish):
+    # Another writer's layout, each frame's calibration after its image at the image's log time
+    # and sequence (as the reader takes a heading after its image): the first image, with no
+    # calibration before it, was skipped as corrupt, and its heading said to match no image.
+    path = tmp_path / "calib-after.mcap"
+    with open(path, "wb") as f:
+        w, ids = _foreign_writer(f)
+        for i in range(3):
+            t = 1_700_000_000 * 10**9 + i * 100_000_000
+            intr = INTR if i < 2 else dataclasses.replace(INTR, fx=60.0)  # a zoom at the last frame
+            w.add_message(ids[TOPIC_IMAGE], log_time=t, publish_time=t, sequence=i,
+                          data=native.encode_image(make_image(i, np.random.default_rng(0)), t, 90))
+            w.add_message(ids[TOPIC_CALIBRATION], log_time=t, publish_time=t, sequence=i,
+                          data=encode_calibration(intr, t))
+            attitude = json.dumps({"heading_deg": 10.0 * i, "reference": "true", "pitch_deg": None,
+                                   "roll_deg": None, "seq": i}).encode()
+            w.add_message(ids[TOPIC_HEADING], log_time=t, publish_time=t, sequence=i, data=attitude)
+        if finish:
+            w.finish()
+        else:
+            w.flush()
+    source = open_log(path)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        frames = list(source)
+    assert [f.seq for f in frames] == [0, 1, 2] and source.stats.corrupt_skipped == 0
+    assert [f.intrinsics.fx for f in frames] == [INTR.fx, INTR.fx, 60.0]
+    assert [round(math.degrees(f.attitude.heading_rad), 9) for f in frames] == [0.0, 10.0, 20.0]
+    assert not [r for r in caplog.records if "cut off" not in r.getMessage()], caplog.text
+
+
+def test_an_image_whose_calibration_never_comes_is_skipped_and_said_with_its_own_seq(tmp_path, caplog):
+    # The calibration arrives only with the third image, at its own log time: the two images
+    # before it have no intrinsics, and each is said by its own sequence number.
+    path = tmp_path / "calib-late.mcap"
+    with open(path, "wb") as f:
+        w, ids = _foreign_writer(f)
+        for i in range(4):
+            t = 1_700_000_000 * 10**9 + i * 100_000_000
+            if i == 2:
+                w.add_message(ids[TOPIC_CALIBRATION], log_time=t, publish_time=t, sequence=i,
+                              data=encode_calibration(INTR, t))
+            w.add_message(ids[TOPIC_IMAGE], log_time=t, publish_time=t, sequence=i,
+                          data=native.encode_image(make_image(i, np.random.default_rng(0)), t, 90))
+        w.finish()
+    source = open_log(path)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        assert [f.seq for f in source] == [2, 3]
+    assert source.stats.corrupt_skipped == 2
+    said = [r.getMessage() for r in caplog.records if "calibration" in r.getMessage()]
+    assert ["at seq 0" in said[0], "at seq 1" in said[1], len(said)] == [True, True, 2], said
