@@ -732,7 +732,9 @@ class _FrameAssembler:
     gap, or the end) for the messages that follow it; take :meth:`take` after each call. An image
     with no calibration yet waits the same way for one of its own. A message that matches no image
     belonged to a frame whose image was lost, or was stamped otherwise than its image, and is
-    dropped and counted in :attr:`unmatched`. The calibration holds until the next.
+    dropped and counted in :attr:`unmatched`. One repeating the log time and sequence of one
+    before it on its channel is a duplicate, dropped and counted in :attr:`duplicates`. The
+    calibration holds until the next.
     """
 
     def __init__(self) -> None:
@@ -750,6 +752,9 @@ class _FrameAssembler:
         # a sunrig log that lost nothing; in another writer's, the sign of a layout sunrig cannot
         # pair (a heading stamped with a time of its own, or a sequence counted per channel).
         self.unmatched: dict[str, int] = {}
+        # Messages dropped as copies of one before them on their channel, by topic (a writer that
+        # wrote twice, or a log merged with itself): each frame replays once.
+        self.duplicates: dict[str, int] = {}
 
     def take(self) -> list[Frame]:
         """The frames complete since the last call, in order."""
@@ -786,6 +791,9 @@ class _FrameAssembler:
     def _count_unmatched(self, topic: str) -> None:
         self.unmatched[topic] = self.unmatched.get(topic, 0) + 1
 
+    def _count_duplicate(self, topic: str) -> None:
+        self.duplicates[topic] = self.duplicates.get(topic, 0) + 1
+
     def _hold(self, key: tuple[int, int], data: bytes, aux: dict[str, Any], intrinsics: Intrinsics) -> None:
         try:
             image = decode_image(data)
@@ -821,21 +829,34 @@ class _FrameAssembler:
             except _MESSAGE_ERRORS as exc:
                 raise _CorruptMessage(f"{topic}: {exc}") from exc
             name = _AUX_FIELDS[topic]
-            if self._held is not None and key == self._held_key and getattr(self._held, name) is None:
-                try:  # written after its image: the held frame's
+            if self._held is not None and key == self._held_key:  # written after its image: the held frame's
+                if getattr(self._held, name) is not None:
+                    self._count_duplicate(topic)
+                    return
+                try:
                     change: dict[str, Any] = {name: value}
                     self._held = dataclasses.replace(self._held, **change)
                 except _MESSAGE_ERRORS as exc:
                     raise _CorruptMessage(f"{topic}: {exc}") from exc
                 return
-            if self._uncalibrated is not None and key == self._uncalibrated[0] and name not in self._uncalibrated[2]:
-                self._uncalibrated[2][name] = value  # written after its image, which waits for its calibration
+            if self._uncalibrated is not None and key == self._uncalibrated[0]:
+                waiting = self._uncalibrated[2]
+                if name in waiting:
+                    self._count_duplicate(topic)
+                else:
+                    waiting[name] = value
                 return
-            if topic in self._pending:  # a second one before any image: the first matched none
-                self._count_unmatched(topic)
+            if topic in self._pending:
+                if self._pending[topic][0] == key:  # the same frame's again: keep the first
+                    self._count_duplicate(topic)
+                    return
+                self._count_unmatched(topic)  # a second one before any image: the first matched none
             self._pending[topic] = (key, value)
             return
         if topic != TOPIC_IMAGE:
+            return
+        if key in (self._held_key, self._uncalibrated and self._uncalibrated[0]):  # the same image again
+            self._count_duplicate(topic)
             return
         self._release()  # the next image: the frame before it is complete
         pending, self._pending = self._pending, {}
@@ -1299,6 +1320,13 @@ class NativeLogSource:
                 "give each of a frame's messages its image's MCAP log time and sequence (docs/log-format.md)",
                 name,
                 ", ".join(f"{n} {topic} messages" for topic, n in sorted(assembler.unmatched.items())),
+            )
+        if assembler.duplicates:
+            logger.warning(
+                "%s: dropped %s, each a duplicate of the one before it on its channel (the same log time and "
+                "sequence); every frame replays once",
+                name,
+                ", ".join(f"{n} {topic} messages" for topic, n in sorted(assembler.duplicates.items())),
             )
         if stats.corrupt_skipped > warned:
             logger.warning(

@@ -1345,6 +1345,43 @@ def test_a_sunrig_channel_in_an_encoding_it_cannot_read_is_warned_about(tmp_path
     assert "/imu" not in said[0]
 
 
+@pytest.mark.parametrize("layout", ["sunrig", "image-first"])
+def test_duplicated_messages_replay_each_frame_once(tmp_path, caplog, layout):
+    # Every message written twice (a recorder that retried its writes, or `mcap merge` of a log
+    # with itself): each frame replayed twice, the copy without its heading, UTC and truth, and
+    # the warning blamed the writer's log times and sequences.
+    frames = make_frames(4, seed=2)
+    path = tmp_path / "twice.mcap"
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="someone-else")
+        ids = {}
+        for topic in native._FRAME_TOPICS:
+            spec = native.CHANNELS[topic]
+            ids[topic] = w.register_channel(topic, spec.message_encoding, w.register_schema(
+                spec.schema_name, spec.schema_encoding, spec.schema_bytes()))
+        for i, fr in enumerate(frames):
+            t = native.ns_from_s(fr.t_mono_s)
+            messages = [(TOPIC_HEADING, native.encode_attitude(fr.attitude, fr.seq)),
+                        (TOPIC_GNSS, native.encode_gnss(fr.gnss)),
+                        (TOPIC_UTC, native.encode_utc(fr.utc_ns, fr.seq)),
+                        (TOPIC_SUN_TRUTH, native.encode_sun_truth(fr.sun_enu_truth, fr.seq))]
+            image = (TOPIC_IMAGE, native.encode_image(fr.image_bgr, t, 95))
+            messages = [image, *messages] if layout == "image-first" else [*messages, image]
+            if i == 0:
+                messages.insert(0, (TOPIC_CALIBRATION, encode_calibration(INTR, t)))
+            for topic, data in messages:
+                for _ in range(2):
+                    w.add_message(ids[topic], log_time=t, publish_time=t, sequence=fr.seq, data=data)
+        w.finish()
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        got = list(open_log(path))
+    assert_same_frames(got, list(read_frames(write_log(tmp_path / "once.mcap", frames))))
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "\n" not in said[0] and "twice.mcap" in said[0], said
+    assert f"4 {TOPIC_IMAGE}" in said[0] and f"4 {TOPIC_HEADING}" in said[0] and "duplicate" in said[0]
+
+
 @pytest.mark.parametrize("finish", [True, False])
 def test_a_calibration_written_after_its_image_keeps_the_frame(tmp_path, caplog, finish):
     # Another writer's layout, each frame's calibration after its image at the image's log time
