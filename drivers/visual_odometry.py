@@ -87,6 +87,12 @@ class VoConfig:
     rotation_only_frac: float = 0.1  # ... or to this fraction of the motion: no usable translation parallax
     max_step_rad: float = math.radians(45.0)  # a larger turn between two frames is taken as a failed fit
     shift_min_response: float = 0.05  # phase correlation peak below this: no usable image shift
+    # The image shift is a rough turn only over an interval in which the vehicle cannot turn the view
+    # by more than shift_max_frac of the image width at max_yaw_rate (see _shift_measures_turn).
+    max_yaw_rate_rad_s: float = math.radians(120.0)  # the synthetic drives' sharpest corners (a car: rarely 40)
+    # Measured on synthetic drives: a shift is > 5 deg off 1 time in 6 up to 15 % of the width, 1 in 4
+    # at 15-25 %, 1 in 2 beyond 30 %.
+    shift_max_frac: float = 0.2
     min_contrast: float = 2.0  # grey-level std below this: a featureless image (black, a covered lens), no shift
     coarse_tol_rad: float = math.radians(3.0)  # a fit further than this from the coarse image-shift yaw ...
     coarse_tol_frac: float = 0.5  # ... and than this fraction of it is rejected
@@ -100,6 +106,12 @@ class VoConfig:
             raise ValidationError(f"VoConfig.refresh_fraction: expected within (0, 1), got {self.refresh_fraction}")
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise ValidationError(f"VoConfig.max_gap_s: expected a number of seconds > 0, got {self.max_gap_s!r}")
+        if not (math.isfinite(self.max_yaw_rate_rad_s) and self.max_yaw_rate_rad_s > 0):
+            raise ValidationError(f"VoConfig.max_yaw_rate_rad_s: expected a rate in rad/s > 0, got "
+                                  f"{self.max_yaw_rate_rad_s!r}")
+        if not 0.0 < self.shift_max_frac <= 1.0:
+            raise ValidationError(f"VoConfig.shift_max_frac: expected a share of the width within (0, 1], got "
+                                  f"{self.shift_max_frac!r}")
         if not (math.isfinite(self.min_contrast) and self.min_contrast >= 0):
             raise ValidationError(f"VoConfig.min_contrast: expected grey levels >= 0, got {self.min_contrast!r}")
         if self.ransac not in _ESTIMATORS:
@@ -308,7 +320,8 @@ class VisualOdometry:
                 self.stats["repeated"] += 1
                 return self._sample(t_mono_s, self._prev_given)
         restart = self._intrinsics is not None and not same_camera
-        gap = self._last_t_s is not None and t_mono_s - self._last_t_s > cfg.max_gap_s
+        since_new_s = None if self._last_t_s is None else t_mono_s - self._last_t_s  # since the last new image
+        gap = since_new_s is not None and since_new_s > cfg.max_gap_s
         self._last_t_s = t_mono_s
         if restart or gap:
             # Another camera mode, or a gap in the frames: nothing tracks across it and the turn
@@ -331,6 +344,12 @@ class VisualOdometry:
         shift = self._dominant_shift(gray) if cfg.predict and not (flat or prev_flat) else None
         # A coarse yaw from the shift of the whole image: far things move by fx * tan(turn).
         coarse_step = None if shift is None else -math.atan2(shift[0], self._k[0, 0])
+        if coarse_step is not None and since_new_s is not None and not self._shift_measures_turn(since_new_s, gray):
+            # After a freeze or dropped frames in a sharp turn the view may have turned by a third of
+            # the image: the correlation peak of what little overlaps is then often a wrong one (36 deg
+            # carried as 1 deg in the tests), and carried it is a silent error. The shift still starts
+            # the tracks (the forward-backward check catches a wrong start); it is no rough turn.
+            coarse_step = None
         if self._coarse_since_key is not None:
             self._coarse_since_key = None if coarse_step is None else self._coarse_since_key + coarse_step
 
@@ -446,6 +465,15 @@ class VisualOdometry:
         (dx, dy), response = cv2.phaseCorrelate(self._prev_gray.astype(np.float32), gray.astype(np.float32),
                                                 self._window)
         return (float(dx), float(dy)) if response >= self.config.shift_min_response else None
+
+    def _shift_measures_turn(self, interval_s: float, gray: np.ndarray) -> bool:
+        """Can the image shift over ``interval_s`` be taken as a rough turn? Only while the largest
+        turn the vehicle can make meanwhile (``max_yaw_rate_rad_s``) moves far things by at most
+        ``shift_max_frac`` of the image width: beyond, too little of the two images overlaps for the
+        correlation peak to be trusted."""
+        cfg = self.config
+        turn_rad = cfg.max_yaw_rate_rad_s * max(interval_s, 0.0)
+        return turn_rad < math.pi / 2 and self._k[0, 0] * math.tan(turn_rad) <= cfg.shift_max_frac * gray.shape[1]
 
     def _track(self, gray: np.ndarray, shift: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray] | None:
         """Keyframe and current positions of the points that track forward and back, or None."""

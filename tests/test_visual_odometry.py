@@ -214,6 +214,10 @@ def test_config_is_checked():
     for bad in (0.0, 1.0):
         with pytest.raises(ValidationError, match="refresh_fraction"):
             VoConfig(refresh_fraction=bad)
+    with pytest.raises(ValidationError, match="max_yaw_rate_rad_s"):
+        VoConfig(max_yaw_rate_rad_s=0.0)
+    with pytest.raises(ValidationError, match="shift_max_frac"):
+        VoConfig(shift_max_frac=0.0)
 
 
 def test_heading_rad_is_wrapped_to_0_2pi():
@@ -265,6 +269,45 @@ def test_relative_yaw_tracks_a_synthetic_turn(seed, first, last, turn_deg):
     assert last is not None
     final = math.degrees(math.remainder(last.heading_rad, 2 * math.pi))
     assert math.copysign(1.0, final) == math.copysign(1.0, turn_deg)
+
+
+@pytest.mark.parametrize("frozen_after", [7, 10])
+@pytest.mark.parametrize("kind", ["repeated", "dropped"])
+def test_a_short_freeze_in_a_sharp_turn_carries_no_wrong_turn(kind, frozen_after):
+    # Drive 3 turns right about 7 deg a frame from frame 7 on. Frames frozen_after+1 .. +5 are the
+    # frame before them again (a dashcam repeating its last image for 0.5 s) or missing (dropped):
+    # the vehicle turned 36 / 41 deg between the two new images around the freeze, under
+    # max_gap_s, so no gap. Tracking is lost on the frame after it and the image shift's turn was
+    # carried: at a third of the 81 deg view the correlation peak is a wrong one (carried +1 / -6 deg),
+    # and every later heading was 35 / 47 deg off, silently. Starting a new zero there costs no
+    # heading error; so a carried turn may cost no more than the odometry's own error on these
+    # turns (DRIVE_TOL_DEG, measured above), at every frame with a heading after the freeze.
+    from benchmarks.bench_vo import epoch_zeros, heading_errors_deg
+
+    frames = drive_frames(3, 0, 23)
+    frozen = range(frozen_after + 1, frozen_after + 6)
+    truth = np.unwrap([f.attitude.heading_rad for f in frames if f.attitude is not None])
+    assert len(truth) == len(frames)
+    turn_deg = math.degrees(truth[frozen_after + 6] - truth[frozen_after])
+    assert turn_deg > 35.0  # a sharp turn over the freeze, as the test says
+    vo = VisualOdometry()
+    estimates: list[float | None] = []
+    epochs = []
+    for k, f in enumerate(frames):
+        if k in frozen and kind == "dropped":
+            estimates.append(None)
+            epochs.append(vo.epoch)
+            continue
+        image = frames[frozen_after].image_bgr if k in frozen else f.image_bgr
+        sample = vo.update(f.t_mono_s, image, f.intrinsics)
+        estimates.append(None if sample is None else sample.heading_rad)
+        epochs.append(vo.epoch)
+    assert vo.stats["gaps"] == 0  # the freeze is shorter than max_gap_s
+    errors = heading_errors_deg(list(truth), estimates, epoch_zeros(epochs))
+    after = [e for e in errors[frozen_after + 6:] if e is not None]
+    # The drive goes on with a heading after the freeze: the frame after it may be lost.
+    assert len(after) >= len(frames) - (frozen_after + 6) - 1, (errors, vo.stats)
+    assert max(abs(e) for e in after) < DRIVE_TOL_DEG, (errors, vo.stats)
 
 
 # --- what stats and the fallbacks do ---------------------------------------------------------------
