@@ -21,6 +21,7 @@ Two choices carry the robustness:
 from __future__ import annotations
 
 import dataclasses
+import errno
 import io
 import json
 import logging
@@ -480,7 +481,8 @@ def estimate_from_dict(d: dict) -> SunEstimate:
 class LogWriter:
     """Writes Frames and SunEstimates to a native (MCAP) log. A context manager; ``close()`` is
     idempotent and writes the summary that makes the file indexed. A writer never closed (a killed
-    process) still leaves a log that replays up to its last finished chunk.
+    process) still leaves a log that replays up to its last finished chunk; so does a power cut,
+    as each finished chunk of a file it opened is synced to the disk.
 
     ``target`` is a path or a binary stream with ``write``/``tell``/``flush`` (left open on close).
     ``chunk_size`` is the uncompressed bytes per chunk: the most a kill can lose. ``exclusive``:
@@ -522,6 +524,7 @@ class LogWriter:
                 f"got {compression!r}"
             )
         self._owns_file = isinstance(target, str | os.PathLike)
+        self._sync_file = self._owns_file
         self._detach = False
         if isinstance(target, str | os.PathLike):  # (_owns_file, spelled out so mypy narrows target)
             try:
@@ -628,6 +631,7 @@ class LogWriter:
         try:
             self._mcap.finish()
             self._file.flush()
+            self._sync()
         finally:
             if self._owns_file:
                 self._file.close()
@@ -683,8 +687,25 @@ class LogWriter:
 
     def _end_chunk(self) -> None:
         self._mcap.flush()  # finishes the chunk, writes it and its index, flushes the stream
+        self._sync()
         self._chunk_bytes = 0
         self._calibration_in_chunk = False
+
+    def _sync(self) -> None:
+        """Have the OS write what it was handed to the disk. A power cut (a rig's ignition) loses
+        what the OS had not written back, on Linux up to half a minute of chunks; synced, only the
+        chunk in progress, as a killed process. Only a file this writer opened: a stream handed in
+        may be a pipe or a buffer, which its owner syncs if it can."""
+        if not self._sync_file:
+            return
+        try:
+            os.fsync(self._file.fileno())
+        except OSError as exc:
+            # A device or pipe (--out /dev/null) and some file systems cannot sync: nothing to
+            # keep there. A disk that failed to write (EIO) is raised as any write error.
+            if exc.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+                raise
+            self._sync_file = False
 
 
 # ---------------------------------------------------------------------------------------------

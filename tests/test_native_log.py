@@ -495,6 +495,39 @@ def test_process_killed_mid_recording(tmp_path):
     assert_same_frames(got, reference[: len(got)])
 
 
+def test_each_finished_chunk_is_synced_to_the_disk(tmp_path, monkeypatch):
+    # A power cut (a rig's ignition switched off) loses what the OS had not yet written back, up
+    # to half a minute on Linux: handed to the OS only, every chunk of those last seconds went
+    # with it, where a killed process loses only the chunk in progress.
+    synced: list[int] = []  # the file's size at each fsync of it
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        synced.append(os.fstat(fd).st_size)
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    path = write_log(tmp_path / "synced.mcap", make_frames(12), chunk_size=2500)
+    monkeypatch.undo()
+    with open(path, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    ends = [c.chunk_start_offset + c.chunk_length for c in chunks]
+    starts = [c.chunk_start_offset for c in chunks[1:]] + [path.stat().st_size]
+    assert len(chunks) > 3
+    for end, next_start in zip(ends, starts, strict=True):
+        assert any(end <= size <= next_start for size in synced), (end, synced)
+    assert synced[-1] == path.stat().st_size  # the summary too, at close
+
+
+def test_a_log_written_to_a_device_that_cannot_sync_is_written(tmp_path):
+    # `record --out /dev/null --overwrite`, a check of the rig that keeps nothing: the null
+    # device (as a pipe) refuses fsync with EINVAL, which is no failure of the write.
+    with LogWriter(os.devnull, chunk_size=2500) as w:
+        for f in make_frames(6):
+            w.write_frame(f)
+    assert w.frames_written == 6
+
+
 # ---------------------------------------------------------------------------------------------
 # Corrupt messages and chunks
 
