@@ -1178,6 +1178,22 @@ class _ChunkBody:
         return Chunk.read(ReadDataStream(io.BytesIO(self.body)))
 
 
+def _warn_cut(f: IO[bytes], size: int, name: str, what: str) -> None:
+    """Say that a log ends in a record cut short: cut off mid-write, or still being written (it
+    has grown since it was opened: a recording in progress)."""
+    try:
+        now = os.fstat(f.fileno()).st_size
+    except (OSError, AttributeError, io.UnsupportedOperation):  # not a file: cannot grow under us
+        now = size
+    if now > size:
+        logger.warning("%s: the log is still being written (it grew from %d bytes while it was read); replayed "
+                       "the complete chunks of its first %d bytes: replay it again when the recording has ended",
+                       name, size, size)
+    else:
+        logger.warning("%s: the log is cut off mid-write (%s, at byte %d); replayed what came before",
+                       name, what, size)
+
+
 def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> Iterator[Any]:
     """Every record of the data section in file order, chunks opened; never seeks.
 
@@ -1187,7 +1203,9 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
     ``None`` so consumers can drop state that chunk may have changed.
     """
     size = stats.bytes_total
-    records = _framed_records(f, size)
+    # Only the bytes the file held when opened: a log still being written grows while it is read,
+    # and what it held is what the checks on opening saw and what bytes_total counts.
+    records = _framed_records(cast(IO[bytes], _BoundedReads(f, size)), size)
     while True:
         try:
             record = next(records)
@@ -1198,8 +1216,7 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
             stats.bytes_read = f.tell()
             if warn:
                 if stats.bytes_read >= size:  # the reader stopped at the file's end: in a cut record
-                    logger.warning("%s: the log is cut off mid-write (its last record is incomplete, at byte "
-                                   "%d); replayed what came before", name, size)
+                    _warn_cut(f, size, name, "its last record is incomplete")
                 else:
                     logger.warning("%s: the log ends early at byte %d of %d (a damaged record: %s); replayed "
                                    "what came before", name, stats.bytes_read, size, exc)
@@ -1212,12 +1229,7 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
                     stats.truncated = True
                     stats.bytes_read = f.tell()
                     if warn:
-                        logger.warning(
-                            "%s: the log was cut off mid-write in its last chunk (%d bytes); "
-                            "replayed the complete chunks before it",
-                            name,
-                            size,
-                        )
+                        _warn_cut(f, size, name, "its last chunk is incomplete")
                     return
                 stats.corrupt_skipped += 1
                 if warn:

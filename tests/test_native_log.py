@@ -403,6 +403,34 @@ def test_finished_log_cut_anywhere_replays_a_growing_prefix(tmp_path, caplog):
     assert 0.3 * len(frames) < counts[len(counts) // 2] < 0.8 * len(frames)
 
 
+def test_a_log_still_being_written_replays_what_it_held_and_says_so(tmp_path, caplog):
+    # A recording in progress, replayed while it grows: the reader read on into chunks written
+    # after it opened the file, then said the log was "cut off mid-write" at a byte it had long
+    # read past (the size when it opened), of a log that was never cut.
+    frames = make_frames(24)
+    path = tmp_path / "live.mcap"
+    with LogWriter(path, chunk_size=4000) as w:  # chunks of 2 frames
+        for f in frames[:13]:
+            w.write_frame(f, jpeg_quality=95)
+        held = path.read_bytes()  # what the file holds when the replay opens it
+        (tmp_path / "held.mcap").write_bytes(held)
+        want = list(read_frames(tmp_path / "held.mcap"))
+        source = open_log(path)
+        replay = iter(source)
+        with caplog.at_level(logging.WARNING, logger="replay.native"):
+            got = [next(replay)]
+            for f in frames[13:]:  # the recording goes on while it is replayed
+                w.write_frame(f, jpeg_quality=95)
+            w.flush()
+            got += list(replay)
+    assert len(want) == 12  # the frame in the chunk in progress is not in the file yet
+    assert_same_frames(got, want)
+    assert source.truncated and source.stats.bytes_read == len(held)
+    said = [r.getMessage() for r in caplog.records if "live.mcap" in r.getMessage()]
+    assert len(said) == 1 and "\n" not in said[0], said
+    assert "still being written" in said[0] and f"{len(held)} bytes" in said[0] and "cut off" not in said[0]
+
+
 def test_a_log_of_estimates_only_says_how_it_was_made(tmp_path):
     # `sunrig run --record` without --record-frames: sunrig's own file, but nothing to replay.
     from tests.test_protocol import make_estimate
