@@ -54,6 +54,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from rig.errors import EmptyLogError, LogError, ValidationError
+from rig.files import sync_to_disk
 from rig.solar import UTC_NS_MAX
 from rig.types import Attitude, Frame, GnssFix, HeadingRef, Intrinsics, SunEstimate, utc_iso
 
@@ -525,6 +526,7 @@ class LogWriter:
             )
         self._owns_file = isinstance(target, str | os.PathLike)
         self._sync_file = self._owns_file
+        self._folder_synced = False  # the folder's entry for a file this writer made
         self._detach = False
         if isinstance(target, str | os.PathLike):  # (_owns_file, spelled out so mypy narrows target)
             try:
@@ -706,6 +708,12 @@ class LogWriter:
             if exc.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
                 raise
             self._sync_file = False
+            return
+        if not self._folder_synced and self.path is not None:
+            # The file's name lives in its folder: until that is synced too, a power cut in the
+            # first seconds of a recording can lose the file, its synced chunks with it. Once.
+            self._folder_synced = True
+            sync_to_disk(self.path.absolute().parent)
 
 
 # ---------------------------------------------------------------------------------------------

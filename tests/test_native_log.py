@@ -16,6 +16,7 @@ import logging
 import math
 import os
 import signal
+import stat
 import struct
 import subprocess
 import sys
@@ -545,6 +546,24 @@ def test_each_finished_chunk_is_synced_to_the_disk(tmp_path, monkeypatch):
     for end, next_start in zip(ends, starts, strict=True):
         assert any(end <= size <= next_start for size in synced), (end, synced)
     assert synced[-1] == path.stat().st_size  # the summary too, at close
+
+
+def test_a_new_logs_folder_entry_is_synced_with_its_first_chunk(tmp_path, monkeypatch):
+    # The chunks were synced but not the folder's entry for the new file: a power cut in the
+    # first seconds of a recording could lose the file itself, every synced chunk with it.
+    synced: list[tuple[bool, int]] = []  # (a folder?, the log's size then) at each fsync
+    real_fsync = os.fsync
+    path = tmp_path / "new.mcap"
+
+    def fsync(fd: int) -> None:
+        synced.append((stat.S_ISDIR(os.fstat(fd).st_mode), path.stat().st_size))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    write_log(path, make_frames(12), chunk_size=2500)
+    monkeypatch.undo()
+    folders = [i for i, (is_dir, _) in enumerate(synced) if is_dir]
+    assert folders == [1], synced  # once: right after the first chunk, the file's first sync
 
 
 def test_a_log_written_to_a_device_that_cannot_sync_is_written(tmp_path):
