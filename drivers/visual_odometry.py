@@ -344,18 +344,20 @@ class VisualOdometry:
         shift = self._dominant_shift(gray) if cfg.predict and not (flat or prev_flat) else None
         # A coarse yaw from the shift of the whole image: far things move by fx * tan(turn).
         coarse_step = None if shift is None else -math.atan2(shift[0], self._k[0, 0])
-        if coarse_step is not None and since_new_s is not None and not self._shift_measures_turn(since_new_s, gray):
-            # After a freeze or dropped frames in a sharp turn the view may have turned by a third of
-            # the image: the correlation peak of what little overlaps is then often a wrong one (36 deg
-            # carried as 1 deg in the tests), and carried it is a silent error. The shift still starts
-            # the tracks (the forward-backward check catches a wrong start); it is no rough turn.
-            coarse_step = None
         if self._coarse_since_key is not None:
             self._coarse_since_key = None if coarse_step is None else self._coarse_since_key + coarse_step
+        # After a freeze or dropped frames in a sharp turn the view may have turned by a third of the
+        # image: the correlation peak of what little overlaps is then often a wrong one (36 deg carried
+        # as 1 deg in the tests), and carried it is a silent error. The shift still starts the tracks
+        # (the forward-backward check catches a wrong start) and is one of the two checks of the fit
+        # (without it a wrong fit after a freeze went through unchecked), but no turn to carry.
+        carry_step = coarse_step
+        if since_new_s is not None and not self._shift_measures_turn(since_new_s, gray):
+            carry_step = None
 
         tracked = self._track(gray, shift)
         if tracked is None:
-            self._lose(gray, coarse_step)
+            self._lose(gray, carry_step)
             return None
         key_pts, cur_pts = tracked
         parallax = float(np.median(np.linalg.norm(cur_pts - key_pts, axis=1)))
@@ -372,7 +374,7 @@ class VisualOdometry:
                 self._lose(gray, self._heading_key + dpsi_rot - self._last_heading)
                 return None
         if dpsi is None:
-            self._lose(gray, coarse_step)
+            self._lose(gray, carry_step)
             return None
         heading = self._heading_key + dpsi
         if parallax >= cfg.keyframe_parallax_px or len(cur_pts) < cfg.refresh_fraction * self._key_count:
