@@ -305,4 +305,5 @@ class SunEstimator:
             utc_ns=frame.utc_ns,
             truth_enu=truth,
             token_enu=world,
+            heading_epoch=frame.attitude.epoch if tokens.heading_ref is HeadingRef.RELATIVE else 0,
         )

@@ -191,6 +191,8 @@ _ESTIMATE_SCHEMA = _json_schema(
         "elevation_deg": {"type": "number"},
         "heading_deg": {"type": "number"},
         "heading_ref": {"type": "string", "enum": [r.value for r in HeadingRef]},
+        "heading_epoch": {"type": "integer", "minimum": 0,
+                          "description": "which zero a relative heading counts from; absent otherwise"},
         "relative_bearing_deg": {"type": "number"},
         "spread_deg": {"type": "number"},
         "n_frames": {"type": "integer"},
@@ -468,6 +470,7 @@ def estimate_from_dict(d: dict) -> SunEstimate:
             utc_ns=d.get("utc_ns"),
             truth_enu=d.get("truth_enu"),
             token_enu=d.get("token_enu"),
+            heading_epoch=d.get("heading_epoch", 0),  # absent: an absolute heading, or an older log
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise ValidationError(

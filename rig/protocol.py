@@ -35,6 +35,12 @@ FLAG_HAS_UTC = 0x02  # utc_ns is set (otherwise the binary field is 0 and the NM
 FLAG_PARTIAL_WINDOW = 0x04  # fewer frames than a full window (start-up, heading gaps)
 FLAG_SPREAD_HIGH = 0x08  # the per-token estimates disagree by more than max_spread_deg
 FLAG_ABOVE_TRAINED = 0x10  # the sun is higher than max_elevation_deg: the model's compromise, not a sighting
+# Binary only, not a status: a relative heading's epoch modulo 4 (SunEstimate.heading_epoch) in
+# bits 5-6. It changes with the heading's zero (an OAK reconnect, odometry that lost track), which
+# a controller could otherwise only guess from PARTIAL_WINDOW; 2 bits, so that a message or two
+# lost on the line does not hide a change. NMEA has no field for it (a new field is a new version).
+ZERO_SHIFT = 5
+ZERO_MASK = 0x60
 
 # How far above the highest sun of its training data a model's answer may lie before it is
 # flagged: the scatter of answers for the highest suns. For the shipped model's suns within 5 deg
@@ -373,7 +379,7 @@ def binary_payload(est: SunEstimate, rule: StatusRule = DEFAULT_STATUS_RULE) -> 
     return BINARY_STRUCT.pack(
         PROTOCOL_VERSION,
         MSG_SUN_ESTIMATE,
-        rule.flags(est),
+        rule.flags(est) | (est.heading_epoch % 4) << ZERO_SHIFT,
         ord(_REF_CODE[est.heading_ref]),
         est.seq % 2**32,
         est.t_mono_s,
@@ -454,6 +460,7 @@ def decode_binary(frame: bytes) -> dict[str, Any]:
         "partial_window": bool(flags & FLAG_PARTIAL_WINDOW),
         "spread_high": bool(flags & FLAG_SPREAD_HIGH),
         "above_trained": bool(flags & FLAG_ABOVE_TRAINED),
+        "heading_zero": (flags & ZERO_MASK) >> ZERO_SHIFT,
         "seq": seq,
         "t_mono_s": t_mono_s,
         "utc_ns": utc_ns if flags & FLAG_HAS_UTC else None,

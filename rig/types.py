@@ -351,7 +351,8 @@ class SunEstimate:
     ``sun_enu`` is a unit vector in the world frame of the window's heading reference (true north,
     or the start heading when ``heading_ref`` is relative). ``t_mono_s``/``seq``/``heading_rad``
     are those of the newest frame in the window. ``spread_rad`` is the RMS angle of the per-token
-    world vectors around the estimate: small when the tokens agree.
+    world vectors around the estimate: small when the tokens agree. ``heading_epoch`` is the
+    window's :attr:`Attitude.epoch`: which zero a relative heading counts from (0 otherwise).
     """
 
     t_mono_s: float
@@ -366,6 +367,7 @@ class SunEstimate:
     utc_ns: int | None = None
     truth_enu: np.ndarray | None = None
     token_enu: np.ndarray | None = field(default=None, repr=False)
+    heading_epoch: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t_mono_s", _finite("t_mono_s", self.t_mono_s))
@@ -377,6 +379,13 @@ class SunEstimate:
         object.__setattr__(self, "sun_enu", _vector3("SunEstimate.sun_enu", self.sun_enu, unit=True))
         object.__setattr__(self, "heading_rad", float(wrap_2pi(_finite("heading_rad", self.heading_rad))))
         object.__setattr__(self, "heading_ref", HeadingRef(self.heading_ref))
+        epoch = self.heading_epoch
+        if isinstance(epoch, bool) or not isinstance(epoch, int | np.integer) or epoch < 0:
+            raise ValidationError(f"SunEstimate.heading_epoch: expected an integer >= 0, got {epoch!r}")
+        if epoch and self.heading_ref is not HeadingRef.RELATIVE:
+            raise ValidationError(f"SunEstimate.heading_epoch: {epoch} with a {self.heading_ref.value} heading, "
+                                  "whose zero never changes: expected 0")
+        object.__setattr__(self, "heading_epoch", int(epoch))
         spread = _finite("spread_rad", self.spread_rad)
         if not 0.0 <= spread <= math.pi:
             raise ValidationError(f"SunEstimate.spread_rad: expected within [0, pi] rad, got {spread}")
@@ -416,7 +425,8 @@ class SunEstimate:
         return float(angle_between(self.sun_enu, self.truth_enu))
 
     def to_json_dict(self) -> dict:
-        """The JSONL view: degrees, plain lists, ``truth_enu``/``error_deg`` only when known."""
+        """The JSONL view: degrees, plain lists, ``truth_enu``/``error_deg`` only when known,
+        ``heading_epoch`` only for a relative heading."""
         out = {
             "t": self.t_mono_s,
             "seq": self.seq,
@@ -431,6 +441,8 @@ class SunEstimate:
             "n_tokens": self.n_tokens,
             "aggregator": self.aggregator,
         }
+        if self.heading_ref is HeadingRef.RELATIVE:
+            out["heading_epoch"] = self.heading_epoch
         if self.utc_ns is not None:
             out["utc"] = utc_iso(self.utc_ns)
         error_rad = self.error_rad  # None exactly when truth_enu is

@@ -229,6 +229,14 @@ def test_only_a_true_heading_window_carries_the_truth(model, ref):
     true = est.estimate(est.encode_batch(make_frames(3)))
     np.testing.assert_array_equal(true.truth_enu, [0.0, 0.6, 0.8])
 
+def test_a_relative_window_gives_its_heading_epoch_to_each_estimate(model):
+    frames = [dataclasses.replace(f, attitude=Attitude(f.attitude.heading_rad, HeadingRef.RELATIVE, epoch=5))
+              for f in make_frames(3)]
+    est = SunEstimator(model)
+    assert {r.heading_epoch for r in est.estimate_many(est.encode_batch(frames), AGGREGATORS).values()} == {5}
+    assert est.estimate(est.encode_batch(make_frames(3))).heading_epoch == 0
+
+
 def test_estimate_many_refuses_an_unknown_aggregator(model):
     # A misspelt name in eval's --aggregators must not quietly run another aggregator.
     est = SunEstimator(model)

@@ -251,6 +251,7 @@ def test_estimates_round_trip(tmp_path):
             utc_ns=UTC0 + i,
             truth_enu=[0.6, 0.0, 0.8],
             token_enu=tokens,
+            heading_epoch=i,
         )
         for i in range(3)
     ]
@@ -278,6 +279,7 @@ def test_estimates_round_trip(tmp_path):
         assert back.seq == e.seq and back.t_mono_s == e.t_mono_s
         assert back.utc_ns == e.utc_ns
         assert back.heading_ref == e.heading_ref and back.aggregator == e.aggregator
+        assert back.heading_epoch == e.heading_epoch
         np.testing.assert_allclose(back.sun_enu, e.sun_enu, atol=1e-7)
         assert back.heading_rad == pytest.approx(e.heading_rad, abs=EXACT_F64)
         assert back.spread_rad == pytest.approx(e.spread_rad, abs=EXACT_F64)

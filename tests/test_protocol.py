@@ -370,6 +370,22 @@ def test_binary_round_trip_within_float32():
         assert got["valid"] == bool(rule.flags(est) & FLAG_VALID)
 
 
+def test_binary_flags_carry_a_relative_headings_zero_counter_outside_the_status():
+    # Bits 5-6 count a relative heading's zeros modulo 4: a controller that sees them change knows
+    # the azimuth, vector and heading are in a new frame from there on (the NMEA sentence has no
+    # field for it). They are not part of the status: valid or not, the counter is there.
+    import dataclasses
+
+    rule = StatusRule()
+    base = make_estimate(123.4, 35.6, heading_ref="relative")
+    for epoch in range(9):
+        est = dataclasses.replace(base, heading_epoch=epoch)
+        got = decode_binary(encode_binary(est, rule))
+        assert got["heading_zero"] == epoch % 4 and got["flags"] & 0x60 == (epoch % 4) << 5
+        assert got["flags"] & 0x1F == rule.flags(est) and got["valid"] and got["flags"] & 0x80 == 0
+    assert decode_binary(encode_binary(make_estimate(123.4, 35.6)))["heading_zero"] == 0
+
+
 def _frame(payload: bytes) -> bytes:
     return b"\x00" + cobs_encode(payload + struct.pack("<H", crc16_ccitt_false(payload))) + b"\x00"
 

@@ -267,6 +267,20 @@ def test_estimate_json_view_has_every_field_a_consumer_reads():
     assert (d["n_tokens"], d["aggregator"], d["n_frames"]) == (2, "mean", 1)
 
 
+def test_a_relative_estimate_says_which_zero_its_heading_counts_from():
+    # A relative heading's zero changes when its source restarts (an OAK reconnect, odometry that
+    # lost track); from then on the azimuth is in another frame. The estimate carries the epoch,
+    # and its JSON view says it, so that a script sees the azimuth jump is a new zero.
+    d = _estimate(heading_ref="relative", heading_epoch=3).to_json_dict()
+    assert d["heading_epoch"] == 3
+    assert "heading_epoch" not in _estimate().to_json_dict()  # an absolute reference has one zero
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValidationError, match="SunEstimate.heading_epoch: expected an integer >= 0"):
+            _estimate(heading_ref="relative", heading_epoch=bad)
+    with pytest.raises(ValidationError, match="SunEstimate.heading_epoch: 2 with a true heading"):
+        _estimate(heading_epoch=2)
+
+
 def test_value_types_cannot_change_after_they_were_checked():
     import dataclasses
 
