@@ -19,7 +19,8 @@ consumer iterates Frames. The pure parts are :func:`parse_target`, :func:`load_c
 - **Lost streams**: a live source whose ``read()`` fails (unplugged, network gone) is released,
   counted, logged once per outage and reopened with a backoff that doubles up to
   ``backoff_s[1]``; it never raises for that, unless ``max_outage_s`` is set and passes. A video
-  file ends at its end.
+  file ends at its end; its first frame is read as it opens, so a file with no frame OpenCV can
+  decode, or one the intrinsics cannot fit, is refused then.
 - **Bounded waits**: the consumer waits at most ``poll_s`` at a time and sees :meth:`stop` /
   :meth:`close` within that; a live frame the consumer has not taken is dropped when a newer one
   arrives (counted), a file waits for the consumer instead (nothing is lost by replaying
@@ -425,6 +426,9 @@ class OpenCvCamera:
         self._intr: Intrinsics | None = None
         self._undistort: tuple[np.ndarray, np.ndarray] | None = None
         self._undistort_size: tuple[int, int] | None = None
+        # A file's first frame is read now: a file with no frame OpenCV can decode, or one the
+        # intrinsics cannot fit, is refused as it opens, not once the run has started.
+        self._first: Frame | None = None if self.live else self._read_first_frame()
 
     # --- the consumer's side ---------------------------------------------------------------------
 
@@ -500,6 +504,9 @@ class OpenCvCamera:
         backoff = self._backoff[0]
         outage_since: float | None = None
         try:
+            if self._first is not None:  # read as the file opened
+                self._put(self._first)
+                self._first = None
             while not self._stop.is_set():
                 if self._cap is None:
                     if not self._reopen():
@@ -545,6 +552,23 @@ class OpenCvCamera:
             with self._lock:
                 self._ended = True
                 self._lock.notify_all()
+
+    def _read_first_frame(self) -> Frame:
+        try:
+            try:
+                ok, image = self._cap.read()
+            except cv2.error:
+                ok, image = False, None
+            if not ok or image is None:
+                raise CameraError(f"video file {self.target.value} has no frame OpenCV can decode (none in it, or a "
+                                  "codec this OpenCV build lacks); convert it (e.g. to MJPG .avi or H.264 .mp4)")
+            try:
+                return self._make_frame(image, self._clock())
+            except (ValueError, cv2.error) as exc:
+                raise CameraError(f"video file {self.target.value}: its first frame cannot be used: {exc}") from None
+        except BaseException:
+            self._release()
+            raise
 
     def _make_frame(self, image: np.ndarray, now: float) -> Frame:
         image = as_bgr(image)

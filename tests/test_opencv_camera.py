@@ -43,7 +43,7 @@ def clip_image(k: int) -> np.ndarray:
 @pytest.fixture
 def video(tmp_path):
     path = tmp_path / "clip.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), FPS, (W, H))
     assert writer.isOpened()
     for k in range(N):
         writer.write(clip_image(k))
@@ -599,3 +599,26 @@ def test_a_real_camera_at_index_0():
     assert len(frames) == 5 and [f.seq for f in frames] == list(range(5))
     assert all(b.t_mono_s > a.t_mono_s for a, b in zip(frames, frames[1:], strict=False))
     assert abs(frames[-1].t_mono_s - time.monotonic()) < HANG_GUARD_S  # stamped on the monotonic clock
+
+
+# --- a video file refused as it opens ------------------------------------------------------------
+
+
+def test_a_video_file_without_one_frame_is_refused_as_it_opens(tmp_path):
+    # A container with no frame (a dashcam's file cut at its start) opens in OpenCV: it was taken,
+    # and the run ended with "the source gave no frame ... check the camera and its cable".
+    path = tmp_path / "empty.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), FPS, (W, H))
+    writer.release()
+    with pytest.raises(CameraError, match=r"^video file .*empty\.avi has no frame OpenCV can decode") as info:
+        OpenCvCamera(str(path), hfov_deg=60.0)
+    assert "\n" not in str(info.value) and "convert it" in str(info.value)
+
+
+def test_a_calibration_of_another_aspect_ratio_is_refused_as_a_video_file_opens(video, tmp_path):
+    # A file's first frame is read as it opens: a calibration that cannot fit it is the open's
+    # one-line error, not the capture stage's failure once the run started.
+    path = tmp_path / "cam.yaml"
+    write_calibration(path, [[100.0, 0, 64.0], [0, 100.0, 36.0], [0, 0, 1]], 128, 72)
+    with pytest.raises(CameraError, match=f"the calibration is for 128x72 but the stream is {W}x{H}"):
+        OpenCvCamera(str(video), calibration=path)
