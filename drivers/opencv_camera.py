@@ -52,6 +52,12 @@ from rig.types import MIN_FOV_DEG, Frame, Intrinsics
 
 log = logging.getLogger(__name__)
 
+# FFmpeg prints its own reason for a failed open ("moov atom not found", "Connection refused") on
+# stderr, above the one line that says what to do, and again at every reconnect of a lost stream
+# (every few seconds of an outage). OpenCV reads this once, as FFmpeg is first used: quiet unless
+# the user set it (e.g. OPENCV_FFMPEG_LOGLEVEL=16 to see FFmpeg's errors again).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
 _URL_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "http://", "https://", "udp://", "tcp://", "srt://")
 _OPEN_TIMEOUT_MS = 5000
 _READ_TIMEOUT_MS = 5000
@@ -299,9 +305,10 @@ def as_bgr(image: np.ndarray) -> np.ndarray:
 
 @contextlib.contextmanager
 def _opencv_quiet():
-    """OpenCV prints a WARN line for every failed open; we raise one clear error instead."""
+    """OpenCV prints WARN and ERROR lines for every failed open ("Could not find decoder"); we
+    raise one clear error instead."""
     level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
         yield
     finally:

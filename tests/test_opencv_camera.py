@@ -622,3 +622,18 @@ def test_a_calibration_of_another_aspect_ratio_is_refused_as_a_video_file_opens(
     write_calibration(path, [[100.0, 0, 64.0], [0, 100.0, 36.0], [0, 0, 1]], 128, 72)
     with pytest.raises(CameraError, match=f"the calibration is for 128x72 but the stream is {W}x{H}"):
         OpenCvCamera(str(video), calibration=path)
+
+
+def test_a_file_opencv_cannot_open_leaves_only_the_error_on_stderr(tmp_path, video, capfd):
+    # OpenCV's own "[ERROR:0@0.01] global cap_ffmpeg_impl.hpp:1412 open Could not find decoder"
+    # and FFmpeg's "[mov,mp4,... @ 0x55...] moov atom not found" were printed above the one line
+    # that says what to do.
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"not a video")
+    unknown_codec = tmp_path / "codec.avi"  # an AVI whose codec no decoder knows
+    unknown_codec.write_bytes(video.read_bytes().replace(b"MJPG", b"QQQQ"))
+    capfd.readouterr()
+    for path in (junk, unknown_codec):
+        with pytest.raises(CameraError, match="cannot read the video file"):
+            OpenCvCamera(str(path), hfov_deg=60.0)
+    assert capfd.readouterr().err == ""
