@@ -473,6 +473,12 @@ class OpenCvCamera:
                     "intrinsics": self._intr}
 
     @property
+    def _named(self) -> str:
+        """The source as messages name it: "camera 0" (not "camera camera 0"), "camera rtsp://..."."""
+        text = str(self.target)
+        return text if text.startswith("camera ") else f"camera {text}"
+
+    @property
     def intrinsics(self) -> Intrinsics | None:
         """The intrinsics of the frames (known from the first frame on)."""
         return self._intr
@@ -535,7 +541,7 @@ class OpenCvCamera:
                     backoff = min(2.0 * backoff, self._backoff[1])
                     continue
                 if outage_since is not None:
-                    log.info("camera %s is back after %.1f s", self.target, now - outage_since)
+                    log.info("%s is back after %.1f s", self._named, now - outage_since)
                 outage_since = None
                 backoff = self._backoff[0]
                 try:
@@ -635,7 +641,7 @@ class OpenCvCamera:
             self._stats["read_failures"] += 1
         if outage_since is None:  # once per outage, not once per retry
             self._note_error("read failed (stream lost?)")
-            log.warning("camera %s: read failed; reconnecting with backoff", self.target)
+            log.warning("%s: read failed; reconnecting with backoff", self._named)
             outage_since = now
         self._release()
         return self._check_outage(outage_since)
@@ -644,7 +650,7 @@ class OpenCvCamera:
         now = self._clock()
         since = now if outage_since is None else outage_since
         if self._max_outage_s is not None and now - since > self._max_outage_s:
-            raise CameraError(f"camera {self.target} lost for more than {self._max_outage_s:g} s "
+            raise CameraError(f"{self._named} lost for more than {self._max_outage_s:g} s "
                               f"({self._last_error}); check the cable or network")
         return since
 
@@ -663,7 +669,7 @@ class OpenCvCamera:
         self._cap = cap
         with self._lock:
             self._stats["reconnects"] += 1
-        log.info("camera %s reopened", self.target)
+        log.info("%s reopened", self._named)
         return True
 
     def _bad_frame(self, exc: BaseException) -> None:
@@ -673,7 +679,7 @@ class OpenCvCamera:
             repeated = message == self._last_error
             self._last_error = message
         if not repeated:  # once per kind of bad frame, not once per frame
-            log.warning("camera %s: %s; dropping such frames (counted in bad_frames)", self.target, exc)
+            log.warning("%s: %s; dropping such frames (counted in bad_frames)", self._named, exc)
 
     def _note_error(self, message: str) -> None:
         with self._lock:
