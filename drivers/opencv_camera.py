@@ -25,8 +25,10 @@ consumer iterates Frames. The pure parts are :func:`parse_target`, :func:`load_c
   :meth:`close` within that; a live frame the consumer has not taken is dropped when a newer one
   arrives (counted), a file waits for the consumer instead (nothing is lost by replaying
   slower). OpenCV's own open and read are bounded by ``CAP_PROP_OPEN_TIMEOUT_MSEC`` /
-  ``CAP_PROP_READ_TIMEOUT_MSEC`` on network streams; a read stuck below Python is abandoned
-  with its daemon thread after ``join_timeout_s``.
+  ``CAP_PROP_READ_TIMEOUT_MSEC`` on network streams; a read or reopen that has not returned for
+  ``stall_s`` (3 s) is said once and counted (``stalls``), and past ``max_outage_s`` is the
+  consumer's error; a read stuck below Python is abandoned with its daemon thread after
+  ``join_timeout_s``.
 """
 
 from __future__ import annotations
@@ -375,7 +377,7 @@ class OpenCvCamera:
                  width: int | None = None, height: int | None = None, fps: float | None = None,
                  reconnect: bool | None = None, backoff_s: tuple[float, float] = (0.2, 5.0),
                  max_outage_s: float | None = None, latency_s: float = 0.0, poll_s: float = 0.1,
-                 join_timeout_s: float = 2.0, clock: Callable[[], float] = time.monotonic,
+                 join_timeout_s: float = 2.0, stall_s: float = 3.0, clock: Callable[[], float] = time.monotonic,
                  capture_factory: Callable[[CameraTarget], Any] | None = None) -> None:
         self.target = source if isinstance(source, CameraTarget) else parse_target(source)
         given = sum(x is not None for x in (intrinsics, calibration, hfov_deg))
@@ -401,6 +403,7 @@ class OpenCvCamera:
         self._latency_s = float(latency_s)
         self._poll_s = float(poll_s)
         self._join_timeout_s = float(join_timeout_s)
+        self._stall_s = float(stall_s)
         self._clock = clock
         self._factory = capture_factory or (lambda t: open_capture(t, width, height, fps))
 
@@ -421,10 +424,15 @@ class OpenCvCamera:
         self._queue: deque[Frame] = deque()
         self._queue_max = 2 if self.live else 8
         self._stats = dict.fromkeys(("frames", "dropped", "bad_frames", "read_failures", "reconnects",
-                                     "open_failures"), 0)
+                                     "open_failures", "stalls"), 0)
         self._last_error: str | None = None
         self._failure: BaseException | None = None
         self._ended = False  # the reader will put nothing more (end of file, gave up, or a bug)
+        # Since when the reader has been inside the capture's read() or open, and which: a call
+        # that does not return (a stream or driver waiting for data that does not come) is seen by
+        # the consumer, the one side still running.
+        self._busy: tuple[float, str] | None = None
+        self._stalled = False
         self._stop = threading.Event()
         self._closed = False
         self._thread: threading.Thread | None = None
@@ -450,6 +458,7 @@ class OpenCvCamera:
             with self._lock:
                 while not self._queue and not self._ended and not self._stop.is_set():
                     self._lock.wait(self._poll_s)
+                    self._check_stall()
                 if self._stop.is_set():
                     return
                 if self._queue:
@@ -522,13 +531,13 @@ class OpenCvCamera:
                 self._first = None
             while not self._stop.is_set():
                 if self._cap is None:
-                    if not self._reopen():
+                    if not self._busy_with("reopen", self._reopen):
                         outage_since = self._check_outage(outage_since)
                         self._stop.wait(backoff)
                         backoff = min(2.0 * backoff, self._backoff[1])
                         continue
                 try:
-                    ok, image = self._cap.read()
+                    ok, image = self._busy_with("read()", self._cap.read)
                 except cv2.error as exc:
                     ok, image = False, None
                     self._note_error(f"read raised: {str(exc).strip().splitlines()[-1]}")
@@ -582,6 +591,38 @@ class OpenCvCamera:
         except BaseException:
             self._release()
             raise
+
+    def _busy_with(self, what: str, call: Callable[[], Any]) -> Any:
+        """``call()`` (a read or open), marked as under way for :meth:`_check_stall`."""
+        with self._lock:
+            self._busy = (self._clock(), what)
+        try:
+            return call()
+        finally:
+            with self._lock:
+                since, _ = self._busy or (0.0, "")
+                self._busy = None
+                stalled, self._stalled = self._stalled, False
+            if stalled:
+                log.info("%s: its %s returned after %.1f s", self._named, what, self._clock() - since)
+
+    def _check_stall(self) -> None:
+        """The consumer's side (lock held): a read or open that has not returned for ``stall_s``
+        is said once and counted (``stalls``); past ``max_outage_s`` it is the consumer's error.
+        The reader cannot be woken from inside OpenCV; a network stream's own timeouts (5 s) or
+        V4L2's (10 s) end most such calls as a failure, which reconnects."""
+        if self._busy is None:
+            return
+        since, what = self._busy
+        waited_s = self._clock() - since
+        if waited_s >= self._stall_s and not self._stalled:
+            self._stalled = True
+            self._stats["stalls"] += 1
+            self._last_error = f"{what} has not returned for {self._stall_s:g} s (a stalled camera or stream)"
+            log.warning("%s: %s; waiting for it (counted in stalls)", self._named, self._last_error)
+        if self._max_outage_s is not None and waited_s > self._max_outage_s:
+            raise CameraError(f"{self._named} lost for more than {self._max_outage_s:g} s ({self._last_error}); "
+                              "check the cable or network")
 
     def _make_frame(self, image: np.ndarray, now: float) -> Frame:
         image = as_bgr(image)

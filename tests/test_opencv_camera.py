@@ -639,3 +639,58 @@ def test_a_file_opencv_cannot_open_leaves_only_the_error_on_stderr(tmp_path, vid
             OpenCvCamera(str(path), hfov_deg=60.0)
     assert capfd.readouterr().err == ""
 
+
+
+# --- a camera whose read stops returning: a FAKE capture (no real stream can be made to stall) ----
+
+
+class StallingCapture(DisappearingCapture):
+    """FAKE cv2.VideoCapture: ``frames`` frames, then a read that does not return until ``resume``
+    is set (a stream whose decoder waits for data that does not come), then frames again."""
+
+    def __init__(self, frames: int):
+        super().__init__(frames + 1000)
+        self.before_stall = frames
+        self.resume = threading.Event()
+
+    def read(self):
+        if self.before_stall == 0:
+            self.resume.wait(HANG_GUARD_S)
+        self.before_stall -= 1
+        return super().read()
+
+    def release(self):
+        self.resume.set()  # as OpenCV's release ends a read waiting on the capture
+        super().release()
+
+
+def test_a_stalled_read_is_said_and_counted_and_its_end_too(caplog):
+    capture = StallingCapture(2)
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=lambda _: capture, poll_s=0.01, stall_s=0.05)
+    it = iter(cam)
+    with caplog.at_level("INFO", logger="drivers.opencv_camera"):
+        assert [next(it).seq, next(it).seq] == [0, 1]
+        # The consumer waits for the next frame; the reader's read has not returned.
+        waiter = threading.Thread(target=lambda: next(it), daemon=True)
+        waiter.start()
+        deadline = time.monotonic() + HANG_GUARD_S
+        while cam.stats()["stalls"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        stats = cam.stats()
+        assert stats["stalls"] == 1 and "read() has not returned for 0.05 s" in stats["last_error"]
+        capture.resume.set()
+        waiter.join(HANG_GUARD_S)
+    cam.close()
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("has not returned" in m for m in said) == 1  # once per stall, not once per poll
+    assert any("camera 0: its read() returned after" in m for m in said)
+    assert cam.stats()["stalls"] == 1
+
+
+def test_a_read_stalled_longer_than_max_outage_is_the_consumers_error():
+    capture = StallingCapture(1)
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=lambda _: capture, poll_s=0.01, stall_s=0.02,
+                       max_outage_s=0.1, join_timeout_s=0.1)
+    with pytest.raises(CameraError, match=r"^camera 0 lost for more than 0.1 s \(read\(\) has not returned"):
+        collect(cam)
+    cam.close()
