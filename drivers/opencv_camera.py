@@ -34,10 +34,13 @@ consumer iterates Frames. The pure parts are :func:`parse_target`, :func:`load_c
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import os
 import re
+import stat
+import sys
 import threading
 import time
 from collections import deque
@@ -346,8 +349,7 @@ def open_capture(target: CameraTarget, width: int | None = None, height: int | N
 def _open_failure(target: CameraTarget) -> CameraError:
     if target.kind == "device":
         where = f"index {target.value}" if isinstance(target.value, int) else str(target.value)
-        return CameraError(f"no camera at {where}: check it is plugged in (ls /dev/video*), "
-                           "that the user is in the 'video' group, and the index or path")
+        return CameraError(f"no camera at {where}: {_why_no_v4l2_device(target.value)}")
     if target.kind == "gstreamer" and "NO" in _build_line("GStreamer"):
         return CameraError("this OpenCV has no GStreamer support; pass an rtsp:// URL or a device index instead")
     if target.kind == "file":
@@ -355,6 +357,38 @@ def _open_failure(target: CameraTarget) -> CameraError:
                            "OpenCV build lacks; convert it (e.g. to MJPG .avi or H.264 .mp4)")
     return CameraError(f"cannot open the stream {target.value}: check the URL, credentials and network "
                        "(OpenCV waited up to 5 s)")
+
+
+_V4L2_MAJOR = 81  # the Linux device number of every /dev/videoN (Documentation/admin-guide/devices.txt)
+
+
+def _why_no_v4l2_device(device: int | str) -> str:
+    """Why OpenCV could not open a device, as far as Linux tells: no such node, a node that is no
+    camera (/dev/null), no permission, a camera gone behind its node, or one OpenCV cannot use
+    (busy, or a UVC camera's metadata node). Elsewhere, what to check."""
+    generic = "check it is plugged in (ls /dev/video*), that the user is in the 'video' group, and the index or path"
+    if not sys.platform.startswith("linux"):
+        return generic
+    path = Path(f"/dev/video{device}" if isinstance(device, int) else device)
+    if not path.exists():
+        return f"check it is plugged in (there is no {path}; ls /dev/video*), and the index or path"
+    info = path.stat()
+    if not stat.S_ISCHR(info.st_mode) or os.major(info.st_rdev) != _V4L2_MAJOR:
+        return ("it is not a video device (V4L2); pass a camera's /dev/videoN or /dev/v4l/by-id/... path, or its "
+                "index (opencv:0)")
+    try:
+        os.close(os.open(path, os.O_RDWR | os.O_NONBLOCK))
+    except OSError as exc:
+        if exc.errno in (errno.ENXIO, errno.ENODEV, errno.ENOENT):
+            return "the device behind it is gone (unplugged?); plug it in again, or pick another (ls /dev/video*)"
+        if exc.errno in (errno.EACCES, errno.EPERM):
+            return (f"no permission to open {path}; add the user to the 'video' group "
+                    "(sudo usermod -aG video $USER, then log in again)")
+        if exc.errno == errno.EBUSY:
+            return f"{path} is busy; close the program using it (fuser -v {path})"
+        return f"{path}: {exc.strerror}; check the camera and its cable"
+    return (f"OpenCV cannot capture from {path}: busy in another program (fuser -v {path}), or not a capture node "
+            "(a USB camera's second /dev/video node carries metadata only: v4l2-ctl --list-devices)")
 
 
 def _build_line(name: str) -> str:

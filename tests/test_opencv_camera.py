@@ -6,6 +6,9 @@ streams that do not exist. Only a device that disappears mid-run is played by a 
 from __future__ import annotations
 
 import math
+import os
+import stat
+import sys
 import threading
 import time
 from pathlib import Path
@@ -372,9 +375,22 @@ def test_a_folder_is_not_called_missing(tmp_path):
 
 @pytest.mark.skipif(not Path("/dev/zero").exists(), reason="needs /dev/zero")
 def test_a_device_file_is_not_called_missing():
-    # Under /dev a path is a device, opened as one: /dev/zero is no camera.
-    with pytest.raises(CameraError, match="^no camera at /dev/zero: check it is plugged in"):
+    # Under /dev a path is a device, opened as one: /dev/zero is no camera, and is there, so the
+    # error says what it is, not "check it is plugged in".
+    with pytest.raises(CameraError, match=r"^no camera at /dev/zero: it is not a video device \(V4L2\); pass ") as info:
         OpenCvCamera("/dev/zero", hfov_deg=60.0)
+    assert "plugged in" not in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.skipif(not hasattr(os, "mknod") or os.geteuid() != 0 or not sys.platform.startswith("linux"),
+                    reason="makes a device node: root on Linux")
+def test_a_video_device_node_without_its_device_is_called_gone(tmp_path):
+    # A real V4L2 node (major 81) whose camera is not there, as /dev/videoN is for a moment after
+    # an unplug or with a stale by-id link: the kernel answers ENXIO; the error says so.
+    node = tmp_path / "video250"
+    os.mknod(node, stat.S_IFCHR | 0o660, os.makedev(81, 250))
+    with pytest.raises(CameraError, match=rf"^no camera at {node}: the device behind it is gone \(unplugged\?\)"):
+        OpenCvCamera(CameraTarget("device", str(node)), hfov_deg=60.0)  # as opencv:/dev/... names one
 
 
 def test_a_missing_file_is_one_clear_error(tmp_path):
