@@ -6,8 +6,9 @@ consumer iterates Frames. The pure parts are :func:`parse_target`, :func:`load_c
 :func:`calibration_from_mapping` and :func:`fit_intrinsics`.
 
 - **Intrinsics** come from a calibration file (OpenCV YAML/JSON/XML as ``cv2.FileStorage``
-  writes it, e.g. from ``calibrateCamera``: ``camera_matrix`` or ``K``, ``image_width`` /
-  ``image_height``, optional ``distortion_coefficients``) or from a horizontal field of view.
+  writes it, e.g. from ``calibrateCamera``, or a ``.toml`` file with the same keys:
+  ``camera_matrix`` or ``K``, ``image_width`` / ``image_height``, optional
+  ``distortion_coefficients``) or from a horizontal field of view.
   A calibration made at another resolution with the same aspect ratio is scaled to the stream. A
   calibration with distortion is applied: frames are undistorted (same K), since every Frame is a
   rectified pinhole image.
@@ -43,6 +44,7 @@ import stat
 import sys
 import threading
 import time
+import tomllib
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -169,7 +171,11 @@ def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration
     if k is None:
         raise CameraError(f"{name}: no camera matrix (expected one of {', '.join(_K_KEYS)}); "
                           "pass a cv2.FileStorage calibration file, or --hfov-deg instead")
-    k = np.asarray(k, dtype=np.float64)
+    try:  # a file's values (TOML, or a mapping built by hand): a ragged or non-numeric list
+        k = np.asarray(k, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise CameraError(f"{name}: the camera matrix is not 3x3 numbers; pass it as [[fx, 0, cx], [0, fy, cy], "
+                          "[0, 0, 1]]") from None
     if k.size != 9:
         raise CameraError(f"{name}: camera matrix: expected 3x3 values, got shape {k.shape}")
     k = k.reshape(3, 3)
@@ -181,7 +187,11 @@ def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration
         raise CameraError(f"{name}: no image size (expected image_width and image_height); "
                           "add them, since the camera matrix is only valid at its own resolution")
     d = first(_D_KEYS)
-    d = np.zeros(0) if d is None else np.asarray(d, dtype=np.float64).ravel()
+    try:
+        d = np.zeros(0) if d is None else np.asarray(d, dtype=np.float64).ravel()
+    except (ValueError, TypeError):
+        raise CameraError(f"{name}: the distortion coefficients are not a list of numbers; pass them as "
+                          "[k1, k2, p1, p2, k3]") from None
     try:
         return Calibration(k=k, width=width, height=height, distortion=d)
     except ValidationError as exc:
@@ -201,7 +211,8 @@ def _parse_reason(message: str) -> str:
 
 
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
-    """Read an OpenCV calibration file (YAML, JSON or XML, as ``cv2.FileStorage`` writes it)."""
+    """Read an OpenCV calibration file (YAML, JSON or XML, as ``cv2.FileStorage`` writes it), or a
+    ``.toml`` file with the same keys (top level)."""
     p = Path(path)
     remedy = "pass the file calibrateCamera's results were saved to, or --hfov-deg instead"
     if p.is_dir():
@@ -213,6 +224,13 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
                           "to a file and pass that, or --hfov-deg instead")
     if p.stat().st_size == 0:  # OpenCV says only "Assertion failed: buf"
         raise CameraError(f"calibration file {p} is empty (0 bytes); {remedy}")
+    if p.suffix.lower() == ".toml":  # as sunrig's own configuration: cv2.FileStorage would read it as YAML
+        try:
+            with p.open("rb") as f:
+                table = tomllib.load(f)
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise CameraError(f"calibration file {p} is not valid TOML: {exc}; {remedy}") from None
+        return calibration_from_mapping(table, f"calibration file {p}")
     try:
         fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # OpenCV 5 wraps its parse error in a SystemError

@@ -127,6 +127,9 @@ def test_a_calibration_is_scaled_to_the_stream():
     ({"camera_matrix": -np.eye(3), "image_width": 4, "image_height": 4}, "positive"),
     ({"camera_matrix": np.diag([100.0, -100.0, 1.0]), "image_width": 4, "image_height": 4}, "positive fx, fy"),
     ({"camera_matrix": np.eye(3) * 100, "image_width": 4, "image_height": 4, "D": [0.1, float("nan")]}, "finite"),
+    # As a TOML file gives them: a ragged matrix, words for numbers (a ValueError's traceback).
+    ({"camera_matrix": [[100, 0, 2], [0, 100], [0, 0, 1]], "image_width": 4, "image_height": 4}, "not 3x3 numbers"),
+    ({"camera_matrix": np.eye(3) * 100, "image_width": 4, "image_height": 4, "D": ["k1"]}, "not a list of numbers"),
 ])
 def test_bad_calibrations_say_what_is_missing(values, match):
     with pytest.raises(CameraError, match=match):
@@ -242,6 +245,10 @@ distortion_coefficients:
     ("ost.yaml", _ROS_CAMERA_INFO),
     ("nested.json", '{"image_width": 1280, "image_height": 720, "camera_matrix": [[910.2, 0, 641.7], '
                     '[0, 909.8, 362.4], [0, 0, 1]], "distortion_coefficients": [-0.31, 0.11, 0, 0, 0]}'),
+    # TOML, as sunrig's own configuration is written: cv2.FileStorage read it as YAML and said
+    # "line 1: Only collections as YAML streams are supported by this parser".
+    ("cam.toml", "image_width = 1280\nimage_height = 720\ncamera_matrix = [[910.2, 0, 641.7], [0, 909.8, 362.4], "
+                 "[0, 0, 1]]\ndistortion_coefficients = [-0.31, 0.11, 0, 0, 0]\n"),
 ])
 def test_load_a_ros_or_nested_list_calibration(tmp_path, name, text):
     # Both were an OpenCV assertion ("internal error" at the CLI): node.mat() wants a dt.
