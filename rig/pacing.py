@@ -12,23 +12,34 @@ from rig.types import Frame
 
 log = logging.getLogger(__name__)
 
+_BEHIND_SAID_EVERY_S = 60.0
+
 
 class Pacer:
     """The wait before each frame: its time since the first frame, scaled by ``speed``, against
     the wall clock since then.
 
-    A frame more than ``max_jump_s`` off that schedule re-anchors it at the frame: a recording
-    whose clock jumps ahead is not slept through (one glitched stamp could freeze a replay for an
-    hour), and a replay that fell that far behind (a slow source, a suspended machine) does not
-    then rush every later frame. No window spans such a jump anyway. ``reanchors`` counts them.
+    A frame more than ``max_jump_s`` ahead of that schedule, or more than ``max_behind_s`` behind it
+    (default ``max_jump_s``), re-anchors it at the frame: a recording whose clock jumps ahead is not
+    slept through (one glitched stamp could freeze a replay for an hour), and a replay that fell
+    behind (a slow source, a stalled or suspended machine) does not then rush every later frame.
+    The live rig passes a ``max_behind_s`` of its latency bound: a replay there stands for a camera,
+    which keeps its rate through a stall of its host; rushing the frames missed handed on a burst
+    of frames each older than the last estimate's (seconds, after a 3 s page-out). ``reanchors``
+    counts them; falling behind is said once, then once a minute with the count since.
     """
 
-    def __init__(self, max_jump_s: float, speed: float = 1.0) -> None:
-        if not (max_jump_s > 0 and speed > 0):
-            raise ValueError(f"Pacer: expected max_jump_s > 0 and speed > 0, got {max_jump_s} and {speed}")
+    def __init__(self, max_jump_s: float, speed: float = 1.0, max_behind_s: float | None = None) -> None:
+        max_behind_s = max_jump_s if max_behind_s is None else max_behind_s
+        if not (max_jump_s > 0 and speed > 0 and max_behind_s > 0):
+            raise ValueError(f"Pacer: expected max_jump_s > 0, speed > 0 and max_behind_s > 0, got {max_jump_s}, "
+                             f"{speed} and {max_behind_s}")
         self.max_jump_s = max_jump_s
+        self.max_behind_s = max_behind_s
         self.speed = speed
         self.reanchors = 0
+        self._behind_said_s: float | None = None  # when falling behind was last said (now_s)
+        self._behind_unsaid = 0  # times it fell behind since
         self._start_s: float | None = None
         self._first_t_s = 0.0
         self._last_t_s = 0.0
@@ -41,7 +52,7 @@ class Pacer:
             self._start_s, self._first_t_s = now_s, t
             return 0.0
         delay = self._start_s + (t - self._first_t_s) / self.speed - now_s
-        if abs(delay) <= self.max_jump_s:
+        if -self.max_behind_s <= delay <= self.max_jump_s:
             return max(delay, 0.0)
         # Off schedule: the recording's own clock jumped between two frames (either way), or the
         # replay fell behind a recording that did not.
@@ -50,8 +61,22 @@ class Pacer:
             log.info("seq %d is stamped %+.1f s from the frame before it (the recording's clock jumped): "
                      "pacing from it", frame.seq, step)
         else:
-            log.info("the replay is %.1f s off the recording's schedule at seq %d (it fell behind): "
-                     "pacing from here, not rushing", -delay, frame.seq)
+            self._say_behind(-delay, frame.seq, now_s)
         self.reanchors += 1
         self._start_s, self._first_t_s = now_s, t
         return 0.0
+
+    def _say_behind(self, behind_s: float, seq: int, now_s: float) -> None:
+        # A source slower than its recording falls behind again and again (every few seconds with a
+        # small max_behind_s): said once, then once a minute, not at each re-anchor.
+        self._behind_unsaid += 1
+        if self._behind_said_s is None:
+            log.info("the replay is %.1f s off the recording's schedule at seq %d (it fell behind): "
+                     "pacing from here, not rushing", behind_s, seq)
+        elif now_s - self._behind_said_s >= _BEHIND_SAID_EVERY_S:
+            log.info("the replay fell behind the recording's schedule and re-anchored %d times in %.0f s, the last "
+                     "%.1f s behind at seq %d: a source slower than its recording (said once a minute while it "
+                     "goes on)", self._behind_unsaid, now_s - self._behind_said_s, behind_s, seq)
+        else:
+            return
+        self._behind_said_s, self._behind_unsaid = now_s, 0

@@ -76,3 +76,48 @@ def test_replay_realtime_does_not_sleep_through_a_glitched_stamp():
     out = list(paced(frames, clock=lambda: now[0], sleep=sleep))
     assert [f.seq for f in out] == list(range(9))
     assert max(slept) < 1.0 and sum(slept) < 2.0  # without re-anchoring: sleep(3599.5)
+
+
+def deliveries(pacer, stamps, stall_at=None, stall_s=0.0, read_s=0.0):
+    """When each frame is handed on: the clock moves by each wait, by ``read_s`` per frame read,
+    and by ``stall_s`` once, before frame ``stall_at`` (the machine stopped: a page-out, SIGSTOP)."""
+    now, out = 0.0, []
+    for seq, t in enumerate(stamps):
+        if seq == stall_at:
+            now += stall_s
+        now += read_s
+        now += pacer.delay_s(frame(seq, t), now_s=now)
+        out.append(now)
+    return np.array(out)
+
+
+def test_a_live_replay_that_stalled_paces_on_from_where_it_is_instead_of_rushing():
+    # A 3 s stall at 10 Hz: the replay once handed on the 30 frames it was behind at once (each
+    # 0.1-2.9 s older than the schedule, a burst of stale estimates after it) and only then went on
+    # at 10 Hz. Behind by more than max_behind_s, it paces from the frame it is at, as a camera
+    # keeps its rate through a stall of its host.
+    p = Pacer(max_jump_s=10.0, max_behind_s=0.5)
+    at = deliveries(p, [0.1 * i for i in range(80)], stall_at=40, stall_s=3.0)
+    assert np.diff(at[40:]) == pytest.approx(np.full(39, 0.1))
+    assert at[40] == pytest.approx(6.9)  # the frame due at 4.0, handed on when the stall ended
+    assert p.reanchors == 1
+
+
+def test_a_replay_slower_than_its_recording_stays_within_max_behind_s_and_says_so_once_a_minute(caplog):
+    # Each frame takes 0.12 s to read in a 10 Hz recording: the replay falls behind by 0.02 s a frame.
+    p = Pacer(max_jump_s=10.0, max_behind_s=0.5)
+    with caplog.at_level("INFO", logger="rig.pacing"):
+        at = deliveries(p, [0.1 * i for i in range(1000)], read_s=0.12)  # 120 s
+    # Behind the schedule of its last anchor by at most max_behind_s (+ one frame's read): re-anchored
+    # about every 25 frames, not left to fall 10 s behind.
+    assert 35 <= p.reanchors <= 45
+    assert at[-1] == pytest.approx(0.12 * 1000)
+    said = [r.getMessage() for r in caplog.records]
+    assert 2 <= len(said) <= 3, said  # the first, then once a minute with the count: not 40 lines
+    assert "fell behind" in said[0]
+    assert "re-anchored" in said[1]
+
+
+def test_max_behind_s_must_be_positive():
+    with pytest.raises(ValueError, match="Pacer"):
+        Pacer(10.0, max_behind_s=0.0)
