@@ -22,6 +22,8 @@ consumer iterates Frames. The pure parts are :func:`parse_target`, :func:`load_c
   ``backoff_s[1]``; it never raises for that, unless ``max_outage_s`` is set and passes. A video
   file ends at its end; its first frame is read as it opens, so a file with no frame OpenCV can
   decode, or one the intrinsics cannot fit, is refused then.
+- **Repeated frames**: a live image identical to the one before (a frozen driver or stream
+  giving its last buffer again) is no new exposure: dropped and counted (``repeated``).
 - **Bounded waits**: the consumer waits at most ``poll_s`` at a time and sees :meth:`stop` /
   :meth:`close` within that; a live frame the consumer has not taken is dropped when a newer one
   arrives (counted), a file waits for the consumer instead (nothing is lost by replaying
@@ -476,7 +478,7 @@ class OpenCvCamera:
         self._queue: deque[Frame] = deque()
         self._queue_max = 2 if self.live else 8
         self._stats = dict.fromkeys(("frames", "dropped", "bad_frames", "read_failures", "reconnects",
-                                     "open_failures", "stalls"), 0)
+                                     "open_failures", "stalls", "repeated"), 0)
         self._last_error: str | None = None
         self._failure: BaseException | None = None
         self._ended = False  # the reader will put nothing more (end of file, gave up, or a bug)
@@ -485,6 +487,8 @@ class OpenCvCamera:
         # the consumer, the one side still running.
         self._busy: tuple[float, str] | None = None
         self._stalled = False
+        self._last_image: np.ndarray | None = None  # a live source's last raw image (see _repeats)
+        self._repeats_said_at: float | None = None
         self._stop = threading.Event()
         self._closed = False
         self._thread: threading.Thread | None = None
@@ -605,6 +609,8 @@ class OpenCvCamera:
                     log.info("%s is back after %.1f s", self._named, now - outage_since)
                 outage_since = None
                 backoff = self._backoff[0]
+                if self.live and self._repeats(image, now):
+                    continue
                 try:
                     frame = self._make_frame(image, now)
                 except (SunrigError, ValueError, cv2.error) as exc:
@@ -675,6 +681,33 @@ class OpenCvCamera:
         if self._max_outage_s is not None and waited_s > self._max_outage_s:
             raise CameraError(f"{self._named} lost for more than {self._max_outage_s:g} s ({self._last_error}); "
                               "check the cable or network")
+
+    def _repeats(self, image: np.ndarray, now: float) -> bool:
+        """A live image identical to the one before, byte for byte, is the driver's or stream's
+        last buffer again (a frozen camera, an IP camera repeating its last picture), not a new
+        exposure: two exposures of a real sensor differ by its noise at least. Stamped with this
+        read's time it would be an older view paired with a newer heading, so it is dropped and
+        counted (``repeated``), said at most once a minute. (A low-bitrate stream of a still scene
+        may decode to the same bytes too: it then gives fewer frames, never an old one as new.) A
+        uniform image (black, saturated) is kept: a dark scene's frames are all alike, and the
+        rig's exposure check says so."""
+        last, self._last_image = self._last_image, image
+        if last is None or last.shape != image.shape or last.dtype != image.dtype:
+            return False
+        # A few rows first: two different images almost always differ there, so the whole
+        # comparison runs for repeats only.
+        if not np.array_equal(last[::16], image[::16]) or not np.array_equal(last, image):
+            return False
+        if image.size == 0 or image.min() == image.max():
+            return False
+        with self._lock:
+            self._stats["repeated"] += 1
+            self._last_error = "frames identical to the one before (a frozen camera or stream?)"
+        if self._repeats_said_at is None or now - self._repeats_said_at >= 60.0:
+            self._repeats_said_at = now
+            log.warning("%s: a frame identical to the one before (a frozen camera or stream?); dropping such frames "
+                        "(counted in repeated)", self._named)
+        return True
 
     def _make_frame(self, image: np.ndarray, now: float) -> Frame:
         image = as_bgr(image)

@@ -717,3 +717,39 @@ def test_a_read_stalled_longer_than_max_outage_is_the_consumers_error():
     with pytest.raises(CameraError, match=r"^camera 0 lost for more than 0.1 s \(read\(\) has not returned"):
         collect(cam)
     cam.close()
+
+
+# --- a camera that gives the same frame again: a FAKE capture (no real camera freezes on cue) -----
+
+
+class RepeatingCapture(DisappearingCapture):
+    """FAKE cv2.VideoCapture: each read gives the next image of ``images`` (a list of arrays),
+    as a frozen driver or IP camera gives its last buffer again; then the end."""
+
+    def __init__(self, images: list):
+        super().__init__(len(images))
+        self.images = list(images)
+
+    def read(self):
+        ok, _ = super().read()
+        return (True, self.images.pop(0).copy()) if ok else (False, None)
+
+
+def test_a_live_frame_identical_to_the_one_before_is_dropped_and_counted(caplog):
+    # Two exposures of a real sensor never match byte for byte: the same image again is an old
+    # view stamped with a new read time, which a live compass's heading would be paired with.
+    a, b = (np.random.default_rng(k).integers(0, 255, (H, W, 3), dtype=np.uint8) for k in (1, 2))
+    black = np.zeros((H, W, 3), np.uint8)  # a dark scene's frames are all alike: left to the rig
+    images = [a, a, a, b, b, a, black, black]
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=lambda _: RepeatingCapture(images), poll_s=0.01,
+                       reconnect=False)
+    with caplog.at_level("WARNING", logger="drivers.opencv_camera"):
+        got = collect(cam)
+    cam.close()
+    stats = cam.stats()
+    assert stats["repeated"] == 3 and stats["frames"] == 5
+    # Taken or dropped as a live camera's are (a slow machine may drop one for lag), in order.
+    kept = [a, b, a, black, black]
+    assert len(got) + stats["dropped"] == 5
+    assert [f.image_bgr.tobytes() for f in got] == [kept[f.seq].tobytes() for f in got]
+    assert sum("identical to the one before" in r.getMessage() for r in caplog.records) == 1
