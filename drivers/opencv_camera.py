@@ -420,7 +420,8 @@ class OpenCvCamera:
 
     ``source``: a device index, a path or URL, or a :class:`CameraTarget`. Intrinsics: exactly
     one of ``intrinsics`` (used as is; must match the stream size), ``calibration`` (a file or a
-    :class:`Calibration`) or ``hfov_deg``. ``width``/``height``/``fps`` are requests to a device.
+    :class:`Calibration`) or ``hfov_deg``. ``width``/``height``/``fps`` are requests to a device
+    (a size it does not give is said once; a file or stream takes none, said as it opens).
     ``reconnect``: retry a failed read (default: yes for live sources, never for files).
     ``capture_factory(target)`` opens a capture (tests pass a fake for the one thing no test
     machine has: a device that disappears). Iterate it for Frames; a context manager.
@@ -497,9 +498,20 @@ class OpenCvCamera:
         self._intr: Intrinsics | None = None
         self._undistort: tuple[np.ndarray, np.ndarray] | None = None
         self._undistort_size: tuple[int, int] | None = None
+        # A device keeps its own mode when it cannot do the one asked for: said at its first frame.
+        self._asked = (width or None, height or None) if self.target.kind == "device" else (None, None)
+        self._said_sizes: set[tuple[int, int]] = set()
         # A file's first frame is read now: a file with no frame OpenCV can decode, or one the
         # intrinsics cannot fit, is refused as it opens, not once the run has started.
         self._first: Frame | None = None if self.live else self._read_first_frame()
+        if self.target.kind != "device" and (width or height or fps):
+            if self._first is not None:
+                intr = self._first.intrinsics
+                rate = f" at {self._fps:g} fps" if self._fps > 0 else ""
+                what = f"is a video file: it keeps its own {intr.width}x{intr.height}{rate}"
+            else:
+                what = "is a stream: it keeps the mode its sender chose"
+            log.warning("%s %s; --width/--height/--fps are requests to a camera device, left unused", self.target, what)
 
     # --- the consumer's side ---------------------------------------------------------------------
 
@@ -714,6 +726,7 @@ class OpenCvCamera:
         h, w = image.shape[:2]
         if self._intr is None or (self._intr.width, self._intr.height) != (w, h):
             self._intr = self._intrinsics_for(w, h)
+            self._say_unasked_size(w, h)
         if self._undistort is not None:
             image = cv2.remap(image, *self._undistort, interpolation=cv2.INTER_LINEAR)
         if self.live:
@@ -723,6 +736,15 @@ class OpenCvCamera:
         frame = Frame(t_mono_s=max(t, 0.0), seq=self._seq, image_bgr=image, intrinsics=self._intr)
         self._seq += 1
         return frame
+
+    def _say_unasked_size(self, w: int, h: int) -> None:
+        asked_w, asked_h = self._asked
+        if (asked_w is None or asked_w == w) and (asked_h is None or asked_h == h) or (w, h) in self._said_sizes:
+            return
+        self._said_sizes.add((w, h))
+        asked = f"{asked_w or '(its own)'}x{asked_h or '(its own)'}"
+        log.warning("%s gives %dx%d, not the %s asked for (--width/--height): it cannot do that mode; its "
+                    "intrinsics follow what it gives", self._named, w, h, asked)
 
     def _file_time(self) -> float:
         """The file's own timestamp of the frame just read, or index / fps where it has none."""

@@ -753,3 +753,30 @@ def test_a_live_frame_identical_to_the_one_before_is_dropped_and_counted(caplog)
     assert len(got) + stats["dropped"] == 5
     assert [f.image_bgr.tobytes() for f in got] == [kept[f.seq].tobytes() for f in got]
     assert sum("identical to the one before" in r.getMessage() for r in caplog.records) == 1
+
+
+# --- a requested mode: said when it is not what comes ---------------------------------------------
+
+
+def test_a_requested_size_a_video_file_cannot_take_is_said(video, caplog):
+    # --width/--height/--fps are requests to a device; of a file they were dropped without a word.
+    with caplog.at_level("WARNING", logger="drivers.opencv_camera"):
+        with OpenCvCamera(str(video), hfov_deg=60.0, width=1280, height=720, fps=30.0) as cam:
+            frames = collect(cam, limit=2)
+    assert frames[0].image_bgr.shape == (H, W, 3)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and f"{video} is a video file: it keeps its own {W}x{H} at {FPS:g} fps" in said[0]
+    assert "--width/--height/--fps" in said[0]
+
+
+def test_a_device_that_keeps_another_size_than_asked_is_said_once(caplog):
+    # A camera that cannot do the requested mode keeps its own (FAKE capture: the request is
+    # OpenCV's to pass on, and no device is here): the frames say which, and so does the log.
+    cam = OpenCvCamera(0, hfov_deg=60.0, width=1280, height=720, capture_factory=FakeFactory([4]), poll_s=0.01,
+                       reconnect=False)
+    with caplog.at_level("WARNING", logger="drivers.opencv_camera"):
+        frames = collect(cam)
+    cam.close()
+    assert frames and frames[0].image_bgr.shape == (H, W, 3)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and f"camera 0 gives {W}x{H}, not the 1280x720 asked for" in said[0]
