@@ -486,7 +486,7 @@ class OpenCvCamera:
         # Since when the reader has been inside the capture's read() or open, and which: a call
         # that does not return (a stream or driver waiting for data that does not come) is seen by
         # the consumer, the one side still running.
-        self._busy: tuple[float, str] | None = None
+        self._busy: tuple[float, str, bool] | None = None
         self._stalled = False
         self._last_image: np.ndarray | None = None  # a live source's last raw image (see _repeats)
         self._repeats_said_at: float | None = None
@@ -599,13 +599,13 @@ class OpenCvCamera:
                 self._first = None
             while not self._stop.is_set():
                 if self._cap is None:
-                    if not self._busy_with("reopen", self._reopen):
+                    if not self._busy_with("reopen", self._reopen, in_outage=True):
                         outage_since = self._check_outage(outage_since)
                         self._stop.wait(backoff)
                         backoff = min(2.0 * backoff, self._backoff[1])
                         continue
                 try:
-                    ok, image = self._busy_with("read()", self._cap.read)
+                    ok, image = self._busy_with("read()", self._cap.read, in_outage=outage_since is not None)
                 except cv2.error as exc:
                     ok, image = False, None
                     self._note_error(f"read raised: {str(exc).strip().splitlines()[-1]}")
@@ -662,15 +662,17 @@ class OpenCvCamera:
             self._release()
             raise
 
-    def _busy_with(self, what: str, call: Callable[[], Any]) -> Any:
-        """``call()`` (a read or open), marked as under way for :meth:`_check_stall`."""
+    def _busy_with(self, what: str, call: Callable[[], Any], *, in_outage: bool) -> Any:
+        """``call()`` (a read or open), marked as under way for :meth:`_check_stall`. In an
+        outage already said, a slow call (an open waiting for its timeout, every few seconds) is
+        no news: it is not said or counted as a stall, only held to ``max_outage_s``."""
         with self._lock:
-            self._busy = (self._clock(), what)
+            self._busy = (self._clock(), what, in_outage)
         try:
             return call()
         finally:
             with self._lock:
-                since, _ = self._busy or (0.0, "")
+                since = self._busy[0] if self._busy else 0.0
                 self._busy = None
                 stalled, self._stalled = self._stalled, False
             if stalled:
@@ -683,9 +685,9 @@ class OpenCvCamera:
         V4L2's (10 s) end most such calls as a failure, which reconnects."""
         if self._busy is None:
             return
-        since, what = self._busy
+        since, what, in_outage = self._busy
         waited_s = self._clock() - since
-        if waited_s >= self._stall_s and not self._stalled:
+        if waited_s >= self._stall_s and not self._stalled and not in_outage:
             self._stalled = True
             self._stats["stalls"] += 1
             self._last_error = f"{what} has not returned for {self._stall_s:g} s (a stalled camera or stream)"

@@ -780,3 +780,31 @@ def test_a_device_that_keeps_another_size_than_asked_is_said_once(caplog):
     assert frames and frames[0].image_bgr.shape == (H, W, 3)
     said = [r.getMessage() for r in caplog.records]
     assert len(said) == 1 and f"camera 0 gives {W}x{H}, not the 1280x720 asked for" in said[0]
+
+
+def test_reopens_slower_than_stall_s_in_an_outage_are_not_each_a_stall(caplog):
+    # Reopening an unreachable stream takes OpenCV's open timeout (5 s) each time: in an outage
+    # already said, each attempt was said and counted again as a stall, one warning per attempt.
+    def slow_failing_open(_target, opens=[0]):  # noqa: B006 - the count of opens, kept across calls
+        opens[0] += 1
+        if opens[0] == 1:
+            return DisappearingCapture(1)
+        time.sleep(0.05)  # FAKE: an open that waits for its timeout
+        return DisappearingCapture(0, opened=False)
+
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=slow_failing_open, backoff_s=(0.01, 0.01), poll_s=0.01,
+                       stall_s=0.02)
+    it = iter(cam)
+    with caplog.at_level("WARNING", logger="drivers.opencv_camera"):
+        assert next(it).seq == 0
+        waiter = threading.Thread(target=lambda: next(it, None), daemon=True)  # the consumer waits on
+        waiter.start()
+        deadline = time.monotonic() + HANG_GUARD_S
+        while cam.stats()["open_failures"] < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        cam.stop()
+        waiter.join(HANG_GUARD_S)
+    cam.close()
+    said = [r.getMessage() for r in caplog.records]
+    assert cam.stats()["stalls"] == 0 and not any("has not returned" in m for m in said)
+    assert sum("read failed" in m for m in said) == 1  # the outage, said once
