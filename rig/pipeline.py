@@ -89,8 +89,8 @@ class _Latency:
 
 @dataclass
 class RigStats:
-    """Counters of one run. ``latency`` is frame arrival (capture) to the return of the last
-    publisher's ``publish``; ``update_hz`` is estimates per second over the run."""
+    """Counters of one run. ``latency`` is a frame leaving the source (capture) to the return of the
+    last publisher's ``publish``; ``update_hz`` is estimates per second over the run."""
 
     frames_captured: int = 0
     frames_dropped_queue: int = 0
@@ -335,6 +335,8 @@ class RigPipeline:
                 delay = pacer.delay_s(frame, self.clock())
                 if delay > 0 and self._stop.wait(delay):
                     return
+            # Latency counts from here: the recorder and the exposure gate below are the controller's wait too.
+            arrived = self.clock()
             self.stats.frames_captured += 1
             if self.on_frame is not None:
                 self.on_frame(frame)
@@ -349,7 +351,7 @@ class RigPipeline:
                 # Too dark, bright or flat to show the sun (rig/exposure.py): recorded, never estimated.
                 self.stats.frames_bad_exposure += 1
                 continue
-            if not self._frames.put((frame, self.clock())):
+            if not self._frames.put((frame, arrived)):
                 self.stats.frames_dropped_queue += 1
 
     def _publish(self, est) -> None:

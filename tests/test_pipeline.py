@@ -751,3 +751,49 @@ def test_windows_full_and_partial_in_turn_are_said_a_few_times_then_summed_up(mo
         assert abs(tried * 0.575 - seconds) <= 1.5, line
         at_s.append(t_of(seq))
     assert abs(at_s[1] - at_s[0] - 60.0) <= 0.65, at_s  # a minute apart, to within a frame
+
+
+class FakeClock:
+    """The rig's clock, moved only by the test: by each frame's interval and by the stages' stand-ins."""
+
+    def __init__(self):
+        self.now_s = 100.0
+
+    def __call__(self):
+        return self.now_s
+
+
+def accounted(stats):
+    """Frames captured that have come to an end: left out, dropped, refused, or their window done."""
+    return (stats.frames_without_heading + stats.frames_bad_exposure + stats.frames_dropped_queue
+            + stats.frames_out_of_order + stats.windows_skipped + stats.estimates + stats.estimates_failed)
+
+
+def lockstep(n, clock, pipe_box, dt=0.1, after=None, no_wait=()):
+    """``n`` frames of a 10 Hz camera stamped by ``clock``, each handed on once the one before has
+    come to an end (deterministic order, whatever the threads' timing), except those in ``no_wait``;
+    ``after(seq)`` runs once frame ``seq`` is queued, before the next is waited for."""
+    for i, frame in enumerate(frames(n, dt=dt)):
+        deadline = time.monotonic() + 10.0  # never hangs a broken pipeline
+        while i not in no_wait and accounted(pipe_box[0].stats) < i and time.monotonic() < deadline:
+            time.sleep(0.001)
+        clock.now_s += dt
+        yield dataclasses.replace(frame, t_mono_s=clock.now_s)
+        if after is not None:
+            after(i)
+
+
+def test_latency_counts_from_the_frame_leaving_the_source(model):
+    # The time the capture stage spends on a frame (the recorder writing it, the exposure gate)
+    # is the controller's wait too; latency once started after it.
+    clock, box = FakeClock(), list[RigPipeline]()
+
+    def slow_recorder(frame):
+        clock.now_s += 0.5
+
+    out = Collect()
+    pipe = RigPipeline(lockstep(20, clock, box), SunEstimator(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100), clock=clock, on_frame=slow_recorder)
+    box.append(pipe)
+    stats = pipe.run(timeout_s=60)
+    assert stats.estimates == 20 and stats.latency.summary_ms()["p50_ms"] == pytest.approx(500.0)
