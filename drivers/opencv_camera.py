@@ -610,6 +610,8 @@ class OpenCvCamera:
                     ok, image = False, None
                     self._note_error(f"read raised: {str(exc).strip().splitlines()[-1]}")
                 now = self._clock()
+                if self._stop.is_set():
+                    break  # stopped while reading: nobody takes what the read gave, nor hears of its failure
                 if not ok or image is None:
                     if not self._reconnect:
                         break  # the end of a file (or of a source we were told not to retry)

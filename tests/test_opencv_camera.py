@@ -808,3 +808,26 @@ def test_reopens_slower_than_stall_s_in_an_outage_are_not_each_a_stall(caplog):
     said = [r.getMessage() for r in caplog.records]
     assert cam.stats()["stalls"] == 0 and not any("has not returned" in m for m in said)
     assert sum("read failed" in m for m in said) == 1  # the outage, said once
+
+
+def test_a_read_that_fails_after_stop_says_no_reconnect(caplog):
+    # A stalled read that fails (its timeout) after the rig stopped: the reader said "read failed;
+    # reconnecting with backoff" below the run's summary, of a camera nobody reads any more.
+    capture = StallingCapture(1)
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=lambda _: capture, poll_s=0.01, join_timeout_s=0.01)
+    it = iter(cam)
+    assert next(it).seq == 0
+    deadline = time.monotonic() + HANG_GUARD_S
+    while cam._busy is None and time.monotonic() < deadline:  # the reader is in its stalled read
+        time.sleep(0.01)
+    with caplog.at_level("WARNING", logger="drivers.opencv_camera"):
+        cam.stop()
+        assert list(it) == []
+        capture.left = 0  # the read, when it returns, fails
+        capture.resume.set()
+        reader = cam._thread
+        assert reader is not None
+        reader.join(HANG_GUARD_S)
+    cam.close()
+    assert not any("read failed" in r.getMessage() for r in caplog.records)
+    assert cam.stats()["read_failures"] == 0
