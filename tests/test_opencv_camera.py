@@ -218,7 +218,7 @@ def write_calibration(path, k, width, height, dist=None, keys=("camera_matrix", 
     ("calib.xml", ("cameraMatrix", "image_width", "image_height")),
 ])
 def test_load_calibration_file(tmp_path, name, keys):
-    k = [[500.0, 0, 320.5], [0, 502.0, 240.25], [0, 0, 1]]
+    k: list[list[float]] = [[500.0, 0, 320.5], [0, 502.0, 240.25], [0, 0, 1]]
     write_calibration(tmp_path / name, k, 640, 480, keys=keys)
     cal = load_calibration(tmp_path / name)
     assert cal.width == 640 and cal.height == 480 and not cal.distorted
@@ -526,8 +526,11 @@ def test_live_frames_are_stamped_at_read_time_minus_the_latency_never_below_zero
     # A live frame: clock() when read() returns, moved back by latency_s (the module docstring),
     # and clamped at 0 (Frame times are not negative).
     for now, want in ((100.0, 99.95), (0.01, 0.0)):
+        def clock(now: float = now) -> float:
+            return now
+
         cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=FakeFactory([3]), poll_s=0.01, reconnect=False,
-                           latency_s=0.05, clock=lambda now=now: now)
+                           latency_s=0.05, clock=clock)
         got = collect(cam)
         cam.close()
         assert got and all(f.t_mono_s == pytest.approx(want, abs=EXACT_F64) for f in got)
