@@ -5,7 +5,11 @@
 - **encode** runs the backbone once per frame as it enters the ring (``SunEstimator.encode``).
 - **estimate** forms a window from the ring for the newest frame and runs the aggregator. It is
   woken through a one-slot mailbox: if estimating falls behind encoding, older "new frame"
-  signals are overwritten (counted as skipped windows) so latency stays bounded.
+  signals are overwritten (counted as skipped windows) so latency stays bounded. A window whose
+  frame left the source more than ``max_latency_s`` ago (it waited through a stall: a page-out, a
+  machine too busy) is skipped too, and so is an estimate that took that long: nothing on the wire
+  says how old an estimate is (docs/protocol.md), and one seconds old has a relative bearing as
+  old. Counted as stale, and said when it starts and when estimates are in time again.
 - **publish**: every publisher's ``publish`` must return at once (the serial one hands the
   message to its own writer thread). A publisher that raises (a full disk under the JSONL file)
   loses that estimate, counted in ``publish_errors`` (and as ``raised`` in its statistics) and
@@ -60,13 +64,17 @@ class RigConfig:
     ring_max_age_s: float = DEFAULT_MAX_AGE_S
     status_every_s: float = 5.0
     realtime: bool = False  # pace a recorded source by its timestamps
+    # The oldest an estimate may be sent: from its frame leaving the source to its publishing. Later
+    # ones are skipped (stale); a paced replay that falls this far behind its schedule paces from
+    # where it is (rig/pacing.py) rather than rushing out frames already this old.
+    max_latency_s: float = 1.0
     exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE  # None: every frame joins windows
 
     def __post_init__(self) -> None:
         for name in ("queue_size", "ring_capacity"):
             if not getattr(self, name) >= 1:
                 raise ValidationError(f"[rig] {name}: expected >= 1, got {getattr(self, name)}")
-        for name in ("ring_max_age_s", "status_every_s"):
+        for name in ("ring_max_age_s", "status_every_s", "max_latency_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValidationError(f"[rig] {name}: expected a finite number of seconds > 0, got {v}")
@@ -90,7 +98,10 @@ class _Latency:
 @dataclass
 class RigStats:
     """Counters of one run. ``latency`` is a frame leaving the source (capture) to the return of the
-    last publisher's ``publish``; ``update_hz`` is estimates per second over the run."""
+    last publisher's ``publish``; ``update_hz`` is estimates per second over the run.
+    ``windows_skipped`` counts every window not sent because the estimator was behind: overwritten
+    in the mailbox, or stale (later than ``RigConfig.max_latency_s``), which ``estimates_stale``
+    counts apart."""
 
     frames_captured: int = 0
     frames_dropped_queue: int = 0
@@ -102,6 +113,7 @@ class RigStats:
     # far more than their monotonic clock (a suspend): the ring started again from them
     clock_jumps: int = 0
     windows_skipped: int = 0
+    estimates_stale: int = 0  # of windows_skipped: too late to send
     estimates: int = 0
     estimates_failed: int = 0
     publish_errors: int = 0  # estimates a publisher raised on, all outputs (each counts its own)
@@ -128,11 +140,12 @@ class RigStats:
         lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
         pub_drops, pub_errors = publisher_losses(self.publishers.values())
         status = f" | status errors {self.status_errors}" if self.status_errors else ""
+        stale = f" ({self.estimates_stale} of them too late to send)" if self.estimates_stale else ""
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
                 f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}, out of order "
                 f"{self.frames_out_of_order}, clock jumps {self.clock_jumps}) | estimates "
                 f"{self.estimates} at {rate:.1f} Hz, skipped {self.windows_skipped}, failed "
-                f"{self.estimates_failed} | {lat_text} | publish drops {pub_drops}, errors {pub_errors}{status}")
+                f"{self.estimates_failed}{stale} | {lat_text} | publish drops {pub_drops}, errors {pub_errors}{status}")
 
 
 def publisher_losses(stats: Iterable[dict]) -> tuple[int, int]:
@@ -179,6 +192,9 @@ class RigPipeline:
         self._sparse = LastingCondition(None)
         self._failing = LastingCondition(None)
         self._failing_since_seq = 0  # the window that began the stretch of failures last said
+        # "stale" while windows come later than max_latency_s (_log_stale), said as the others are.
+        self._stale = LastingCondition(None)
+        self._stale_since_seq = 0
         self._last_failure = ""  # what the newest failed window raised
         self._status_error: str | None = None  # what the last status line that failed raised
         # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
@@ -327,7 +343,10 @@ class RigPipeline:
     # -- stages ------------------------------------------------------------------------------
     def _capture(self) -> None:
         # A jump longer than the ring holds re-anchors the pace: no window spans it anyway.
-        pacer = Pacer(max_jump_s=self.config.ring_max_age_s) if self.config.realtime else None
+        # Behind by more than the latency bound, it paces from where it is: a camera keeps its rate
+        # through a stall of its host, and the frames missed would only be skipped as stale.
+        pacer = (Pacer(max_jump_s=self.config.ring_max_age_s, max_behind_s=self.config.max_latency_s)
+                 if self.config.realtime else None)
         for frame in self.source:
             if self._stop.is_set():
                 return
@@ -469,6 +488,8 @@ class RigPipeline:
                     return
                 continue
             feats, arrived = item
+            if self._too_late(feats, self.clock() - arrived):  # waited through a stall: not worth a run
+                continue
             candidates = [f for f in self.ring.snapshot() if f.frame.t_mono_s <= feats.frame.t_mono_s]
             window = self.policy.select(candidates)
             self._log_sparse(candidates, window, feats)
@@ -479,6 +500,43 @@ class RigPipeline:
                 self._log_failing(feats, exc)
                 continue
             self._log_failing(feats, None)
+            if self._too_late(feats, self.clock() - arrived):  # the window itself stalled
+                continue
+            self._log_stale(feats, None)
             self._publish(est)
             self.stats.estimates += 1
             self.stats.latency.add(self.clock() - arrived)
+
+    def _too_late(self, feats: FrameFeatures, age_s: float) -> bool:
+        """Whether the window of ``feats``, its frame ``age_s`` out of the source, is too late to send:
+        then it is counted (skipped, stale) and said."""
+        if age_s <= self.config.max_latency_s:
+            return False
+        self.stats.windows_skipped += 1
+        self.stats.estimates_stale += 1
+        self._log_stale(feats, age_s)
+        return True
+
+    def _log_stale(self, feats: FrameFeatures, age_s: float | None) -> None:
+        """Say when windows start coming too late to send (``age_s``) and when they are in time again
+        (None); a machine at the edge of the bound is summed up once a minute."""
+        seq = feats.frame.seq
+        said = self._stale.update(None if age_s is None else "stale", feats.frame.t_mono_s)
+        if said is None:
+            return
+        stale = said.counts.get("stale", 0)
+        if said.kind == "change" and said.changes == 1:
+            if age_s is not None:
+                self._stale_since_seq = seq
+                log.warning("seq %d: its estimate came %.1f s after its frame, over [rig] max_latency_s (%g s): not "
+                            "sent, nor any later one as late (counted as stale; said when estimates are in time "
+                            "again). The machine stalled or is too busy for the model", seq, age_s,
+                            self.config.max_latency_s)
+            else:
+                log.info("from seq %d estimates are in time again: %d too late to send since seq %d", seq, stale,
+                         self._stale_since_seq)
+            return
+        log.warning("estimates come in time and too late in turn: %d changes in %.0f s, %d of %d too late to send "
+                    "(over [rig] max_latency_s %g s); from seq %d %s (said once a minute while it goes on)",
+                    said.changes, feats.frame.t_mono_s - said.since_s, stale, sum(said.counts.values()),
+                    self.config.max_latency_s, seq, "too late" if age_s is not None else "in time")

@@ -454,7 +454,8 @@ def test_status_lines_are_reported(model):
 
 
 @pytest.mark.parametrize("kwargs", [{"queue_size": 0}, {"ring_capacity": 0}, {"ring_max_age_s": 0.0},
-                                    {"status_every_s": 0.0}, {"ring_max_age_s": math.inf}])
+                                    {"status_every_s": 0.0}, {"ring_max_age_s": math.inf},
+                                    {"max_latency_s": 0.0}, {"max_latency_s": math.nan}])
 def test_rig_config_refuses_sizes_and_times_that_cannot_work(kwargs):
     # A queue or ring of 0 frames never holds a frame; a ring kept 0 s forms no window; a status
     # every 0 s is a busy loop. Each comes from a config file, so it is named there, not at run time.
@@ -781,6 +782,65 @@ def lockstep(n, clock, pipe_box, dt=0.1, after=None, no_wait=()):
         yield dataclasses.replace(frame, t_mono_s=clock.now_s)
         if after is not None:
             after(i)
+
+
+def test_an_estimate_that_took_seconds_is_not_sent_late_and_is_counted(model, caplog):
+    # One window stalls for 3 s (a page-out). Its estimate once went out 3 s after its frame, its
+    # relative bearing as old, which the controller cannot tell (docs/protocol.md: nothing on the
+    # wire says how old an estimate is). Later than [rig] max_latency_s, it is not sent: counted
+    # as a skipped window, and as stale, said once.
+    clock, box = FakeClock(), list[RigPipeline]()
+
+    class Stalls(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            est = super().estimate(window, aggregator)
+            clock.now_s += 3.0 if window[-1].frame.seq == 10 else 0.02
+            return est
+
+    out = Collect()
+    pipe = RigPipeline(lockstep(30, clock, box), Stalls(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100, max_latency_s=1.0), clock=clock)
+    box.append(pipe)
+    with caplog.at_level(logging.INFO, logger="rig.pipeline"):
+        stats = pipe.run(timeout_s=60)
+    assert [e.seq for e in out.estimates] == [s for s in range(30) if s != 10]
+    assert stats.estimates_stale == 1 and stats.windows_skipped == 1 and stats.estimates == 29
+    assert stats.latency.summary_ms()["max_ms"] <= 1000.0
+    assert "(1 of them too late to send)" in stats.status_line(clock.now_s)
+    said = [r.getMessage() for r in caplog.records if "max_latency_s" in r.getMessage() or "in time" in r.getMessage()]
+    assert len(said) == 2 and said[0].startswith("seq 10: its estimate came 3.0 s after") and "seq 11" in said[1]
+
+
+def test_frames_that_waited_through_a_stall_are_not_estimated_for_nothing(model):
+    # The backbone stalls 3 s on seq 10 while seq 11 waits in the queue: both windows come too late
+    # to send; seq 11's is left out before the aggregator runs it, the frame still joins the ring.
+    clock, box = FakeClock(), list[RigPipeline]()
+    queued = threading.Event()
+
+    class Stalls(SunEstimator):
+        estimated = []
+
+        def encode(self, frame):
+            if frame.seq == 10:
+                queued.wait(10.0)  # seq 11 has arrived, before the stall
+                clock.now_s += 3.0
+            return super().encode(frame)
+
+        def estimate(self, window, aggregator=None):
+            self.estimated.append(window[-1].frame.seq)
+            return super().estimate(window, aggregator)
+
+    # seq 11 follows seq 10 at once (the camera's next frame), before seq 10 has ended.
+    source = lockstep(30, clock, box, after=lambda seq: queued.set() if seq == 11 else None, no_wait={11})
+    est, out = Stalls(model), Collect()
+    pipe = RigPipeline(source, est, SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100, max_latency_s=1.0), clock=clock)
+    box.append(pipe)
+    stats = pipe.run(timeout_s=60)
+    assert [e.seq for e in out.estimates] == [s for s in range(30) if s not in (10, 11)]
+    # seq 10's window may have been overwritten in the mailbox by seq 11's (skipped, not stale).
+    assert 11 not in est.estimated and stats.windows_skipped == 2 and 1 <= stats.estimates_stale <= 2
+    assert stats.frames_encoded == 30
 
 
 def test_latency_counts_from_the_frame_leaving_the_source(model):
