@@ -328,16 +328,35 @@ def as_bgr(image: np.ndarray) -> np.ndarray:
 # --- the I/O shell -------------------------------------------------------------------------------
 
 
-@contextlib.contextmanager
-def _opencv_quiet():
-    """OpenCV prints WARN and ERROR lines for every failed open ("Could not find decoder"); we
-    raise one clear error instead."""
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    try:
-        yield
-    finally:
-        cv2.utils.logging.setLogLevel(level)
+class _OpenCvQuiet:
+    """OpenCV prints WARN and ERROR lines for every failed open ("Could not find decoder") and
+    for a read that times out ("Stream timeout triggered after 5006 ms", V4L2's "select()
+    timeout"); the camera says each in its own words, once. OpenCV's log level is one for the
+    process: it stays silent while any camera is inside an open or read (threads overlap), and
+    is put back as the last one leaves."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._inside = 0
+        self._level = 0
+
+    @contextlib.contextmanager
+    def __call__(self) -> Iterator[None]:
+        with self._lock:
+            if self._inside == 0:
+                self._level = cv2.utils.logging.getLogLevel()
+                cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+            self._inside += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._inside -= 1
+                if self._inside == 0:
+                    cv2.utils.logging.setLogLevel(self._level)
+
+
+_opencv_quiet = _OpenCvQuiet()
 
 
 def open_capture(target: CameraTarget, width: int | None = None, height: int | None = None,
@@ -605,7 +624,8 @@ class OpenCvCamera:
                         backoff = min(2.0 * backoff, self._backoff[1])
                         continue
                 try:
-                    ok, image = self._busy_with("read()", self._cap.read, in_outage=outage_since is not None)
+                    with _opencv_quiet():
+                        ok, image = self._busy_with("read()", self._cap.read, in_outage=outage_since is not None)
                 except cv2.error as exc:
                     ok, image = False, None
                     self._note_error(f"read raised: {str(exc).strip().splitlines()[-1]}")
@@ -650,7 +670,8 @@ class OpenCvCamera:
     def _read_first_frame(self) -> Frame:
         try:
             try:
-                ok, image = self._cap.read()
+                with _opencv_quiet():
+                    ok, image = self._cap.read()
             except cv2.error:
                 ok, image = False, None
             if not ok or image is None:

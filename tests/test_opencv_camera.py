@@ -5,8 +5,10 @@ streams that do not exist. Only a device that disappears mid-run is played by a 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import socket
 import stat
 import sys
 import threading
@@ -834,3 +836,57 @@ def test_a_read_that_fails_after_stop_says_no_reconnect(caplog):
     cam.close()
     assert not any("read failed" in r.getMessage() for r in caplog.records)
     assert cam.stats()["read_failures"] == 0
+
+
+# --- a real stream through FFmpeg: a local MJPEG-over-HTTP server that stops sending --------------
+
+
+class StallingMjpegServer:
+    """A real HTTP server on 127.0.0.1 that sends ``frames`` MJPEG frames, then holds the
+    connection open and sends nothing (a camera whose stream stalled) until closed."""
+
+    def __init__(self, frames: int):
+        self.frames = frames
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}/stream.mjpg"
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self):
+        self.sock.settimeout(HANG_GUARD_S)
+        with contextlib.suppress(OSError):
+            conn, _ = self.sock.accept()
+            with conn:
+                conn.recv(4096)
+                conn.sendall(b"HTTP/1.0 200 OK\r\nContent-Type: multipart/x-mixed-replace; boundary=frame\r\n\r\n")
+                for k in range(self.frames):
+                    jpeg = cv2.imencode(".jpg", clip_image(k))[1].tobytes()
+                    conn.sendall(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpeg)
+                                 + jpeg + b"\r\n")
+                self.done.wait(HANG_GUARD_S)
+
+    def close(self):
+        self.done.set()
+        self.sock.close()
+        self.thread.join(HANG_GUARD_S)
+
+
+def test_a_stalled_stream_leaves_only_sunrigs_own_lines_on_stderr(monkeypatch, capfd):
+    # FFmpeg's read timeout ends the stalled read (0.5 s here, 5 s as shipped); OpenCV printed
+    # "[ WARN:0@6.95] global cap_ffmpeg_impl.hpp:435 _opencv_ffmpeg_interrupt_callback Stream
+    # timeout triggered after 5006 ms" beside the camera's own "read failed" warning.
+    monkeypatch.setattr("drivers.opencv_camera._READ_TIMEOUT_MS", 500)
+    server = StallingMjpegServer(frames=3)
+    try:
+        cam = OpenCvCamera(server.url, hfov_deg=60.0, poll_s=0.01, backoff_s=(HANG_GUARD_S, HANG_GUARD_S))
+        capfd.readouterr()
+        assert len(collect(cam, limit=3)) == 3
+        deadline = time.monotonic() + HANG_GUARD_S
+        while cam.stats()["read_failures"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)  # the stalled read's timeout
+        cam.close()
+    finally:
+        server.close()
+    assert cam.stats()["read_failures"] == 1
+    assert "WARN" not in capfd.readouterr().err
