@@ -159,6 +159,8 @@ _K_KEYS = ("camera_matrix", "K", "cameraMatrix", "intrinsic_matrix", "M")
 _D_KEYS = ("distortion_coefficients", "dist_coeffs", "D", "distCoeffs", "distortion")
 _W_KEYS = ("image_width", "width", "imageWidth")
 _H_KEYS = ("image_height", "height", "imageHeight")
+# The names (ROS, Kalibr) of the model cv2.undistort applies: k1, k2, p1, p2[, k3[, k4, k5, k6]].
+_STANDARD_MODELS = ("plumb_bob", "rational_polynomial", "radtan", "radial-tangential", "none", "")
 
 
 def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration") -> Calibration:
@@ -188,6 +190,12 @@ def calibration_from_mapping(values: Mapping[str, Any], name: str = "calibration
     if width is None or height is None:
         raise CameraError(f"{name}: no image size (expected image_width and image_height); "
                           "add them, since the camera matrix is only valid at its own resolution")
+    model = values.get("distortion_model")
+    if model is not None and str(model).strip().lower() not in _STANDARD_MODELS:
+        # A fisheye's k1..k4 read as k1, k2, p1, p2 would bend every frame the wrong way.
+        raise CameraError(f"{name}: distortion_model {model}: sunrig undistorts OpenCV's standard model (plumb_bob, "
+                          "rational_polynomial) only; recalibrate with cv2.calibrateCamera, or undistort the frames "
+                          "before sunrig and pass --hfov-deg")
     d = first(_D_KEYS)
     try:
         d = np.zeros(0) if d is None else np.asarray(d, dtype=np.float64).ravel()
@@ -258,6 +266,9 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
                 values[key] = int(node.real())  # as the file has it: "width 0", not "0.0"
             elif node.isReal():
                 values[key] = node.real()
+        model = fs.getNode("distortion_model")
+        if model.isString():
+            values["distortion_model"] = model.string()
         return calibration_from_mapping(values, f"calibration file {p}")
     finally:
         fs.release()

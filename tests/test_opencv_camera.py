@@ -890,3 +890,30 @@ def test_a_stalled_stream_leaves_only_sunrigs_own_lines_on_stderr(monkeypatch, c
         server.close()
     assert cam.stats()["read_failures"] == 1
     assert "WARN" not in capfd.readouterr().err
+
+
+# --- a distortion model other than OpenCV's standard one ------------------------------------------
+
+
+@pytest.mark.parametrize("model", ["equidistant", "fisheye"])
+def test_a_fisheye_calibration_is_refused_not_undistorted_as_another_model(tmp_path, model):
+    # ROS camera_calibration --fisheye (and Kalibr) write distortion_model: equidistant with 4
+    # coefficients k1..k4: read as k1, k2, p1, p2 of the standard model, every frame was bent the
+    # wrong way without a word.
+    path = tmp_path / "ost.yaml"
+    path.write_text(_ROS_CAMERA_INFO.replace("plumb_bob", model).replace("cols: 5", "cols: 4")
+                    .replace("[-0.31, 0.11, 0.0, 0.0, 0.0]", "[0.02, -0.01, 0.003, -0.001]"))
+    with pytest.raises(CameraError, match=rf"distortion_model {model}: sunrig undistorts OpenCV's standard model"):
+        load_calibration(path)
+    table = tmp_path / "cam.toml"
+    table.write_text(f'distortion_model = "{model}"\nimage_width = 1280\nimage_height = 720\n'
+                     'camera_matrix = [[910.2, 0, 641.7], [0, 909.8, 362.4], [0, 0, 1]]\n'
+                     'D = [0.02, -0.01, 0.003, -0.001]\n')
+    with pytest.raises(CameraError, match=f"distortion_model {model}"):
+        load_calibration(table)
+
+
+def test_the_standard_distortion_models_by_name_are_read(tmp_path):
+    path = tmp_path / "ost.yaml"
+    path.write_text(_ROS_CAMERA_INFO.replace("plumb_bob", "rational_polynomial"))
+    assert load_calibration(path).distorted
