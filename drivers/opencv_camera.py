@@ -122,6 +122,9 @@ def _device_index(index: int | str) -> int:
     return index
 
 
+_DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)  # what cv2.initUndistortRectifyMap takes
+
+
 @dataclass(frozen=True)
 class Calibration:
     """A camera matrix for a given image size, with its distortion coefficients (may be empty)."""
@@ -138,6 +141,9 @@ class Calibration:
         d = np.asarray(self.distortion, dtype=np.float64).ravel()
         if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0 and np.all(np.isfinite(d))):
             raise ValidationError(f"expected a finite camera matrix with positive fx, fy, got {k.tolist()}")
+        if d.size not in _DISTORTION_COUNTS and np.any(d != 0.0):  # zeros of any count are no distortion
+            raise ValidationError(f"distortion: expected 4, 5, 8, 12 or 14 coefficients (k1, k2, p1, p2[, k3[, ...]]), "
+                                  f"as OpenCV's model has, got {d.size}")
         try:
             # The same bounds as every frame's (a focal length no camera has, a size of 0), checked
             # now: as the file loads, not when the first frame comes, or never for the wrong size.

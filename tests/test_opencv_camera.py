@@ -129,6 +129,9 @@ def test_a_calibration_is_scaled_to_the_stream():
     ({"camera_matrix": -np.eye(3), "image_width": 4, "image_height": 4}, "positive"),
     ({"camera_matrix": np.diag([100.0, -100.0, 1.0]), "image_width": 4, "image_height": 4}, "positive fx, fy"),
     ({"camera_matrix": np.eye(3) * 100, "image_width": 4, "image_height": 4, "D": [0.1, float("nan")]}, "finite"),
+    # A count of coefficients no OpenCV model has: its assertion, five lines, at the first frame.
+    ({"camera_matrix": np.eye(3) * 100, "image_width": 4, "image_height": 4, "D": [0.1, 0.2, 0.3]},
+     r"distortion: expected 4, 5, 8, 12 or 14 coefficients \(k1, k2, p1, p2\[, k3\[, \.\.\.\]\]\), .* got 3;"),
     # As a TOML file gives them: a ragged matrix, words for numbers (a ValueError's traceback).
     ({"camera_matrix": [[100, 0, 2], [0, 100], [0, 0, 1]], "image_width": 4, "image_height": 4}, "not 3x3 numbers"),
     ({"camera_matrix": np.eye(3) * 100, "image_width": 4, "image_height": 4, "D": ["k1"]}, "not a list of numbers"),
