@@ -26,7 +26,8 @@ class Pacer:
     The live rig passes a ``max_behind_s`` of its latency bound: a replay there stands for a camera,
     which keeps its rate through a stall of its host; rushing the frames missed handed on a burst
     of frames each older than the last estimate's (seconds, after a 3 s page-out). ``reanchors``
-    counts them; falling behind is said once, then once a minute with the count since.
+    counts them; falling behind is said once, then once a minute with the count since. ``due_s`` is
+    when the last frame was due on the clock of ``now_s`` (the live rig's latency starts there).
     """
 
     def __init__(self, max_jump_s: float, speed: float = 1.0, max_behind_s: float | None = None) -> None:
@@ -43,16 +44,18 @@ class Pacer:
         self._start_s: float | None = None
         self._first_t_s = 0.0
         self._last_t_s = 0.0
+        self.due_s = 0.0
 
     def delay_s(self, frame: Frame, now_s: float) -> float:
         """Seconds to wait before ``frame`` (0 when it is due or late)."""
         t, last = frame.t_mono_s, self._last_t_s
         self._last_t_s = t
         if self._start_s is None:
-            self._start_s, self._first_t_s = now_s, t
+            self._start_s, self._first_t_s, self.due_s = now_s, t, now_s
             return 0.0
         delay = self._start_s + (t - self._first_t_s) / self.speed - now_s
         if -self.max_behind_s <= delay <= self.max_jump_s:
+            self.due_s = now_s + delay
             return max(delay, 0.0)
         # Off schedule: the recording's own clock jumped between two frames (either way), or the
         # replay fell behind a recording that did not.
@@ -63,7 +66,7 @@ class Pacer:
         else:
             self._say_behind(-delay, frame.seq, now_s)
         self.reanchors += 1
-        self._start_s, self._first_t_s = now_s, t
+        self._start_s, self._first_t_s, self.due_s = now_s, t, now_s
         return 0.0
 
     def _say_behind(self, behind_s: float, seq: int, now_s: float) -> None:

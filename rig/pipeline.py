@@ -97,8 +97,8 @@ class _Latency:
 
 @dataclass
 class RigStats:
-    """Counters of one run. ``latency`` is a frame leaving the source (capture) to the return of the
-    last publisher's ``publish``; ``update_hz`` is estimates per second over the run.
+    """Counters of one run. ``latency`` is a frame leaving the source (capture; a paced replay's frame:
+    when it was due) to the return of the last publisher's ``publish``; ``update_hz`` is estimates per second over the run.
     ``windows_skipped`` counts every window not sent because the estimator was behind: overwritten
     in the mailbox, or stale (later than ``RigConfig.max_latency_s``), which ``estimates_stale``
     counts apart."""
@@ -355,7 +355,9 @@ class RigPipeline:
                 if delay > 0 and self._stop.wait(delay):
                     return
             # Latency counts from here: the recorder and the exposure gate below are the controller's wait too.
-            arrived = self.clock()
+            # A paced frame's from when it was due: a camera's frame is as old when the host stalled
+            # in the wait (its estimate went out seconds late as a fresh one), or read it late.
+            arrived = self.clock() if pacer is None else min(self.clock(), pacer.due_s)
             self.stats.frames_captured += 1
             if self.on_frame is not None:
                 self.on_frame(frame)

@@ -121,3 +121,14 @@ def test_a_replay_slower_than_its_recording_stays_within_max_behind_s_and_says_s
 def test_max_behind_s_must_be_positive():
     with pytest.raises(ValueError, match="Pacer"):
         Pacer(10.0, max_behind_s=0.0)
+
+
+def test_due_s_is_when_the_frame_was_due_by_the_schedule_it_was_paced_on():
+    # The live rig counts a paced frame's latency from here: a frame handed on late (the source read
+    # slowly, or the host stalled in the wait) was a camera's frame that long ago.
+    p = Pacer(max_jump_s=10.0, max_behind_s=1.0)
+    p.delay_s(frame(0, 5.0), now_s=100.0)
+    assert p.due_s == 100.0
+    assert p.delay_s(frame(1, 5.1), now_s=100.05) == pytest.approx(0.05) and p.due_s == pytest.approx(100.1)
+    assert p.delay_s(frame(2, 5.2), now_s=100.6) == 0.0 and p.due_s == pytest.approx(100.2)  # 0.4 s late
+    assert p.delay_s(frame(3, 5.3), now_s=103.0) == 0.0 and p.due_s == 103.0  # re-anchored: due now

@@ -857,3 +857,38 @@ def test_latency_counts_from_the_frame_leaving_the_source(model):
     box.append(pipe)
     stats = pipe.run(timeout_s=60)
     assert stats.estimates == 20 and stats.latency.summary_ms()["p50_ms"] == pytest.approx(500.0)
+
+
+def test_a_paced_frame_handed_on_after_a_stall_is_as_old_as_the_stall(model):
+    # The host stalls 3 s while the paced replay waits for seq 10 (a page-out, SIGSTOP). The frame
+    # was due before it: its estimate once went out 3 s late as a fresh one, its latency counted from
+    # the end of the wait. Latency counts from the frame's time on the schedule; seq 11, 2.9 s
+    # behind, re-anchors the pace (rig/pacing.py) and is in time.
+    clock, box = FakeClock(), list[RigPipeline]()
+
+    class Sleeps(threading.Event):
+        """The capture stage's paced wait, on the fake clock."""
+
+        waits = 0
+
+        def wait(self, timeout=None):
+            if not self.is_set() and timeout is not None:
+                Sleeps.waits += 1
+                clock.now_s += timeout + (3.0 if Sleeps.waits == 10 else 0.0)  # the wait for seq 10
+            return self.is_set()
+
+    def source():
+        for i, frame in enumerate(frames(30)):
+            deadline = time.monotonic() + 10.0
+            while accounted(box[0].stats) < i and time.monotonic() < deadline:
+                time.sleep(0.001)
+            yield frame
+
+    out = Collect()
+    pipe = RigPipeline(source(), SunEstimator(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100, realtime=True, max_latency_s=1.0), clock=clock)
+    pipe._stop = Sleeps()
+    box.append(pipe)
+    stats = pipe.run(timeout_s=60)
+    assert [e.seq for e in out.estimates] == [s for s in range(30) if s != 10]
+    assert stats.estimates_stale == 1 and stats.latency.summary_ms()["max_ms"] <= 1000.0
