@@ -830,8 +830,13 @@ class OpenCvCamera:
         with self._lock:
             self._stats["read_failures"] += 1
         if outage_since is None:  # once per outage, not once per retry
-            self._note_error("read failed (stream lost?)")
-            log.warning("%s: read failed; reconnecting with backoff", self._named)
+            if self._seq == 0:  # it opened but never gave a frame: nothing was lost
+                self._note_error("read failed before its first frame (busy in another program? a stream that sends "
+                                 "nothing?)")
+                log.warning("%s: %s; reconnecting with backoff", self._named, self._last_error)
+            else:
+                self._note_error("read failed (stream lost?)")
+                log.warning("%s: read failed; reconnecting with backoff", self._named)
             outage_since = now
         self._release()
         return self._check_outage(outage_since)

@@ -920,3 +920,25 @@ def test_the_standard_distortion_models_by_name_are_read(tmp_path):
     path = tmp_path / "ost.yaml"
     path.write_text(_ROS_CAMERA_INFO.replace("plumb_bob", "rational_polynomial"))
     assert load_calibration(path).distorted
+
+
+def test_a_camera_that_opens_but_never_gives_a_frame_says_what_that_may_be(caplog):
+    # FAKE capture: opens, every read fails, as a V4L2 camera busy in another program, or a
+    # stream that accepts and sends nothing. "read failed (stream lost?)" spoke of a loss.
+    cam = OpenCvCamera(0, hfov_deg=60.0, capture_factory=FakeFactory([0, None]), backoff_s=(0.01, 0.01),
+                       poll_s=0.01)
+    got: list = []
+    with caplog.at_level("WARNING", logger="drivers.opencv_camera"):
+        waiter = threading.Thread(target=lambda: got.extend(cam), daemon=True)  # the consumer waits on
+        waiter.start()
+        deadline = time.monotonic() + HANG_GUARD_S
+        while cam.stats()["read_failures"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        cam.stop()
+        waiter.join(HANG_GUARD_S)
+    cam.close()
+    assert got == []
+    said = [r.getMessage() for r in caplog.records if "read failed" in r.getMessage()]
+    assert said == ["camera 0: read failed before its first frame (busy in another program? a stream that sends "
+                    "nothing?); reconnecting with backoff"]
+    assert "before its first frame" in cam.stats()["last_error"]
