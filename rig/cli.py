@@ -564,7 +564,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
         # The source ended without one frame (a log none of whose frames could be read, a camera
         # that gave up at once): not a run that worked, as replay and record say of it too.
         raise SunrigError("the source gave no frame (the warnings above say why); check the camera and its "
-                          "cable, or the log (docs/drivers.md)")
+                          "cable, or the video file or log (docs/drivers.md)")
     if recorder is not None and not recorder.finished:
         why = (f"a write to its disk did not return in {recorder.join_timeout_s:g} s: a disk that stopped answering?"
                if recorder.stuck else "closing it failed, as said above")
@@ -748,9 +748,11 @@ def _source_summary(stats: dict) -> str:
     parts = []
     camera = stats.get("camera") or {}
     for key in ("dropped", "frames_dropped_consumer", "frames_dropped_device", "read_failures", "reconnects",
-                "device_lost"):
+                "device_lost", "bad_frames", "open_failures", "stalls"):
         if camera.get(key):
             parts.append(f"camera {key.replace('_', ' ')} {camera[key]}")
+    if camera.get("repeated"):  # an OpenCV camera's frozen driver: its repeats are dropped, not used
+        parts.append(f"camera repeated frames dropped {camera['repeated']}")
     # An OAK attaches its own IMU's heading: the frames it gave none, by why (drivers/oak.py).
     for key, n in camera.items():
         if key.startswith("no_heading_") and n:

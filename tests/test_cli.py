@@ -1951,6 +1951,19 @@ def test_the_exit_report_says_how_often_visual_odometry_started_a_new_zero():
     assert _source_summary({"visual_odometry": {"frames": 240, "lost": 0, "gaps": 0}}) == ""
 
 
+def test_the_exit_report_says_what_an_opencv_camera_lost():
+    # The OpenCV camera counts stalled reads, frames it could not use, failed reopens and a frozen
+    # driver's repeated frames (dropped): the report left all four out, so a run that lost minutes
+    # to a stalled stream ended without a word of it.
+    from rig.cli import _source_summary
+
+    camera = {"frames": 900, "dropped": 0, "bad_frames": 3, "read_failures": 2, "reconnects": 1,
+              "open_failures": 4, "stalls": 2, "repeated": 17}
+    assert _source_summary({"camera": camera}) == (
+        "camera read failures 2, camera reconnects 1, camera bad frames 3, camera open failures 4, camera stalls 2, "
+        "camera repeated frames dropped 17")
+
+
 def test_the_exit_report_says_what_an_oak_lost_on_the_device_and_why_frames_had_no_heading():
     # The OAK counts frames it never sent (a slow USB link) and frames its IMU gave no heading, by
     # reason; the report showed none of it.
