@@ -98,7 +98,8 @@ class _Latency:
 @dataclass
 class RigStats:
     """Counters of one run. ``latency`` is a frame leaving the source (capture; a paced replay's frame:
-    when it was due) to the return of the last publisher's ``publish``; ``update_hz`` is estimates per second over the run.
+    when it was due) to the return of the last publisher's ``publish``; ``update_hz`` is estimates
+    per second over the run.
     ``windows_skipped`` counts every window not sent because the estimator was behind: overwritten
     in the mailbox, or stale (later than ``RigConfig.max_latency_s``), which ``estimates_stale``
     counts apart."""
@@ -206,6 +207,10 @@ class RigPipeline:
             self._names.append(f"{name}#{n + 1}" if n else name)
         self._raised = [ErrorTally(log, name) for name in self._names]
         self._ended: set[int] = set()
+        # Set when run() returns: from then on the caller owns the outputs (it closes them), and a
+        # stage it abandoned publishes nothing more. The lock keeps a publish from straddling that.
+        self._outputs_lock = threading.Lock()
+        self._outputs_released = False
 
     # -- control -----------------------------------------------------------------------------
     def stop(self) -> None:
@@ -275,6 +280,7 @@ class RigPipeline:
                 self.stats.windows_skipped += len(self._mailbox)
             self.stats.ended_s = self.clock()
             self.collect_publisher_stats()
+            self._release_outputs()
         stuck = [f"sunrig-{name}" for name, done in stages.items() if not done.is_set()]
         if stuck:
             log.warning("abandoned stage(s) %s that did not stop within %.0f s", ", ".join(stuck), _JOIN_S)
@@ -311,6 +317,14 @@ class RigPipeline:
                 if interrupted:
                     raise
                 interrupted = True  # and wait on, within the same bound: every step above can be repeated
+
+    def _release_outputs(self) -> None:
+        """From now on no stage publishes. Waits for a publish under way (each returns at once),
+        at most ``_JOIN_S``: one stuck past that is left behind, as its stage is."""
+        got = self._outputs_lock.acquire(timeout=_JOIN_S)
+        self._outputs_released = True
+        if got:
+            self._outputs_lock.release()
 
     def _report_status(self, on_status: Callable[[str], None], line: str) -> None:
         # A status line is not an output: one that cannot be written (stderr on a full disk, a
@@ -505,7 +519,13 @@ class RigPipeline:
             if self._too_late(feats, self.clock() - arrived):  # the window itself stalled
                 continue
             self._log_stale(feats, None)
-            self._publish(est)
+            with self._outputs_lock:
+                if self._outputs_released:
+                    # run() gave up waiting for this stage (a window that stalled through the stop) and
+                    # returned; its caller closes the outputs. Not sent, as a window skipped.
+                    self.stats.windows_skipped += 1
+                    return
+                self._publish(est)
             self.stats.estimates += 1
             self.stats.latency.add(self.clock() - arrived)
 

@@ -892,3 +892,32 @@ def test_a_paced_frame_handed_on_after_a_stall_is_as_old_as_the_stall(model):
     stats = pipe.run(timeout_s=60)
     assert [e.seq for e in out.estimates] == [s for s in range(30) if s != 10]
     assert stats.estimates_stale == 1 and stats.latency.summary_ms()["max_ms"] <= 1000.0
+
+
+
+def test_a_window_that_ends_after_run_returned_is_not_published(model):
+    # A stop (Ctrl-C, SIGTERM) while a window stalls: run() waits 2 s for the stage, returns, and
+    # the caller closes the outputs. When the window ended it went on to publish into them, closed
+    # (with a max_latency_s above those 2 s nothing else held it back); now it is not sent.
+    returned, box = threading.Event(), list[RigPipeline]()
+    ended: list[bool] = []
+
+    class StallsThroughTheStop(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            if window[-1].frame.seq == 5:
+                box[0].stop()
+                returned.wait(10.0)  # still in the window when run() has given up on it
+                ended.append(True)
+            return super().estimate(window, aggregator)
+
+    out = Collect()
+    pipe = RigPipeline(frames(20), StallsThroughTheStop(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100, realtime=True, max_latency_s=100.0))
+    box.append(pipe)
+    stats = pipe.run(timeout_s=60)
+    published = len(out.estimates)
+    returned.set()
+    deadline = time.monotonic() + 10.0
+    while not (ended and (stats.windows_skipped or len(out.estimates) > published)) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(out.estimates) == published and ended and all(e.seq < 5 for e in out.estimates)
