@@ -509,7 +509,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     r = cfg["rig"]
     rig_cfg = RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
                         ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
-                        realtime=r["realtime"])
+                        max_latency_s=r["max_latency_s"], realtime=r["realtime"])
     from rig.recorder import RecorderPublisher
 
     live_line = sys.stderr.isatty()

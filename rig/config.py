@@ -57,6 +57,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "ring_capacity": 128,
         "ring_max_age_s": 10.0,
         "status_every_s": 5.0,
+        "max_latency_s": 1.0,  # an estimate later than this after its frame is not sent (rig.pipeline)
         "realtime": True,  # pace a recorded source by its timestamps
     },
     "output": {
@@ -99,6 +100,7 @@ RANGES: dict[tuple[str, str], tuple[float, float, bool]] = {
     ("rig", "ring_capacity"): POSITIVE,
     ("rig", "ring_max_age_s"): POSITIVE,
     ("rig", "status_every_s"): POSITIVE,
+    ("rig", "max_latency_s"): POSITIVE,
     ("output", "baud"): POSITIVE,
 }
 

@@ -157,8 +157,9 @@ def test_defaults_are_those_of_what_they_configure():
     from rig.window import SpreadWindowPolicy
 
     rig, lib = DEFAULTS["rig"], RigConfig()
-    assert (rig["queue_size"], rig["ring_capacity"], rig["ring_max_age_s"], rig["status_every_s"]) == (
-        lib.queue_size, lib.ring_capacity, lib.ring_max_age_s, lib.status_every_s)
+    assert (rig["queue_size"], rig["ring_capacity"], rig["ring_max_age_s"], rig["status_every_s"],
+            rig["max_latency_s"]) == (
+        lib.queue_size, lib.ring_capacity, lib.ring_max_age_s, lib.status_every_s, lib.max_latency_s)
     assert DEFAULTS["source"]["max_gap_s"] == DEFAULT_MAX_GAP_S
     assert DEFAULTS["source"]["max_age_s"] == DEFAULT_MAX_AGE_S
     window = SpreadWindowPolicy()
@@ -497,3 +498,30 @@ def test_the_service_in_docs_deploy_can_open_what_its_config_names(tmp_path):
     done = subprocess.run([analyze, "verify", str(path)], capture_output=True, text=True, timeout=60)
     # verify exits 0 for a setting it ignores ("Failed to parse ..., ignoring"): its lines say so.
     assert done.returncode == 0 and str(path) not in done.stderr, done.stderr
+
+
+def test_every_rig_option_of_the_file_reaches_the_pipeline(tmp_path, monkeypatch, capsys):
+    # [rig] max_latency_s was added to RigConfig but not to the file: the warning that names it
+    # pointed at a setting no user could change. Each [rig] option must reach the pipeline.
+    import rig.pipeline
+    from replay.sources import DEMO_LOG
+    from rig.cli import main
+
+    seen = []
+    real = rig.pipeline.RigPipeline
+
+    class Spy(real):  # the real pipeline, its config kept to look at
+        def __init__(self, *args, **kwargs):
+            seen.append(kwargs["config"])
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(rig.pipeline, "RigPipeline", Spy)
+    values = {"queue_size": 3, "ring_capacity": 64, "ring_max_age_s": 9.0, "status_every_s": 7.0,
+              "max_latency_s": 2.5, "realtime": False}
+    assert set(values) == set(DEFAULTS["rig"])
+    conf = tmp_path / "rig.toml"
+    conf.write_text("[rig]\n" + "".join(f"{k} = {str(v).lower()}\n" for k, v in values.items()))
+    assert main(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--config", str(conf), "--quiet",
+                 "--jsonl", str(tmp_path / "o.jsonl")]) == 0
+    (cfg,) = seen
+    assert {k: getattr(cfg, k) for k in values} == values
