@@ -190,12 +190,10 @@ class LiveSource:
         return out
 
     def stop(self) -> None:
-        """End the iteration from another thread (e.g. a deadline) even while no frame comes:
-        the camera's ``stop()``, or its ``close()`` when it has none."""
-        camera = self._parts.get("camera")
-        if camera is None:
-            return
-        stop = getattr(camera, "stop", None) or getattr(camera, "close", None)
+        """End the iteration from another thread (the rig stopping) even while no frame comes: the
+        camera's ``stop()``, when it has one. Not its ``close()``: the rig's capture thread may be
+        inside the device's calls, and the devices are closed by whoever opened them, after."""
+        stop = getattr(self._parts.get("camera"), "stop", None)
         if callable(stop):
             stop()
 

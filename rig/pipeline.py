@@ -305,6 +305,14 @@ class RigPipeline:
         while True:
             try:
                 self._stop.set()
+                # A source waiting for its next frame (a camera in an outage) sees the stop only
+                # when the next one comes; one that can be asked to stop ends its iteration now.
+                stop_source = getattr(self.source, "stop", None)
+                if callable(stop_source):
+                    try:
+                        stop_source()
+                    except Exception:  # noqa: BLE001 - a source that fails to stop is left as one that does not
+                        log.debug("the source's stop() raised", exc_info=True)
                 self._frames.close()
                 self._mailbox.close()
                 for t, done in zip(threads, stages.values(), strict=True):

@@ -445,6 +445,30 @@ def test_a_source_that_blocks_forever_does_not_hang_the_rig(model):
     never.set()
 
 
+def test_a_stop_asks_a_source_that_can_stop_to_stop(model, caplog):
+    # A camera waiting for a frame (a stalled stream, an outage) ends its iteration when asked to
+    # (OpenCvCamera.stop, LiveSource.stop). The rig never asked: Ctrl-C in a camera outage said
+    # "abandoned stage(s) sunrig-capture" and left the camera's consumer waiting.
+    class Waiting:
+        """Gives 3 frames, then waits for a next one until stop() (a camera in an outage)."""
+
+        def __init__(self):
+            self.stopped = threading.Event()
+
+        def __iter__(self):
+            yield from frames(3)
+            self.stopped.wait(60.0)
+
+        def stop(self):
+            self.stopped.set()
+
+    source = Waiting()
+    with caplog.at_level(logging.WARNING):
+        _, stats = run_pipeline(source, SunEstimator(model), [Collect()], timeout_s=1.0)
+    assert source.stopped.is_set() and stats.frames_captured == 3
+    assert "abandoned" not in caplog.text
+
+
 def test_status_lines_are_reported(model):
     lines = []
     pipe = RigPipeline(frames(30, dt=0.01), SunEstimator(model), SpreadWindowPolicy(), [Collect()],

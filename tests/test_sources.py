@@ -165,11 +165,20 @@ def test_one_truncated_part_makes_the_source_truncated():
     assert not drivers_sources.LiveSource(CameraSpec("file", "x"), HeadingSpec("visual"), (), parts).truncated
 
 
-def test_stop_closes_a_camera_that_has_no_stop():
-    closed = []
-    src = drivers_sources.LiveSource(CameraSpec("file", "x"), HeadingSpec("log"), (), {"camera": _Part("cam", closed)})
-    src.stop()
-    assert closed == ["cam"]
+def test_stop_asks_the_camera_to_stop_and_never_closes_it():
+    # The rig calls stop() from its own thread while its capture thread may be inside the
+    # camera's calls (an OAK's): closing the device under it is not a stop. Whoever opened the
+    # devices closes them, after the rig has returned.
+    class Stoppable(_Part):
+        def stop(self):
+            self.log.append(f"{self.name} stop")
+
+    calls: list[str] = []
+    parts = {"camera": Stoppable("cam", calls), "gnss": _Part("gnss", calls)}
+    drivers_sources.LiveSource(CameraSpec("opencv", "0"), HeadingSpec("nmea", "x"), (), parts).stop()
+    assert calls == ["cam stop"]
+    drivers_sources.LiveSource(CameraSpec("file", "x"), HeadingSpec("log"), (), {"camera": _Part("cam", calls)}).stop()
+    assert calls == ["cam stop"]  # a camera without stop() is left as it is
 
 
 def test_a_camera_that_fails_to_open_closes_the_heading_port_opened_before_it(monkeypatch):
