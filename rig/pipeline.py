@@ -43,7 +43,7 @@ from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.lasting import LastingCondition
 from rig.pacing import Pacer
 from rig.publishers import ErrorTally, Publisher, failed_writes, publisher_name
-from rig.ring import DEFAULT_MAX_AGE_S, DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing
+from rig.ring import DEFAULT_MAX_AGE_S, DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing, ring_too_short
 from rig.types import Frame, FrameFeatures
 from rig.window import SpreadWindowPolicy
 
@@ -196,6 +196,7 @@ class RigPipeline:
         # "stale" while windows come later than max_latency_s (_log_stale), said as the others are.
         self._stale = LastingCondition(None)
         self._stale_since_seq = 0
+        self._ring_short_said = False  # _check_ring_span: said once a run
         self._last_failure = ""  # what the newest failed window raised
         self._status_error: str | None = None  # what the last status line that failed raised
         # Per publisher (by position): its name in the statistics (two of one class get #2, #3),
@@ -497,12 +498,22 @@ class RigPipeline:
             if not self.ring.push(feats):
                 self.stats.frames_out_of_order += 1
                 continue
+            self._check_ring_span()
             if self.ring.restarts != self.stats.clock_jumps:  # the ring counts them; this one says so
                 self.stats.clock_jumps = self.ring.restarts
                 log.warning("seq %d %s: the clock jumped; windows start again from it",
                             frame.seq, self.ring.last_restart)
             if not self._mailbox.put((feats, arrived)):
                 self.stats.windows_skipped += 1
+
+    def _check_ring_span(self) -> None:
+        """Say once a run when the ring holds less than a window's span (:func:`ring_too_short`)."""
+        if self._ring_short_said:
+            return
+        short = ring_too_short(self.ring, self.policy.span_s)
+        if short is not None:
+            self._ring_short_said = True
+            log.warning("%s", short)
 
     def _estimate(self) -> None:
         while not self._stop.is_set():

@@ -11,6 +11,7 @@ Both are thread-safe; every wait takes a timeout so no stage can hang on them.
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import deque
 from typing import Generic, TypeVar
@@ -86,6 +87,20 @@ LATE_FRAME_TOLERANCE_S = 1.0
 UTC_DISAGREEMENT_TOLERANCE_S = 5.0
 
 
+def ring_too_short(ring: FrameRing, span_s: float) -> str | None:
+    """What to say when ``ring``, full by count, holds less than a window's ``span_s``: a camera
+    faster than ``capacity`` frames a span (128 frames are 2.1 s at 60 fps, half the 4 s span)
+    narrows every window, in time and so in the headings it sees, with nothing else to show it.
+    None while it holds enough."""
+    held_s = ring.crowded_span_s
+    if held_s is None or held_s <= 0 or held_s >= span_s:
+        return None
+    fps = (ring.capacity - 1) / held_s
+    return (f"[rig] ring_capacity {ring.capacity} holds only {held_s:.1f} s of this camera's frames ({fps:.0f} fps), "
+            f"less than [window] span_s {span_s:g} s: windows span less than they should; set ring_capacity to "
+            f"{math.ceil(round(fps * span_s, 6))} or more")
+
+
 class FrameRing:
     """The last encoded frames, oldest first, at most ``capacity`` and at most ``max_age_s`` older
     than the newest one."""
@@ -103,6 +118,9 @@ class FrameRing:
         self.out_of_order = 0
         self.restarts = 0
         self.last_restart = ""  # why the ring last started again, worded to follow "seq N "
+        # The seconds the ring held (newest minus oldest) when it last let a frame go for room, not
+        # for age: a camera fast enough to fill ``capacity`` sooner than a window's span (None: never).
+        self.crowded_span_s: float | None = None
 
     def push(self, feats: FrameFeatures) -> bool:
         """Add the newest frame; a frame older than the newest held is refused (and counted):
@@ -133,8 +151,11 @@ class FrameRing:
             self._frames.append(feats)
             newest_s = frame.t_mono_s
             while len(self._frames) > self.capacity or newest_s - self._frames[0].frame.t_mono_s > self.max_age_s:
+                crowded = newest_s - self._frames[0].frame.t_mono_s <= self.max_age_s
                 self._frames.popleft()
                 self.evicted += 1
+                if crowded:
+                    self.crowded_span_s = newest_s - self._frames[0].frame.t_mono_s
             return True
 
     def _restart(self, why: str) -> None:

@@ -469,6 +469,21 @@ def test_a_stop_asks_a_source_that_can_stop_to_stop(model, caplog):
     assert "abandoned" not in caplog.text
 
 
+def test_a_ring_too_small_for_the_window_span_at_the_cameras_rate_is_said_once(model, caplog):
+    # 60 fps into a ring of 128 frames holds 2.1 s, less than the window's 4 s span: windows spanned
+    # half of it (less yaw diversity, worse estimates), with nothing said.
+    with caplog.at_level(logging.WARNING):
+        run_pipeline(frames(80, dt=1 / 60), SunEstimator(model), [Collect()], ring_capacity=32, queue_size=100)
+    said = [r.getMessage() for r in caplog.records if "ring_capacity" in r.getMessage()]
+    assert len(said) == 1, said
+    assert ("[rig] ring_capacity 32 holds only 0.5 s of this camera's frames (60 fps), less than [window] span_s "
+            "4 s: windows span less than they should; set ring_capacity to 240 or more") in said[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        run_pipeline(frames(80, dt=0.1), SunEstimator(model), [Collect()], ring_capacity=48)
+    assert "ring_capacity" not in caplog.text
+
+
 def test_status_lines_are_reported(model):
     lines = []
     pipe = RigPipeline(frames(30, dt=0.01), SunEstimator(model), SpreadWindowPolicy(), [Collect()],

@@ -190,3 +190,19 @@ def test_bad_sizes():
     for max_age_s in (0.0, -1.0, float("nan")):
         with pytest.raises(ValidationError):
             FrameRing(max_age_s=max_age_s)
+
+
+def test_a_ring_full_by_count_says_how_many_seconds_it_holds():
+    # A 60 fps camera fills the default 128 frames in 2.1 s, less than a window's 4 s span: the
+    # windows then spanned half what they should, with nothing said. The ring tells how many
+    # seconds it held when it last let a frame go for room (not for age).
+    ring = FrameRing(capacity=4, max_age_s=10.0)
+    for i in range(4):
+        ring.push(feats(i, i * 0.5))
+    assert ring.crowded_span_s is None  # nothing let go yet
+    ring.push(feats(4, 2.0))
+    assert ring.crowded_span_s == pytest.approx(1.5)  # frames 1..4: 0.5 s to 2.0 s
+    aged = FrameRing(capacity=4, max_age_s=1.0)
+    for i in range(8):
+        aged.push(feats(i, i * 0.5))
+    assert aged.crowded_span_s is None and aged.evicted == 5  # let go for age only
