@@ -20,6 +20,7 @@ model.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import math
 import os
@@ -125,7 +126,25 @@ def _check_output(model: Any, out_dir: str | os.PathLike) -> Path:
         raise ValidationError(f"{out} holds {held[0]} already; pass a new folder as --out, so that nothing is replaced")
     if out.exists() and not out.is_dir():
         raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path")
+    _check_writable(out)
     return out
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse, before the logs are read, an ``out`` that cannot be written: the mkdir found it only
+    after every log had been read for calibration. Probed by making a folder and removing it in
+    ``out`` or the nearest folder above it that exists (the one mkdir will write in): os.access
+    says yes to root on a read-only mount. The probe is hidden, as the staging folder is."""
+    where = out
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        if not where.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
+        os.rmdir(tempfile.mkdtemp(prefix=".quantize-probe-", dir=where))
+    except OSError as exc:
+        raise ValidationError(f"--out {out}: cannot write there ({exc.strerror}: {where}); pass a folder you "
+                              "can write to") from None
 
 
 def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLike, *,

@@ -182,3 +182,20 @@ def test_an_interrupted_quantization_leaves_no_folder_it_made(model, tmp_path, m
     with pytest.raises(KeyboardInterrupt):
         quantize_model(model, calibration, out)
     assert out.exists() == existed and (not existed or not any(out.iterdir()))
+
+
+def _never_read():
+    raise AssertionError("a log was read before the --out was refused")
+    yield
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_a_log_is_read(model, tmp_path):
+    # It was found by the mkdir after every log had been read for calibration: minutes of a
+    # fleet's logs, then "cannot make the model folder".
+    from estimator.quantize import quantize_logs_model
+
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("not a folder")
+    with pytest.raises(ValidationError, match=r"--out .*notes.txt/int8: cannot write there \(Not a directory"):
+        quantize_logs_model(model, [(tmp_path / "drive.mcap", _never_read())], a_file / "int8")
+    assert a_file.read_text() == "not a folder"
