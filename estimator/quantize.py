@@ -127,7 +127,40 @@ def _check_output(model: Any, out_dir: str | os.PathLike) -> Path:
     if out.exists() and not out.is_dir():
         raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path")
     _check_writable(out)
+    _check_room(model, out)
     return out
+
+
+def _existing_folder(out: Path) -> Path:
+    """``out``, or the nearest folder above it that exists: the one the model's files will take
+    room in."""
+    where = out
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    return where
+
+
+def _bytes_needed(model: Any) -> int:
+    """The most the staging holds at once on ``out``'s disk: the float backbone prepared, onnx's
+    shape-inferred copy of it and the int8 graph (each at most the float one's size); then the int8
+    graph, the aggregator and the weights, copied before they are moved into place."""
+    src = Path(model.model_dir)
+
+    def size(name: str) -> int:
+        return (src / name).stat().st_size if (src / name).is_file() else 0
+
+    backbone = size(BACKBONE_FILE)
+    return max(3 * backbone, backbone + size(AGGREGATOR_FILE) + size(WEIGHTS_FILE))
+
+
+def _check_room(model: Any, out: Path) -> None:
+    """Refuse, before the logs are read, an ``out`` on a disk too full for the model: the write
+    failed after the calibration, and some of its failures did not say the disk was full."""
+    needed = _bytes_needed(model)
+    free = shutil.disk_usage(_existing_folder(out)).free
+    if free < needed:
+        raise ValidationError(f"--out {out}: writing the int8 model needs about {needed / 1e6:.1f} MB on its disk, "
+                              f"{free / 1e6:.1f} MB free; free space there, or pass a folder on another disk")
 
 
 def _check_writable(out: Path) -> None:
@@ -135,9 +168,7 @@ def _check_writable(out: Path) -> None:
     after every log had been read for calibration. Probed by making a folder and removing it in
     ``out`` or the nearest folder above it that exists (the one mkdir will write in): os.access
     says yes to root on a read-only mount. The probe is hidden, as the staging folder is."""
-    where = out
-    while not where.exists() and where != where.parent:
-        where = where.parent
+    where = _existing_folder(out)
     try:
         if not where.is_dir():
             raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
@@ -183,31 +214,63 @@ def _write_quantized(model: Any, calibration: np.ndarray, out: Path, onnx: Any, 
         "calibration_crops": len(calibration), **(record or {})}})
     src = Path(model.model_dir)
     with tempfile.TemporaryDirectory(dir=out, prefix=".quantize-") as tmp:
-        staged = {BACKBONE_FILE: Path(tmp) / BACKBONE_FILE, AGGREGATOR_FILE: Path(tmp) / AGGREGATOR_FILE}
-        # ONNX Runtime's own preparation for its quantizer (shape inference, graph optimisation),
-        # which the quantizer otherwise warns about.
-        prepared = Path(tmp) / "prepared.onnx"
-        quantization.quant_pre_process(str(src / BACKBONE_FILE), str(prepared))
-        quantization.quantize_static(
-            str(prepared), str(staged[BACKBONE_FILE]), _CalibrationReader(calibration),
-            quant_format=quantization.QuantFormat.QDQ, per_channel=True,
-            activation_type=quantization.QuantType.QUInt8, weight_type=quantization.QuantType.QInt8,
-            calibrate_method=quantization.CalibrationMethod.MinMax)
-        for name, path in ((BACKBONE_FILE, staged[BACKBONE_FILE]), (AGGREGATOR_FILE, src / AGGREGATOR_FILE)):
-            graph = onnx.load(str(path))
-            # quantize_static keeps the graph's metadata (its role among it); the contract is
-            # replaced in both graphs, so that they agree.
-            set_metadata(graph, {METADATA_CONTRACT_KEY: quantized.to_json()})
-            onnx.save(graph, str(staged[name]))
-        digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in staged.items()}
-        sums = Path(tmp) / CHECKSUMS_FILE
-        sums.write_text(format_checksums(digests), encoding="utf-8")
-        if (src / WEIGHTS_FILE).is_file():
-            shutil.copyfile(src / WEIGHTS_FILE, Path(tmp) / WEIGHTS_FILE)
-            os.replace(Path(tmp) / WEIGHTS_FILE, out / WEIGHTS_FILE)
-        os.replace(sums, out / CHECKSUMS_FILE)  # the sums first, as an export writes them
-        for name, path in staged.items():
-            os.replace(path, out / name)
+        try:
+            _stage_and_move(src, quantized, calibration, Path(tmp), out, onnx, quantization)
+        except Exception as exc:
+            if _filled_disk(exc, Path(tmp), _bytes_needed(model) // 3):
+                # Said as a full disk where the model goes, which the command line tells the user
+                # to free, whatever file (ours, onnx's) the failure named.
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(out)) from exc
+            raise
+
+
+_DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def _filled_disk(exc: Exception, staging: Path, backbone_bytes: int) -> bool:
+    """Whether ``exc``, raised while staging, is the staging disk filling up. A full disk's OSError
+    may name the file read, not the one written (shutil.copyfile); onnx's C++ shape inference
+    writes a graph cut short without a word, which then fails to parse, so any failure with less
+    room left than a backbone graph takes counts. A full disk elsewhere (ONNX Runtime's own
+    temporary files, in the system's temporary folder) is left to name its own path."""
+    if isinstance(exc, OSError) and exc.errno in _DISK_FULL:
+        named = [Path(os.fsdecode(f)) for f in (exc.filename, exc.filename2) if f is not None]
+        return not named or any(p.resolve().is_relative_to(staging.resolve()) for p in named)
+    try:
+        return shutil.disk_usage(staging).free < backbone_bytes
+    except OSError:
+        return False
+
+
+def _stage_and_move(src: Path, quantized: Any, calibration: np.ndarray, tmp: Path, out: Path, onnx: Any,
+                quantization: Any) -> None:
+    """Write the int8 model's files in ``tmp`` (a folder in ``out``) and move them into ``out``."""
+    staged = {BACKBONE_FILE: tmp / BACKBONE_FILE, AGGREGATOR_FILE: tmp / AGGREGATOR_FILE}
+    # ONNX Runtime's own preparation for its quantizer (shape inference, graph optimisation),
+    # which the quantizer otherwise warns about.
+    prepared = tmp / "prepared.onnx"
+    quantization.quant_pre_process(str(src / BACKBONE_FILE), str(prepared))
+    quantization.quantize_static(
+        str(prepared), str(staged[BACKBONE_FILE]), _CalibrationReader(calibration),
+        quant_format=quantization.QuantFormat.QDQ, per_channel=True,
+        activation_type=quantization.QuantType.QUInt8, weight_type=quantization.QuantType.QInt8,
+        calibrate_method=quantization.CalibrationMethod.MinMax)
+    prepared.unlink()  # room for the aggregator and the weights on a nearly full disk (_bytes_needed)
+    for name, path in ((BACKBONE_FILE, staged[BACKBONE_FILE]), (AGGREGATOR_FILE, src / AGGREGATOR_FILE)):
+        graph = onnx.load(str(path))
+        # quantize_static keeps the graph's metadata (its role among it); the contract is
+        # replaced in both graphs, so that they agree.
+        set_metadata(graph, {METADATA_CONTRACT_KEY: quantized.to_json()})
+        onnx.save(graph, str(staged[name]))
+    digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in staged.items()}
+    sums = tmp / CHECKSUMS_FILE
+    sums.write_text(format_checksums(digests), encoding="utf-8")
+    if (src / WEIGHTS_FILE).is_file():
+        shutil.copyfile(src / WEIGHTS_FILE, tmp / WEIGHTS_FILE)
+        os.replace(tmp / WEIGHTS_FILE, out / WEIGHTS_FILE)
+    os.replace(sums, out / CHECKSUMS_FILE)  # the sums first, as an export writes them
+    for name, path in staged.items():
+        os.replace(path, out / name)
 
 
 def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[Frame]]], out_dir: str | os.PathLike,

@@ -2,6 +2,7 @@
 
 import math
 import shutil
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -199,3 +200,76 @@ def test_an_out_that_cannot_be_written_is_refused_before_a_log_is_read(model, tm
     with pytest.raises(ValidationError, match=r"--out .*notes.txt/int8: cannot write there \(Not a directory"):
         quantize_logs_model(model, [(tmp_path / "drive.mcap", _never_read())], a_file / "int8")
     assert a_file.read_text() == "not a folder"
+
+
+class _DiskUsage(NamedTuple):
+    total: int
+    used: int
+    free: int
+
+
+class _Usage:
+    """shutil.disk_usage's answer with ``free`` bytes, for the calls after the first ``plenty``."""
+
+    def __init__(self, free, plenty=0):
+        self.free, self.plenty, self.calls = free, plenty, 0
+
+    def __call__(self, path):
+        self.calls += 1
+        free = 10**12 if self.calls <= self.plenty else self.free
+        return _DiskUsage(10**12, 10**12 - free, free)
+
+
+def test_an_out_on_a_disk_without_room_for_the_model_is_refused_before_a_log_is_read(model, tmp_path, monkeypatch):
+    import estimator.quantize as quantize
+
+    monkeypatch.setattr(quantize.shutil, "disk_usage", _Usage(free=1000))
+    with pytest.raises(ValidationError, match=r"--out .*int8: writing the int8 model needs about [\d.]+ MB on its "
+                                              r"disk, 0.0 MB free; free space there"):
+        quantize.quantize_logs_model(model, [(tmp_path / "drive.mcap", _never_read())], tmp_path / "int8")
+    assert not (tmp_path / "int8").exists()
+
+
+def test_a_disk_that_fills_while_the_model_is_written_is_said_as_a_full_disk_where_the_model_goes(
+        model, tmp_path, monkeypatch):
+    # A full disk was an internal error: shutil.copyfile names the file it read (the shipped
+    # model's weights.npz, sunrig's own file, a bug to the command line), and a graph that onnx's
+    # C++ shape inference wrote cut short failed to parse ("DecodeError: ... Wire format was
+    # corrupt"), a full disk nowhere said.
+    import errno
+
+    import estimator.quantize as quantize
+    from estimator.quantize import calibration_crops, quantize_model
+    from estimator.runtime import OnnxModel
+
+    src = tmp_path / "float"
+    shutil.copytree(model.model_dir, src)
+    (src / "weights.npz").write_bytes(b"float weights")
+    calibration = calibration_crops(SunEstimator(model), [_frames(4)], n_crops=16)
+
+    def copy_filling(a, b):
+        raise OSError(errno.ENOSPC, "No space left on device", str(a), None, str(b))
+
+    monkeypatch.setattr(quantize.shutil, "copyfile", copy_filling)
+    out = tmp_path / "int8"
+    with pytest.raises(OSError) as caught:
+        quantize_model(OnnxModel.load(src), calibration, out)
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(out)
+    assert not out.exists()
+    monkeypatch.undo()
+
+    from onnxruntime import quantization
+
+    def truncated(*args, **kwargs):
+        raise ValueError("Error parsing message with type 'onnx.ModelProto': Wire format was corrupt")
+
+    monkeypatch.setattr(quantization, "quantize_static", truncated)
+    monkeypatch.setattr(quantize.shutil, "disk_usage", _Usage(free=0, plenty=1))  # full once the writing began
+    with pytest.raises(OSError) as caught:
+        quantize_model(model, calibration, out)
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(out)
+    assert not out.exists()
+    # With room on the disk, a failure is what it is.
+    monkeypatch.setattr(quantize.shutil, "disk_usage", _Usage(free=10**9))
+    with pytest.raises(ValueError, match="Wire format was corrupt"):
+        quantize_model(model, calibration, out)
