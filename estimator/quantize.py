@@ -45,7 +45,7 @@ from estimator.contract import (
     set_metadata,
 )
 from rig.errors import MissingExtraError, ValidationError
-from rig.files import make_output_folder
+from rig.files import make_output_folder, sync_to_disk
 from rig.types import Frame
 
 QUANTIZATION_KEY = "quantization"  # where the contract's training record says how a model was quantized
@@ -265,12 +265,18 @@ def _stage_and_move(src: Path, quantized: Any, calibration: np.ndarray, tmp: Pat
     digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in staged.items()}
     sums = tmp / CHECKSUMS_FILE
     sums.write_text(format_checksums(digests), encoding="utf-8")
+    moved = {CHECKSUMS_FILE: sums, **staged}  # the sums first, as an export writes them
     if (src / WEIGHTS_FILE).is_file():
         shutil.copyfile(src / WEIGHTS_FILE, tmp / WEIGHTS_FILE)
-        os.replace(tmp / WEIGHTS_FILE, out / WEIGHTS_FILE)
-    os.replace(sums, out / CHECKSUMS_FILE)  # the sums first, as an export writes them
-    for name, path in staged.items():
+        moved = {WEIGHTS_FILE: tmp / WEIGHTS_FILE, **moved}
+    # Each file on the disk before it is renamed into place, and the renames after, as an export
+    # does: renamed with their data still in memory, a power loss could leave empty files under
+    # the model's names.
+    for path in moved.values():
+        sync_to_disk(path)
+    for name, path in moved.items():
         os.replace(path, out / name)
+    sync_to_disk(out)
 
 
 def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[Frame]]], out_dir: str | os.PathLike,

@@ -273,3 +273,18 @@ def test_a_disk_that_fills_while_the_model_is_written_is_said_as_a_full_disk_whe
     monkeypatch.setattr(quantize.shutil, "disk_usage", _Usage(free=10**9))
     with pytest.raises(ValueError, match="Wire format was corrupt"):
         quantize_model(model, calibration, out)
+
+
+def test_each_file_is_on_the_disk_before_it_is_moved_into_place(model, tmp_path, disk_events):
+    # Renamed with their data still in memory, a power loss could leave empty graphs under their
+    # names, which a rig then refuses (or the weights.npz a fine-tune starts from, empty).
+    from estimator.quantize import calibration_crops, quantize_model
+    from estimator.runtime import OnnxModel
+
+    src = tmp_path / "float"
+    shutil.copytree(model.model_dir, src)
+    (src / "weights.npz").write_bytes(b"float weights")
+    calibration = calibration_crops(SunEstimator(model), [_frames(4)], n_crops=16)
+    out = quantize_model(OnnxModel.load(src), calibration, tmp_path / "int8")
+    for name in ("backbone.onnx", "aggregator.onnx", "SHA256SUMS", "weights.npz"):
+        assert disk_events.synced_in_order(out / name), name
