@@ -121,8 +121,9 @@ def _check_output(model: Any, out_dir: str | os.PathLike) -> Path:
     out = Path(out_dir)
     if out.is_dir() and out.resolve() == Path(model.model_dir).resolve():
         raise ValidationError(f"{out} is the model being quantized; pass a new folder as --out")
-    held = [name for name in (BACKBONE_FILE, AGGREGATOR_FILE, CHECKPOINT) if (out / name).exists()]
-    if held:  # a model, or a training run, that the int8 graphs would replace
+    held = [name for name in (BACKBONE_FILE, AGGREGATOR_FILE, CHECKPOINT, WEIGHTS_FILE, CHECKSUMS_FILE)
+            if (out / name).exists()]
+    if held:  # a model, or a training run, whose files the int8 model's would replace or stand beside
         raise ValidationError(f"{out} holds {held[0]} already; pass a new folder as --out, so that nothing is replaced")
     if out.exists() and not out.is_dir():
         raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path")

@@ -288,3 +288,19 @@ def test_each_file_is_on_the_disk_before_it_is_moved_into_place(model, tmp_path,
     out = quantize_model(OnnxModel.load(src), calibration, tmp_path / "int8")
     for name in ("backbone.onnx", "aggregator.onnx", "SHA256SUMS", "weights.npz"):
         assert disk_events.synced_in_order(out / name), name
+
+
+@pytest.mark.parametrize("held", ["weights.npz", "SHA256SUMS"])
+def test_an_out_holding_a_models_other_files_is_refused_too(model, tmp_path, held):
+    # Only the graphs and a checkpoint were looked for: another model's weights.npz was replaced
+    # (or, from a model without one, left beside the int8 graphs as if theirs, for a fine-tune to
+    # start from), and a stale SHA256SUMS replaced without a word.
+    from estimator.quantize import quantize_model
+
+    out = tmp_path / "int8"
+    out.mkdir()
+    (out / held).write_bytes(b"another model's")
+    calibration = np.zeros((4, 3, model.contract.crop_size_px, model.contract.crop_size_px), np.float32)
+    with pytest.raises(ValidationError, match=f"holds {held} already; pass a new folder as --out"):
+        quantize_model(model, calibration, out)
+    assert [p.name for p in out.iterdir()] == [held] and (out / held).read_bytes() == b"another model's"
