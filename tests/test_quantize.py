@@ -86,12 +86,14 @@ def test_calibration_crops_are_the_runtimes_own_from_frames_drawn_across_the_sou
     short, long = _frames(3, seed=2), _frames(60, seed=3)
     x = calibration_crops(est, [short, long], n_crops=40, seed=0)
     s = model.contract.crop_size_px
-    assert x.shape == (40, 3, s, s) and x.dtype == np.float32
-    # Each kept frame gives its crops as the runtime cuts and normalises them, whole.
+    assert x.shape == (40, s, s, 3) and x.dtype == np.uint8
+    # Each kept frame gives its crops as the runtime cuts them, whole (normalised a batch at a
+    # time as they are fed: test_calibration_is_held_as_the_crops_and_normalised_a_batch_at_a_time).
     per_frame = est.backbone_crops_per_frame
-    blocks = {model.normalise(est.backbone_crops(f)).tobytes(): f for f in (*short, *long)}
-    kept = [blocks.get(x[i:i + per_frame].tobytes()) for i in range(0, 40, per_frame)]
-    assert None not in kept and len({id(f) for f in kept}) == len(kept)
+    blocks = {est.backbone_crops(f).tobytes(): f for f in (*short, *long)}
+    found = [blocks.get(x[i:i + per_frame].tobytes()) for i in range(0, 40, per_frame)]
+    kept = [f for f in found if f is not None]
+    assert len(kept) == len(found) and len({id(f) for f in kept}) == len(kept)
     # Drawn across both sources, not the first frames read.
     assert any(f in long and f.seq >= 30 for f in kept)
     # Same seed, same draw; another seed, another.
@@ -102,6 +104,32 @@ def test_calibration_crops_are_the_runtimes_own_from_frames_drawn_across_the_sou
     assert len(calibration_crops(est, [[]], n_crops=10)) == 0
     with pytest.raises(ValidationError, match="calibration crops: expected a positive integer"):
         calibration_crops(est, [short], n_crops=0)
+
+
+def test_calibration_is_held_as_the_crops_and_normalised_a_batch_at_a_time(model):
+    # The crops were normalised all at once into float32, 4 bytes a value where a crop has 1, and
+    # through two float temporaries: quantizing the paper's architecture (224 px, 1024 crops)
+    # peaked at 1.7 GB before ONNX Runtime began, which a small computer does not have.
+    import tracemalloc
+
+    from estimator.contract import BACKBONE_INPUT
+    from estimator.quantize import _CalibrationReader, calibration_crops
+
+    est = SunEstimator(model, seed=0)
+    frames = _frames(60, seed=5)
+    tracemalloc.start()
+    try:
+        x = calibration_crops(est, [frames], n_crops=200)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert x.dtype == np.uint8 and peak < 3 * x.nbytes, (peak, x.nbytes)
+    fed = []
+    reader = _CalibrationReader(model, x)
+    while (batch := reader.get_next()) is not None:
+        fed.append(batch[BACKBONE_INPUT])
+    assert all(len(b) <= 8 for b in fed)
+    np.testing.assert_array_equal(np.concatenate(fed), model.normalise(x))
 
 
 def test_a_mirrored_model_is_calibrated_on_its_flipped_crops_too(model):
