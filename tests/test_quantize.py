@@ -332,3 +332,24 @@ def test_an_out_holding_a_models_other_files_is_refused_too(model, tmp_path, hel
     with pytest.raises(ValidationError, match=f"holds {held} already; pass a new folder as --out"):
         quantize_model(model, calibration, out)
     assert [p.name for p in out.iterdir()] == [held] and (out / held).read_bytes() == b"another model's"
+
+
+def test_logs_with_fewer_crops_than_asked_are_calibrated_on_with_a_warning(model, tmp_path, caplog):
+    # 40 frames gave the shipped model 640 crops where 1024 were asked, without a word: only the
+    # contract's calibration_crops said it.
+    import logging
+
+    from estimator.quantize import quantize_logs_model
+    from estimator.runtime import OnnxModel
+
+    caplog.set_level(logging.WARNING)
+    (tmp_path / "drive.mcap").write_bytes(b"the frames' log, for its fingerprint")
+    out = quantize_logs_model(model, [(tmp_path / "drive.mcap", _frames(5))], tmp_path / "int8", n_crops=64)
+    per_frame = SunEstimator(model).backbone_crops_per_frame
+    assert OnnxModel.load(out).contract.training["quantization"]["calibration_crops"] == 5 * per_frame
+    assert [r.getMessage() for r in caplog.records] == [
+        f"quantize: the logs hold 5 frames, {5 * per_frame} crops of the 64 asked; calibrating on those (more "
+        "frames like the rig's calibrate the int8 model better)"]
+    caplog.clear()
+    quantize_logs_model(model, [(tmp_path / "drive.mcap", _frames(20))], tmp_path / "int8b", n_crops=64)
+    assert not caplog.records
