@@ -109,12 +109,17 @@ class _CalibrationReader:
     """onnxruntime's calibration data reader (it needs only ``get_next``) over crops as
     :func:`calibration_crops` gives them, a batch at a time, normalised as ``model`` feeds them."""
 
-    def __init__(self, model: Any, crops: np.ndarray) -> None:
+    def __init__(self, model: Any, crops: np.ndarray,
+                 progress: Callable[[int, int], None] | None = None) -> None:
         self._model = model
         self._crops = crops
         self._at = 0
+        self._progress = progress
 
     def get_next(self) -> dict[str, np.ndarray] | None:
+        # Asked for the next batch once the last one has run: the crops before it are done.
+        if self._progress is not None:
+            self._progress(min(self._at, len(self._crops)), len(self._crops))
         if self._at >= len(self._crops):
             return None
         batch = self._crops[self._at : self._at + _CALIBRATION_BATCH]
@@ -189,14 +194,17 @@ def _check_writable(out: Path) -> None:
 
 
 def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLike, *,
-                   record: dict[str, Any] | None = None) -> Path:
+                   record: dict[str, Any] | None = None,
+                   calibration_progress: Callable[[int, int], None] | None = None) -> Path:
     """Write ``model`` (an :class:`estimator.runtime.OnnxModel`) to ``out_dir`` with an int8
     backbone calibrated on ``calibration`` (crops, as :func:`calibration_crops` gives them).
 
     The contract is the model's, with ``training.quantization`` saying what was done (plus
     ``record``: the command, the calibration data); both graphs carry it, ``SHA256SUMS`` covers
     them, and ``weights.npz`` (float, for fine-tuning) is copied. Files are staged and moved into
-    place only when complete, as an export does."""
+    place only when complete, as an export does. ``calibration_progress(crops_done, crops)`` is
+    called as ONNX Runtime runs the float backbone over the crops, the longest part for a wide
+    backbone."""
     onnx, quantization = _require_onnx()
     out = _check_output(model, out_dir)
     if len(calibration) == 0:
@@ -205,7 +213,7 @@ def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLi
     made = not out.exists()
     out = make_output_folder(out, what="model folder", holds="a model is a folder")
     try:
-        _write_quantized(model, calibration, out, onnx, quantization, record)
+        _write_quantized(model, calibration, out, onnx, quantization, record, calibration_progress)
     except BaseException:
         # Interrupted or failed (Ctrl-C during the minutes of calibration): a folder this run made
         # and left empty is neither a model nor absent; rmdir removes it only when empty.
@@ -217,7 +225,7 @@ def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLi
 
 
 def _write_quantized(model: Any, calibration: np.ndarray, out: Path, onnx: Any, quantization: Any,
-                     record: dict[str, Any] | None) -> None:
+                     record: dict[str, Any] | None, progress: Callable[[int, int], None] | None) -> None:
     contract = model.contract
     quantized = replace(contract, training={**contract.training, QUANTIZATION_KEY: {
         "backbone": "int8", "format": "QDQ", "activations": "uint8, calibrated (min-max)",
@@ -225,7 +233,7 @@ def _write_quantized(model: Any, calibration: np.ndarray, out: Path, onnx: Any, 
         "calibration_crops": len(calibration), **(record or {})}})
     with tempfile.TemporaryDirectory(dir=out, prefix=".quantize-") as tmp:
         try:
-            _stage_and_move(model, quantized, calibration, Path(tmp), out, onnx, quantization)
+            _stage_and_move(model, quantized, calibration, Path(tmp), out, onnx, quantization, progress)
         except Exception as exc:
             if _filled_disk(exc, Path(tmp), _bytes_needed(model) // 3):
                 # Said as a full disk where the model goes, which the command line tells the user
@@ -253,7 +261,7 @@ def _filled_disk(exc: Exception, staging: Path, backbone_bytes: int) -> bool:
 
 
 def _stage_and_move(model: Any, quantized: Any, calibration: np.ndarray, tmp: Path, out: Path, onnx: Any,
-                    quantization: Any) -> None:
+                    quantization: Any, progress: Callable[[int, int], None] | None) -> None:
     """Write the int8 model's files in ``tmp`` (a folder in ``out``) and move them into ``out``."""
     src = Path(model.model_dir)
     staged = {BACKBONE_FILE: tmp / BACKBONE_FILE, AGGREGATOR_FILE: tmp / AGGREGATOR_FILE}
@@ -262,7 +270,7 @@ def _stage_and_move(model: Any, quantized: Any, calibration: np.ndarray, tmp: Pa
     prepared = tmp / "prepared.onnx"
     quantization.quant_pre_process(str(src / BACKBONE_FILE), str(prepared))
     quantization.quantize_static(
-        str(prepared), str(staged[BACKBONE_FILE]), _CalibrationReader(model, calibration),
+        str(prepared), str(staged[BACKBONE_FILE]), _CalibrationReader(model, calibration, progress),
         quant_format=quantization.QuantFormat.QDQ, per_channel=True,
         activation_type=quantization.QuantType.QUInt8, weight_type=quantization.QuantType.QInt8,
         calibrate_method=quantization.CalibrationMethod.MinMax)
@@ -292,9 +300,12 @@ def _stage_and_move(model: Any, quantized: Any, calibration: np.ndarray, tmp: Pa
 
 def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[Frame]]], out_dir: str | os.PathLike,
                         *, n_crops: int = DEFAULT_CALIBRATION_CROPS, seed: int = 0, command: str = "",
-                        progress: Callable[[int], None] | None = None) -> Path:
+                        progress: Callable[[int], None] | None = None,
+                        calibration_progress: Callable[[int, int], None] | None = None) -> Path:
     """:func:`quantize_model` calibrated on the frames of ``log_sources`` ((path, frames) pairs),
-    the crops cut as ``model`` runs (its crop layout, seed ``seed``)."""
+    the crops cut as ``model`` runs (its crop layout, seed ``seed``). ``progress(frames_read)``
+    while the logs are read, then ``calibration_progress(crops_done, crops)`` while the backbone
+    runs over the crops."""
     from estimator.estimator import SunEstimator
     from estimator.recipe import data_fingerprint
 
@@ -318,4 +329,4 @@ def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[F
     paths = [Path(p) for p, _ in log_sources]
     record = {"calibration_logs": len(paths), "calibration_fingerprint": data_fingerprint(paths),
               "calibration_seed": seed, **({"command": command} if command else {})}
-    return quantize_model(model, calibration, out_dir, record=record)
+    return quantize_model(model, calibration, out_dir, record=record, calibration_progress=calibration_progress)
