@@ -1367,7 +1367,7 @@ def test_a_recording_whose_camera_fails_on_its_first_frame_is_not_kept(tmp_path,
     # and the corrected command was then refused because --out existed.
     import cv2
 
-    from tests.test_opencv_camera import clip_image, write_calibration
+    from tests.test_opencv_camera import StallingMjpegServer, clip_image, write_calibration
 
     clip = tmp_path / "clip.avi"
     writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
@@ -1383,6 +1383,18 @@ def test_a_recording_whose_camera_fails_on_its_first_frame_is_not_kept(tmp_path,
     # recording is made, in one line.
     (said,) = captured.err.strip().splitlines()
     assert said.startswith("sunrig: error: ") and "calibrat" in said
+    # A live stream's first frame comes only once the recording is open (a real MJPEG stream over
+    # HTTP, of the clip's 64x48 frames): the empty log is removed, and said before the error.
+    server = StallingMjpegServer(frames=3)
+    try:
+        rc, captured = _main_in_process(["record", "--camera", f"opencv:{server.url}", "--heading", "none",
+                                         "--out", str(out), "--calibration", str(tmp_path / "cam.yaml")], capsys)
+    finally:
+        server.close()
+    assert rc == 2 and not out.exists(), captured.err
+    said = captured.err.strip().splitlines()
+    assert said[0] == f"sunrig: nothing was recorded, so {out} is not kept", said
+    assert said[1].startswith("sunrig: error: ") and "calibrat" in said[1], said
     # The corrected command records.
     rc, captured = _main_in_process([*argv, "--hfov-deg", "60"], capsys)
     assert rc == 0 and out.exists(), captured.err
