@@ -320,7 +320,10 @@ def quantize_logs_model(model: Any, log_sources: Sequence[tuple[Path, Iterable[F
         if progress is not None:
             progress(n_frames)
 
-    calibration = calibration_crops(estimator, (frames for _, frames in log_sources), n_crops, seed=seed,
+    # Drawn from the logs in an order of their names, as the fingerprint counts them: the same logs
+    # given in another order (another shell's glob) are the same calibration, and the same graph.
+    ordered = sorted(log_sources, key=lambda source: (Path(source[0]).name, str(source[0])))
+    calibration = calibration_crops(estimator, (frames for _, frames in ordered), n_crops, seed=seed,
                                     progress=count)
     if 0 < len(calibration) < n_crops:
         # Said, not refused: a few hundred crops still calibrate, but the contract alone said so.

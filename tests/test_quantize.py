@@ -366,3 +366,24 @@ def test_the_backbone_runs_of_the_calibration_report_their_progress(model, tmp_p
         (done, total)))
     assert calls[0] == (0, 40) and calls[-1] == (40, 40)
     assert [d for d, _ in calls] == sorted(d for d, _ in calls) and {t for _, t in calls} == {40}
+
+
+def test_the_same_logs_in_another_order_give_the_same_int8_graph(model, tmp_path):
+    # The draw followed the order the logs were given in (a shell's glob, another's listing), so
+    # the same logs, under the same calibration_fingerprint, made another int8 model.
+    from onnx import numpy_helper
+
+    from estimator.quantize import quantize_logs_model
+
+    a, b = tmp_path / "drive_a.mcap", tmp_path / "drive_b.mcap"
+    a.write_bytes(b"a")
+    b.write_bytes(b"bb")
+
+    def weights(order, name):
+        frames = {a: _frames(12, seed=1), b: _frames(12, seed=2)}
+        out = quantize_logs_model(model, [(p, frames[p]) for p in order], tmp_path / name, n_crops=24)
+        return {t.name: numpy_helper.to_array(t) for t in onnx.load(str(out / "backbone.onnx")).graph.initializer}
+
+    first, second = weights([a, b], "ab"), weights([b, a], "ba")
+    assert first.keys() == second.keys()
+    assert all(np.array_equal(first[k], second[k]) for k in first)
