@@ -1097,11 +1097,28 @@ def cmd_quantize(args: argparse.Namespace) -> int:
     model = _load_model(args.model, args.stop)
     # Calibration reads images only: a KITTI drive's UTC offset (its true sun) does not matter here.
     opened, _ = _open_logs("quantize", _expand_logs("quantize", args.logs), 0.0)
-    # Frames are the unit: how many the logs hold is known only once read.
-    progress = Progress("quantize: calibrating", unit="frames", enabled=None if not args.quiet else False)
-    out = quantize_logs_model(model, opened, Path(args.out), n_crops=args.calibration_crops, seed=args.seed,
-                              command=command_line(), progress=progress.update)
-    progress.close()
+    # Frames are the unit while the logs are read: how many they hold is known only once read.
+    # Then ONNX Runtime runs the backbone over the crops (20 s for the paper's architecture on 2
+    # cores), a line of its own that starts as the reading ends.
+    enabled = None if not args.quiet else False
+    reading = Progress("quantize: reading frames", unit="frames", enabled=enabled)
+    running: Progress | None = None
+
+    def backbone_runs(crops_done: int, crops: int) -> None:
+        nonlocal running
+        if running is None:
+            reading.close()
+            running = Progress("quantize: running the backbone", total=crops, unit="crops", enabled=enabled)
+        running.update(crops_done)
+
+    try:
+        out = quantize_logs_model(model, opened, Path(args.out), n_crops=args.calibration_crops, seed=args.seed,
+                                  command=command_line(), progress=reading.update,
+                                  calibration_progress=backbone_runs)
+    finally:
+        reading.close()
+        if running is not None:
+            running.close()
     if not args.quiet:
         print(f"quantize: int8 model written to {out}; measure it with `sunrig eval LOG... --model {out}` before "
               "using it (docs/model.md, int8)", file=sys.stderr)

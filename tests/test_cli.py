@@ -299,6 +299,29 @@ def test_a_folder_without_logs_says_what_it_holds_and_what_to_do(tmp_path, capsy
 
 
 @pytest.mark.torch
+def test_quantize_shows_the_backbones_runs_over_the_crops_as_well_as_the_reading(tmp_path, tiny_model_dir,
+                                                                                 capsys, monkeypatch):
+    # Its one progress line, "calibrating", counted the frames read; the backbone's runs over the
+    # crops after it (20 s for the paper's architecture on 2 cores) passed without a word.
+    import rig.cli
+
+    bars: dict[str, list[int]] = {}
+
+    class Seen(rig.cli.Progress):  # the real progress line, its counts kept to look at
+        def update(self, done, extra=""):
+            bars.setdefault(f"{self.label} /{self.total}", []).append(done)
+            super().update(done, extra)
+
+    monkeypatch.setattr(rig.cli, "Progress", Seen)
+    log = _write_log(tmp_path / "drive.mcap")
+    rc, captured = _main_in_process(["quantize", str(log), "--model", str(tiny_model_dir), "--out",
+                                     str(tmp_path / "int8"), "--calibration-crops", "32"], capsys)
+    assert rc == 0, captured.err
+    assert set(bars) == {"quantize: reading frames /None", "quantize: running the backbone /32"}, bars
+    assert bars["quantize: running the backbone /32"][-1] == 32
+
+
+@pytest.mark.torch
 def test_quantize_writes_an_int8_model_that_every_command_runs(tmp_path, tiny_model_dir, capsys):
     from estimator.runtime import OnnxModel
 
