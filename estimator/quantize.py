@@ -46,11 +46,15 @@ from estimator.contract import (
     set_metadata,
 )
 from rig.errors import MissingExtraError, ValidationError
-from rig.files import make_output_folder, sync_to_disk
+from rig.files import folder_lock, make_output_folder, sync_to_disk
 from rig.types import Frame
 
 QUANTIZATION_KEY = "quantization"  # where the contract's training record says how a model was quantized
 DEFAULT_CALIBRATION_CROPS = 1024
+# The lock file of an --out being written (rig.files.folder_lock): hidden, and no model file.
+QUANTIZE_LOCK = ".quantize.lock"
+# The staging folder's prefix inside --out: what a run killed with -9 leaves behind.
+_STAGING_PREFIX = ".quantize-"
 # Crops a calibration run of the backbone takes at once. ONNX Runtime holds a run's activations in
 # its arena until the end: quantizing the paper's architecture (224 px) peaked at 2.7 GB with 32,
 # 1.8 GB with 8, in the same time.
@@ -135,15 +139,21 @@ def _check_output(model: Any, out_dir: str | os.PathLike) -> Path:
     out = Path(out_dir)
     if out.is_dir() and out.resolve() == Path(model.model_dir).resolve():
         raise ValidationError(f"{out} is the model being quantized; pass a new folder as --out")
-    held = [name for name in (BACKBONE_FILE, AGGREGATOR_FILE, CHECKPOINT, WEIGHTS_FILE, CHECKSUMS_FILE)
-            if (out / name).exists()]
-    if held:  # a model, or a training run, whose files the int8 model's would replace or stand beside
-        raise ValidationError(f"{out} holds {held[0]} already; pass a new folder as --out, so that nothing is replaced")
+    _refuse_replacing(out)
     if out.exists() and not out.is_dir():
         raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path")
     _check_writable(out)
     _check_room(model, out)
     return out
+
+
+def _refuse_replacing(out: Path) -> None:
+    """Refuse an ``out`` holding a model, or a training run, whose files the int8 model's would
+    replace or stand beside."""
+    held = [name for name in (BACKBONE_FILE, AGGREGATOR_FILE, CHECKPOINT, WEIGHTS_FILE, CHECKSUMS_FILE)
+            if (out / name).exists()]
+    if held:
+        raise ValidationError(f"{out} holds {held[0]} already; pass a new folder as --out, so that nothing is replaced")
 
 
 def _existing_folder(out: Path) -> Path:
@@ -213,7 +223,15 @@ def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLi
     made = not out.exists()
     out = make_output_folder(out, what="model folder", holds="a model is a folder")
     try:
-        _write_quantized(model, calibration, out, onnx, quantization, record, calibration_progress)
+        # Held to the end: two runs into one --out staged side by side and moved their files over
+        # each other's. Held, what an earlier run left staged is a killed run's (kill -9 skips
+        # every cleanup), and a model that run finished meanwhile is not replaced.
+        with folder_lock(out, name=QUANTIZE_LOCK, command="sunrig quantize", flag="--out"):
+            _refuse_replacing(out)
+            for debris in out.glob(_STAGING_PREFIX + "*"):
+                if debris.is_dir():
+                    shutil.rmtree(debris, ignore_errors=True)
+            _write_quantized(model, calibration, out, onnx, quantization, record, calibration_progress)
     except BaseException:
         # Interrupted or failed (Ctrl-C during the minutes of calibration): a folder this run made
         # and left empty is neither a model nor absent; rmdir removes it only when empty.
@@ -231,7 +249,7 @@ def _write_quantized(model: Any, calibration: np.ndarray, out: Path, onnx: Any, 
         "backbone": "int8", "format": "QDQ", "activations": "uint8, calibrated (min-max)",
         "weights": "int8, per output channel", "from_model": model.model_id,
         "calibration_crops": len(calibration), **(record or {})}})
-    with tempfile.TemporaryDirectory(dir=out, prefix=".quantize-") as tmp:
+    with tempfile.TemporaryDirectory(dir=out, prefix=_STAGING_PREFIX) as tmp:
         try:
             _stage_and_move(model, quantized, calibration, Path(tmp), out, onnx, quantization, progress)
         except Exception as exc:

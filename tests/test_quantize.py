@@ -387,3 +387,32 @@ def test_the_same_logs_in_another_order_give_the_same_int8_graph(model, tmp_path
     first, second = weights([a, b], "ab"), weights([b, a], "ba")
     assert first.keys() == second.keys()
     assert all(np.array_equal(first[k], second[k]) for k in first)
+
+
+def test_a_second_quantize_into_one_out_is_refused_and_a_killed_runs_staging_is_cleared(model, tmp_path):
+    # Two runs into one --out staged into the same folder unguarded; and a run killed with -9 left
+    # its .quantize-* staging (MBs) inside the folder, which the next run's model then carried.
+    import fcntl
+    import os
+
+    from estimator.quantize import QUANTIZE_LOCK, calibration_crops, quantize_model
+
+    calibration = calibration_crops(SunEstimator(model), [_frames(4)], 16)
+    out = tmp_path / "int8"
+    out.mkdir()
+    debris = out / ".quantize-k1ll3d"
+    debris.mkdir()
+    (debris / "backbone.onnx").write_bytes(b"half a graph")
+    lock = out / QUANTIZE_LOCK
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT)  # another process's run holds the folder
+    try:
+        os.write(fd, b"4242")
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(ValidationError, match=r"--out .*int8 is in use by another sunrig quantize \(pid 4242\)"):
+            quantize_model(model, calibration, out)
+    finally:
+        os.close(fd)
+    assert debris.exists()  # not another's to clear while it was held
+    lock.unlink()
+    quantize_model(model, calibration, out)
+    assert sorted(p.name for p in out.iterdir()) == ["SHA256SUMS", "aggregator.onnx", "backbone.onnx"]
