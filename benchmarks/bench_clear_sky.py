@@ -27,6 +27,7 @@ from benchmarks.common import (  # noqa: E402
     comma_list,
     machine,
     relative_azimuth_deg,
+    run,
     transformer_errors_deg,
 )
 
@@ -100,4 +101,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

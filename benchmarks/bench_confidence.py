@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.bench_spread import RunRecordingEstimator, gap_flags  # noqa: E402
-from benchmarks.common import comma_list, machine  # noqa: E402
+from benchmarks.common import comma_list, machine, run  # noqa: E402
 
 # Per full window: what the rig computes for it anyway, or could with one more aggregator run.
 FEATURES = (
@@ -176,4 +176,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

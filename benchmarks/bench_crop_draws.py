@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import comma_list, machine, relative_azimuth_deg  # noqa: E402
+from benchmarks.common import comma_list, machine, relative_azimuth_deg, run  # noqa: E402
 from benchmarks.variants import VARIANTS, estimator_for  # noqa: E402
 from rig.geometry import az_el_from_enu  # noqa: E402
 
@@ -134,4 +134,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

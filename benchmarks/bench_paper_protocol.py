@@ -25,7 +25,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import add_drive_args, comma_list, drives_and_model, machine  # noqa: E402
+from benchmarks.common import add_drive_args, comma_list, drives_and_model, machine, run  # noqa: E402
 
 HELD_OUT_SEED = 2000  # as bench_accuracy.py
 _seeds = comma_list(int, "distinct integers", lambda seeds: len(set(seeds)) == len(seeds))
@@ -98,4 +98,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import VALIDATION_SEED, add_drive_args, drives_and_model, machine  # noqa: E402
+from benchmarks.common import VALIDATION_SEED, add_drive_args, drives_and_model, machine, run  # noqa: E402
 from estimator.calibration import mean_direction  # noqa: E402
 from estimator.estimator import SunEstimator, mirrored_joint_runs, window_tokens  # noqa: E402
 from rig.geometry import angle_between  # noqa: E402
@@ -210,4 +210,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import comma_list, machine, transformer_errors_deg  # noqa: E402
+from benchmarks.common import comma_list, machine, run, transformer_errors_deg  # noqa: E402
 
 DEFAULT_RELATIVE_AZ_DEG = (0, 60, 90, 120, 150, 180, 210, 240, 270, 300)
 TOP_BAND_ROWS = (0.01, 0.16)  # of the image height: above the horizon of a level KITTI camera
@@ -90,4 +90,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -34,7 +34,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine, time_ms  # noqa: E402
+from benchmarks.common import machine, run, time_ms  # noqa: E402
 
 
 def _quantile(samples: list[float], q: float) -> float:
@@ -178,4 +178,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

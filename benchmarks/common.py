@@ -16,14 +16,68 @@ import time
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from typing import Any, NoReturn
+
+from rig.errors import SunrigError
 
 # The seed of the validation drives, on which runs are compared (docs/model.md, "How a run is
 # chosen"); held-out drives are 2000 (bench_accuracy.py) and training drives 1000.
 VALIDATION_SEED = 2500
 
 
+def run(main: Callable[[], object]) -> NoReturn:
+    """Run a benchmark's ``main`` as a command. A user's mistake (any :class:`SunrigError`: a
+    missing model, a folder that cannot be written, drives kept with other frames) ends it in one
+    line and exit 2, as argparse's usage errors and the ``sunrig`` CLI do, and a Ctrl-C that
+    ``main`` did not turn into a report ends it in one line and exit 130; both printed a traceback
+    over the line that said what to do. Anything else is a bug and keeps its traceback."""
+    prog = Path(sys.argv[0]).stem
+    try:
+        code = main()
+    except SunrigError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted (Ctrl-C); nothing was measured to the end, so no JSON is printed",
+              file=sys.stderr)
+        sys.exit(130)
+    sys.exit(code if isinstance(code, int) else 0)
+
+
+def int_in(lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer from ``lo`` to ``hi`` (no upper bound when None)."""
+    what = f"an integer from {lo} to {hi}" if hi is not None else f"an integer >= {lo}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if value < lo or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return value
+
+    return parse
+
+
+def float_in(lo: float, hi: float = math.inf) -> Callable[[str], float]:
+    """An argparse type: a finite number above ``lo`` and at most ``hi`` (nan and inf are typos)."""
+    what = f"a finite number above {lo:g}" + (f" and at most {hi:g}" if hi < math.inf else "")
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and lo < value <= hi):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return value
+
+    return parse
+
+
 def machine() -> dict:
-    info = {
+    info: dict[str, object] = {
         "platform": platform.platform(),
         "python": platform.python_version(),
         "cpu_count": os.cpu_count(),
@@ -75,22 +129,39 @@ def comma_list(convert: Callable[[str], float], what: str, valid: Callable[[list
 def add_drive_args(ap: argparse.ArgumentParser, *, data: str, drives: int, drive_seed: int,
                    drive_seed_help: str) -> None:
     """The options of a benchmark over synthetic drives: the model, and which drives (made if missing)."""
+    from replay.synthetic import MAX_DRIVES, MAX_FRAMES
+
     ap.add_argument("--model", help="model folder (default: the shipped model)")
     ap.add_argument("--data", default=data, help="where the drives are (made if missing)")
-    ap.add_argument("--drives", type=int, default=drives)
-    ap.add_argument("--frames", type=int, default=24)
+    # The synthetic writer's own bounds, checked here so that a typo is a usage error at once.
+    ap.add_argument("--drives", type=int_in(1, MAX_DRIVES), default=drives)
+    ap.add_argument("--frames", type=int_in(1, MAX_FRAMES), default=24,
+                    help="frames per drive (default 24; at least the model's window)")
     ap.add_argument("--drive-seed", type=int, default=drive_seed, help=drive_seed_help)
 
 
-def drives_and_model(args: argparse.Namespace) -> tuple[list[Path], object]:
-    """The drives :func:`add_drive_args` names (written first if they are not there) and the model."""
+def check_frames(frames: int, model, option: str = "--frames") -> None:
+    """Refuse drives of ``frames`` frames that hold no full window of ``model``: every figure
+    would be of no window at all."""
+    need = int(model.contract.frames_per_window)
+    if frames < need:
+        raise SunrigError(f"{option} {frames}: a drive needs at least {need} frames (the model's window) for one "
+                          f"window to be graded; pass {option} {need} or more")
+
+
+def drives_and_model(args: argparse.Namespace) -> tuple[list[Path], Any]:
+    """The model and the drives :func:`add_drive_args` names (written first if they are not there).
+    The model is loaded and the frames checked against its window first, so that a wrong
+    ``--model`` or too few ``--frames`` is said before minutes of drives are rendered."""
     from estimator.models import resolve_model_dir
     from estimator.runtime import OnnxModel
     from replay.synthetic import write_synthetic_logs
 
+    model = OnnxModel.load(resolve_model_dir(args.model))
+    check_frames(args.frames, model)
     paths = write_synthetic_logs(args.data, drives=args.drives, frames=args.frames, seed=args.drive_seed,
                                  progress=sys.stderr.isatty(), jobs=2)
-    return paths, OnnxModel.load(resolve_model_dir(args.model))
+    return paths, model
 
 
 def transformer_errors_deg(frames: list, estimator) -> tuple[list[float], list[float]]:
