@@ -21,8 +21,10 @@ suns go: the margin the rule allows above them (rig/protocol.ELEVATION_MARGIN_DE
                                          [--seeds 0,1,2] [--crop-layout spread|uniform] [--drive-seed 2000]
                                          [--crops N] [--mirror-windows on|off] [--variant NAME]
 
-``--mirror-windows`` runs the model mirrored or not whatever its contract says (the shipped
-model's says mirrored); ``--variant`` measures a run-time change that was tried and not adopted
+The figures go beside the drives (``data/heldout-eval.png`` and ``-tokens.png`` for
+``data/heldout``), unless ``--plot`` says where; the JSON names both (``data_dir``, ``plot``).
+``--mirror-windows`` runs the model mirrored or not whatever its contract says (the shipped model's
+says mirrored); ``--variant`` measures a run-time change that was tried and not adopted
 (benchmarks/variants.py).
 """
 
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -50,6 +53,26 @@ def _positive(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return n
+
+
+def default_plot(data: str) -> Path:
+    """Where the figures of the drives in ``data`` go unless ``--plot`` says: beside the folder,
+    named after it (``data/heldout`` -> ``data/heldout-eval.png``), so that the validation run's
+    figures do not replace the held-out ones'."""
+    folder = Path(data)
+    return folder.parent / f"{folder.name or 'drives'}-eval.png"
+
+
+def check_plot(plot: Path) -> None:
+    """Refuse a ``--plot`` that cannot be written, making its folder."""
+    from rig.errors import SunrigError
+
+    try:
+        plot.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SunrigError(f"--plot {plot}: cannot make its folder ({exc.strerror}); pass another path") from None
+    if plot.is_dir() or not os.access(plot.parent, os.W_OK):
+        raise SunrigError(f"--plot {plot}: cannot write there; pass another path")
 
 
 def elevation_excess(result, trained_max_deg: float | None, band_deg: float = 5.0) -> dict | None:
@@ -73,7 +96,9 @@ def main() -> None:
     add_drive_args(ap, data="data/heldout", drives=100, drive_seed=HELD_OUT_SEED,
                    drive_seed_help=f"seed of the drives (default {HELD_OUT_SEED}; the validation set is 2500; "
                                    "training used 1000, whose drives say nothing about held-out accuracy)")
-    ap.add_argument("--plot", default="data/heldout-eval.png")
+    ap.add_argument("--plot", metavar="OUT.png",
+                    help="the cumulative error figure, and OUT-tokens.png beside it (default: beside the drives, "
+                         "DATA-eval.png)")
     ap.add_argument("--seeds", type=_seeds, default=[0, 1, 2],
                     help="crop seeds; every window is estimated once per seed (default 0,1,2)")
     ap.add_argument("--crop-layout", default="spread", choices=("spread", "uniform"),
@@ -85,6 +110,8 @@ def main() -> None:
     ap.add_argument("--variant", default="plain", choices=VARIANTS,
                     help="a run-time change tried and not adopted (benchmarks/variants.py; default plain)")
     args = ap.parse_args()
+    plot = Path(args.plot) if args.plot else default_plot(args.data)
+    check_plot(plot)  # before the drives and the evaluation: a plot that fails at the end loses minutes
 
     from estimator.evaluate import WORST_LOGS, error_summary, evaluate, plot_eval
     from replay.sources import open_frames
@@ -108,14 +135,15 @@ def main() -> None:
             pooled.extend(result)
         if result.interrupted:
             break  # Ctrl-C: report what was done (marked interrupted), not go on with the next seed
-    Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
-    plot_eval(pooled, Path(args.plot))
+    plot_eval(pooled, plot)
     summary = pooled.summary()
     summary.pop("logs")
     trained = model.contract.trained_sun_elevation_deg
     print(json.dumps({
         "benchmark": "accuracy",
         "data": {"held_out_seed": args.drive_seed, "drives": args.drives, "frames_per_drive": args.frames},
+        "data_dir": args.data,
+        "plot": str(plot),
         "crop_layout": args.crop_layout,
         "variant": args.variant,
         "mirror_windows": estimator.mirror_windows,
