@@ -21,6 +21,10 @@ sends SIGTERM, as systemd or docker would, and checks the exit code, that the re
 that the JSONL has one line per estimate. Prints JSON. Linux only (/proc, pseudo-terminals).
 
     python3 benchmarks/bench_soak.py [--minutes 10] [--model DIR]
+
+The rig's outputs go to a new folder under the system's temporary one, which the JSON names
+(``output_folder``) and which is kept to be looked at; a run stopped early (Ctrl-C, SIGTERM)
+stops the rig and removes it.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -41,7 +46,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine, run  # noqa: E402
+from benchmarks.common import float_in, machine, run  # noqa: E402
 
 FPS = 10.0
 SAMPLE_EVERY_S = 5.0
@@ -196,17 +201,24 @@ def slope_per_hour(ts: list[float], ys: list[float]) -> float | None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--minutes", type=float_in(0.0), default=10.0)
     ap.add_argument("--model", help="model folder (default: the shipped model)")
-    ap.add_argument("--warmup-s", type=float, default=60.0, help="left out of the memory trend (default 60)")
-    ap.add_argument("--camera-drop-s", type=float, default=90.0)
-    ap.add_argument("--gnss-drop-s", type=float, default=60.0)
-    ap.add_argument("--serial-stall-s", type=float, default=30.0,
+    ap.add_argument("--warmup-s", type=float_in(0.0, lo_included=True), default=60.0,
+                    help="left out of the memory trend (default 60)")
+    ap.add_argument("--camera-drop-s", type=float_in(0.0), default=90.0)
+    ap.add_argument("--gnss-drop-s", type=float_in(0.0), default=60.0)
+    ap.add_argument("--serial-stall-s", type=float_in(0.0, 60.0, lo_included=True), default=30.0,
                     help="seconds of each minute the controller does not read (default 30: the pty's "
                          "buffer holds about 20 s of sentences, so the writer times out and reopens)")
     args = ap.parse_args()
     if sys.platform != "linux":
         sys.exit("bench_soak: needs Linux (/proc and pseudo-terminals)")
+
+    from estimator.models import resolve_model_dir
+    from estimator.runtime import OnnxModel
+
+    # Loaded here, as the rig will: a wrong --model is said at once, not as a rig that ended early.
+    model = OnnxModel.load(resolve_model_dir(args.model))
 
     stop = threading.Event()
     drive = DemoStream()
@@ -246,6 +258,8 @@ def main() -> None:
                 time.sleep(SAMPLE_EVERY_S)
         except BaseException:  # Ctrl-C, or SIGTERM (above): stop the rig too, not leave it running
             stop_rig(proc, wait_s=10.0)
+            # Nothing was measured to the end: its part-recording and JSONL are not worth keeping.
+            shutil.rmtree(out, ignore_errors=True)
             raise
         ended_early = proc.poll() is not None
         t_int = time.monotonic()
@@ -277,6 +291,10 @@ def main() -> None:
     print(json.dumps({
         "benchmark": "soak",
         "minutes": args.minutes,
+        "model": {"dir": str(model.model_dir), "id": model.model_id},
+        "faults_every_s": {"camera_drop": args.camera_drop_s, "gnss_drop": args.gnss_drop_s,
+                           "serial_stall_per_minute": args.serial_stall_s},
+        "warmup_s": args.warmup_s,
         "command": " ".join(cmd[1:]),
         "ended_before_stop": ended_early,
         "exit_code": code,

@@ -60,16 +60,18 @@ def int_in(lo: int, hi: int | None = None) -> Callable[[str], int]:
     return parse
 
 
-def float_in(lo: float, hi: float = math.inf) -> Callable[[str], float]:
-    """An argparse type: a finite number above ``lo`` and at most ``hi`` (nan and inf are typos)."""
-    what = f"a finite number above {lo:g}" + (f" and at most {hi:g}" if hi < math.inf else "")
+def float_in(lo: float, hi: float = math.inf, *, lo_included: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite number above ``lo`` (or from it, ``lo_included``) and at most
+    ``hi`` (nan and inf are typos)."""
+    what = (f"a finite number {'from' if lo_included else 'above'} {lo:g}"
+            + (f" {'to' if lo_included else 'and at most'} {hi:g}" if hi < math.inf else ""))
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and lo < value <= hi):
+        if not (math.isfinite(value) and (lo <= value if lo_included else lo < value) and value <= hi):
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
         return value
 

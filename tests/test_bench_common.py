@@ -80,3 +80,12 @@ def test_drives_shorter_than_a_window_are_refused_before_any_is_made(tmp_path):
     assert run.returncode == 2 and run.stdout == ""
     assert run.stderr.count("\n") == 1 and "--frames 5" in run.stderr and "Traceback" not in run.stderr
     assert not (tmp_path / "d").exists()
+
+
+def test_float_in_takes_finite_numbers_in_its_range_only():
+    above_0, from_0_to_60 = common.float_in(0.0), common.float_in(0.0, 60.0, lo_included=True)
+    assert above_0("0.5") == 0.5 and from_0_to_60("0") == 0.0 and from_0_to_60("60") == 60.0
+    for parse, bad in ((above_0, "0"), (above_0, "nan"), (above_0, "inf"), (above_0, "x"), (from_0_to_60, "-0.1"),
+                       (from_0_to_60, "60.5")):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected a finite number"):
+            parse(bad)
