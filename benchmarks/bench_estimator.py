@@ -22,18 +22,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine, run, time_ms  # noqa: E402
+from benchmarks.common import comma_list, int_in, machine, run, time_ms  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--presets", default="fast,light,paper")
-    ap.add_argument("--threads", type=int, default=0, help="ONNX Runtime intra-op threads (0: default)")
-    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--presets", type=comma_list(str, "preset names"), default="fast,light,paper",
+                    help="network presets (estimator/nets.py; default fast,light,paper)")
+    ap.add_argument("--threads", type=int_in(0), default=0, help="ONNX Runtime intra-op threads (0: default)")
+    ap.add_argument("--repeats", type=int_in(1), default=20, help="timed runs of each, after 3 warm-up runs")
     ap.add_argument("--int8", action="store_true", help="also measure each preset with an int8 backbone")
     args = ap.parse_args()
 
     from estimator import nets
+
+    unknown = [name for name in args.presets if name not in nets.PRESETS]
+    if unknown:
+        ap.error(f"argument --presets: no preset {', '.join(map(repr, unknown))}; pick from {', '.join(nets.PRESETS)}")
     from estimator.estimator import SunEstimator
     from estimator.export import export_model
     from estimator.quantize import calibration_crops, quantize_model
@@ -54,7 +59,7 @@ def main() -> None:
         return {"frame_encode": per_frame, "window": per_window}
 
     results = {}
-    for name in args.presets.split(","):
+    for name in args.presets:
         cfg = nets.PRESETS[name]
         with tempfile.TemporaryDirectory() as tmp:
             backbone, aggregator = cfg.build(seed=0)
@@ -67,7 +72,8 @@ def main() -> None:
                 results[name]["int8"] = measure(OnnxModel.load(Path(tmp) / "int8",
                                                                 intra_op_threads=args.threads or None))
     print(json.dumps({"benchmark": "estimator", "image": [1242, 375], "crops_per_frame": 4,
-                      "tokens_per_window": 32, "results": results, "machine": machine()}, indent=2))
+                      "tokens_per_window": 32, "intra_op_threads": args.threads or None, "repeats": args.repeats,
+                      "int8": args.int8, "results": results, "machine": machine()}, indent=2))
 
 
 if __name__ == "__main__":

@@ -112,7 +112,7 @@ def time_ms(fn: Callable[[], object], repeats: int = 20, warmup: int = 3) -> dic
             "repeats": repeats}
 
 
-def comma_list(convert: Callable[[str], float], what: str, valid: Callable[[list], bool] = bool) -> Callable:
+def comma_list(convert: Callable[[str], Any], what: str, valid: Callable[[list], bool] = bool) -> Callable:
     """An argparse type for a comma-separated list of ``what`` (e.g. ``0,1,2``), each made by
     ``convert`` and the list accepted by ``valid`` (default: not empty)."""
 
