@@ -28,13 +28,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import statistics
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine, run, time_ms  # noqa: E402
+from benchmarks.common import float_in, int_in, machine, run, time_ms  # noqa: E402
+from rig.errors import SunrigError  # noqa: E402
 
 
 def _quantile(samples: list[float], q: float) -> float:
@@ -66,16 +68,22 @@ def epoch_zeros(epochs: list[int]) -> list[int]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--drives", type=int, default=8, help="synthetic drives")
-    ap.add_argument("--frames", type=int, default=40, help="frames per drive (10 fps)")
+    ap.add_argument("--drives", type=int_in(1), default=8, help="synthetic drives")
+    # Two frames at least: a drive's drift is over the distance between its first and last.
+    ap.add_argument("--frames", type=int_in(2, 5000), default=40, help="frames per drive (10 fps)")
     ap.add_argument("--seed", type=int, default=1000, help="drive i is drive_seed(seed, i)")
-    ap.add_argument("--scale", type=float, default=0.5, help="image size as a fraction of KITTI 1242x375")
-    ap.add_argument("--repeats", type=int, default=3, help="timed runs over each drive (after one warm-up)")
-    ap.add_argument("--threads", type=int, default=1, help="OpenCV threads")
-    ap.add_argument("--substeps", type=int, default=1,
+    ap.add_argument("--scale", type=float_in(0.0, 2.0), default=0.5,
+                    help="image size as a fraction of KITTI 1242x375")
+    ap.add_argument("--repeats", type=int_in(1), default=3, help="timed runs over each drive (after one warm-up)")
+    ap.add_argument("--threads", type=int_in(0), default=1, help="OpenCV threads")
+    ap.add_argument("--substeps", type=int_in(1, 10), default=1,
                     help="render each drive with K times the frames, 1/K the motion per frame, at K x 10 fps")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
+    out = Path(args.out) if args.out else None
+    if out is not None and (out.is_dir() or not os.access(out.parent, os.W_OK)):
+        # Said now, not after minutes of rendering and tracking.
+        raise SunrigError(f"--out {out}: cannot write there; check the folder exists and is writable")
 
     import cv2
     import numpy as np
@@ -172,8 +180,8 @@ def main() -> None:
         "machine": machine(),
     }
     text = json.dumps(result, indent=2)
-    if args.out:
-        Path(args.out).write_text(text + "\n", encoding="utf-8")
+    if out is not None:
+        out.write_text(text + "\n", encoding="utf-8")
     print(text)
 
 
