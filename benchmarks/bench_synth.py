@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine, run  # noqa: E402
+from benchmarks.common import float_in, int_in, machine, run  # noqa: E402
 
 
 def _quantile(samples: list[float], q: float) -> float:
@@ -29,11 +29,13 @@ def _quantile(samples: list[float], q: float) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=40, help="frames per drive")
-    ap.add_argument("--repeats", type=int, default=5, help="drives timed (seeds 0..repeats-1)")
-    ap.add_argument("--render-scale", type=float, default=0.5, help="internal render resolution factor")
-    ap.add_argument("--scale", type=float, default=1.0, help="output size as a fraction of KITTI 1242x375")
-    ap.add_argument("--threads", type=int, default=1, help="OpenCV threads")
+    # The bounds of `sunrig synth` (--frames, --render-scale), and a size of at least a few pixels.
+    ap.add_argument("--frames", type=int_in(1, 5000), default=40, help="frames per drive")
+    ap.add_argument("--repeats", type=int_in(1), default=5, help="drives timed (seeds 0..repeats-1)")
+    ap.add_argument("--render-scale", type=float_in(0.0, 1.0), default=0.5, help="internal render resolution factor")
+    ap.add_argument("--scale", type=float_in(0.05, 4.0, lo_included=True), default=1.0,
+                    help="output size as a fraction of KITTI 1242x375")
+    ap.add_argument("--threads", type=int_in(0), default=1, help="OpenCV threads")
     args = ap.parse_args()
 
     import cv2
