@@ -24,7 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import (  # noqa: E402
     VALIDATION_SEED,
+    check_frames,
     comma_list,
+    int_in,
     machine,
     relative_azimuth_deg,
     run,
@@ -57,7 +59,8 @@ def main() -> None:
                     help=f"seed of the drive set (default {VALIDATION_SEED}, the validation drives)")
     ap.add_argument("--indices", type=_indices, default=list(DEFAULT_INDICES),
                     help=f"which drives of the set (default {','.join(map(str, DEFAULT_INDICES))})")
-    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--frames", type=int_in(1, 5000), default=24,
+                    help="frames of each drive (at least the model's window)")
     ap.add_argument("--crop-seeds", type=comma_list(int, "integers"), default=[0, 1, 2])
     args = ap.parse_args()
 
@@ -68,6 +71,7 @@ def main() -> None:
     from replay.synthetic.drive import Drive, plan_drive
 
     model = OnnxModel.load(resolve_model_dir(args.model))
+    check_frames(args.frames, model)
     drives = []
     for index in args.indices:
         seed = drive_seed(args.drive_seed, index)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import comma_list, machine, run, transformer_errors_deg  # noqa: E402
+from benchmarks.common import check_frames, comma_list, int_in, machine, run, transformer_errors_deg  # noqa: E402
 
 DEFAULT_RELATIVE_AZ_DEG = (0, 60, 90, 120, 150, 180, 210, 240, 270, 300)
 TOP_BAND_ROWS = (0.01, 0.16)  # of the image height: above the horizon of a level KITTI camera
@@ -40,8 +40,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", help="model folder (default: the shipped model)")
     ap.add_argument("--drive-seed", type=int, default=2000, help="seed of the drive set (default 2000, held out)")
-    ap.add_argument("--index", type=int, default=0, help="which drive of the set (default 0: drive_2000_0000)")
-    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--index", type=int_in(0), default=0, help="which drive of the set (default 0: drive_2000_0000)")
+    ap.add_argument("--frames", type=int_in(1, 5000), default=24,
+                    help="frames of the drive (at least the model's window)")
     ap.add_argument("--relative-az-deg", type=_degrees, default=list(DEFAULT_RELATIVE_AZ_DEG),
                     help="sun azimuths from the first frame's heading, clockwise (default "
                          f"{','.join(str(a) for a in DEFAULT_RELATIVE_AZ_DEG)})")
@@ -60,6 +61,7 @@ def main() -> None:
     from replay.synthetic.drive import Drive, plan_drive
 
     model = OnnxModel.load(resolve_model_dir(args.model))
+    check_frames(args.frames, model)
     estimator = SunEstimator(model, seed=args.crop_seed)
     seed = drive_seed(args.drive_seed, args.index)
     plan = plan_drive(seed, args.frames)

@@ -37,3 +37,12 @@ def test_only_the_sky_changes_between_renders(monkeypatch, capsys):
     assert skies["full_sun"] == skies["recorded"]
     assert skies["no_clouds"]["mean_deg"] != skies["recorded"]["mean_deg"]  # renders are deterministic
     assert skies["clear"] == skies["no_clouds"]
+
+
+def test_drives_shorter_than_a_window_are_refused_before_they_are_rendered(monkeypatch):
+    # --frames 5 made no full window and ended in a ZeroDivisionError after rendering four skies.
+    from rig.errors import SunrigError
+
+    monkeypatch.setattr(sys, "argv", ["bench_clear_sky.py", "--indices", "231", "--frames", "5"])
+    with pytest.raises(SunrigError, match="--frames 5"):
+        main()
