@@ -117,12 +117,17 @@ def window_features(paths: list[Path], estimator: RunRecordingEstimator) -> tupl
 
 
 def drive_set(text: str) -> tuple[str, int, int]:
-    """``DIR:DRIVES:SEED``, e.g. ``data/val:300:2500``."""
+    """``DIR:DRIVES:SEED``, e.g. ``data/val:300:2500`` (1 to MAX_DRIVES drives)."""
+    from replay.synthetic import MAX_DRIVES
+
     try:
         folder, drives, seed = text.rsplit(":", 2)
-        return folder, int(drives), int(seed)
+        if folder and 1 <= int(drives) <= MAX_DRIVES:
+            return folder, int(drives), int(seed)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected DIR:DRIVES:SEED (e.g. data/val:300:2500), got {text!r}") from None
+        pass
+    raise argparse.ArgumentTypeError(f"expected DIR:DRIVES:SEED with 1 to {MAX_DRIVES} drives "
+                                     f"(e.g. data/val:300:2500), got {text!r}")
 
 
 def main() -> None:

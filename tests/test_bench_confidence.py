@@ -36,3 +36,10 @@ def test_a_drive_set_is_dir_drives_seed_and_anything_else_is_refused():
     assert drive_set("C:/logs:3:1") == ("C:/logs", 3, 1)  # the folder may hold a colon itself
     with pytest.raises(argparse.ArgumentTypeError, match="DIR:DRIVES:SEED"):
         drive_set("data/val:300")
+
+
+@pytest.mark.parametrize("bad", ["data/probe:0:4000", "data/probe:-3:4000", "data/probe:100001:4000", ":300:4000"])
+def test_a_drive_set_of_no_drives_or_no_folder_is_refused(bad):
+    # 0 drives fitted the probe on no window: numpy's matmul error after the test sets' drives.
+    with pytest.raises(argparse.ArgumentTypeError, match="DIR:DRIVES:SEED"):
+        drive_set(bad)
