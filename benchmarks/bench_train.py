@@ -17,20 +17,25 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine, run  # noqa: E402
+from benchmarks.common import int_in, machine, run  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="fast")
-    ap.add_argument("--layers", type=int, default=0, help="transformer layers (default: the preset's)")
+    ap.add_argument("--preset", default="fast", help="network preset (estimator/nets.py; default fast)")
+    ap.add_argument("--layers", type=int_in(0), default=0, help="transformer layers (default: the preset's)")
     ap.add_argument("--steps", type=int, default=200)
-    ap.add_argument("--drives", type=int, default=12)
+    ap.add_argument("--drives", type=int_in(1, 1000), default=12, help="synthetic drives of 24 frames to train on")
     args = ap.parse_args()
     if args.steps < 100:
         ap.error("--steps: at least 100 (the first 50 are warm-up)")
 
+    from estimator import nets
     from estimator.train import METRICS, TrainConfig, train, use_bf16
+
+    # Said now: train() says it too, but only after the drives are rendered.
+    if args.preset not in nets.PRESETS:
+        ap.error(f"argument --preset: no preset {args.preset!r}; pick from {', '.join(nets.PRESETS)}")
     from replay.synthetic import write_synthetic_logs
 
     results = {}
@@ -50,6 +55,8 @@ def main() -> None:
         "benchmark": "train_step",
         "preset": args.preset,
         "layers": args.layers or None,
+        "steps": args.steps,
+        "drives": args.drives,
         "batch_windows": TrainConfig().batch_windows,
         "native_bf16": use_bf16("auto"),
         "results": results,
