@@ -978,3 +978,13 @@ def test_synth_with_jobs_whose_worker_is_killed_stops_in_one_line_and_leaves_no_
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
 
+
+
+@pytest.mark.parametrize("scale", [0.0, -0.5, math.nan, math.inf])
+def test_kitti_intrinsics_refuses_a_scale_that_makes_no_image(scale):
+    # 0 or a negative scale gave a 1 x 1 px camera without a word: the benchmarks measured drift and
+    # rendering speed on it and printed them as the rig's.
+    from rig.errors import ValidationError
+
+    with pytest.raises(ValidationError, match="kitti_intrinsics: expected a scale > 0"):
+        kitti_intrinsics(scale)

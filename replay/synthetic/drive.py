@@ -20,6 +20,7 @@ from replay.synthetic.camera import Camera, CameraEffects
 from replay.synthetic.render import CameraPose, Renderer
 from replay.synthetic.scene import LayoutStyle, RoadPath, RoadSpec, Scene, random_path, random_scene
 from replay.synthetic.sky import PreethamSky
+from rig.errors import ValidationError
 from rig.geometry import enu_from_az_el
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
 
@@ -30,6 +31,8 @@ CAMERA_HEIGHT_M = 1.65  # KITTI's colour cameras
 
 def kitti_intrinsics(scale: float = 1.0) -> Intrinsics:
     """KITTI image_02 intrinsics, optionally scaled (0.25 gives 310x94 with the same view)."""
+    if not (math.isfinite(scale) and scale > 0):  # 0 gave a 1 x 1 px camera without a word
+        raise ValidationError(f"kitti_intrinsics: expected a scale > 0, got {scale}")
     if scale == 1.0:
         return KITTI_INTRINSICS
     from replay.synthetic.render import scaled_intrinsics
