@@ -46,7 +46,7 @@ from estimator.contract import (
     set_metadata,
 )
 from rig.errors import MissingExtraError, ValidationError
-from rig.files import folder_lock, make_output_folder, sync_to_disk
+from rig.files import check_folder_writable, folder_lock, make_output_folder, nearest_existing_folder, sync_to_disk
 from rig.types import Frame
 
 QUANTIZATION_KEY = "quantization"  # where the contract's training record says how a model was quantized
@@ -142,7 +142,7 @@ def _check_output(model: Any, out_dir: str | os.PathLike) -> Path:
     _refuse_replacing(out)
     if out.exists() and not out.is_dir():
         raise ValidationError(f"{out} is a file; a model is a folder: pass a folder's path")
-    _check_writable(out)
+    check_folder_writable(out, flag="--out")  # before the logs are read
     _check_room(model, out)
     return out
 
@@ -154,15 +154,6 @@ def _refuse_replacing(out: Path) -> None:
             if (out / name).exists()]
     if held:
         raise ValidationError(f"{out} holds {held[0]} already; pass a new folder as --out, so that nothing is replaced")
-
-
-def _existing_folder(out: Path) -> Path:
-    """``out``, or the nearest folder above it that exists: the one the model's files will take
-    room in."""
-    where = out
-    while not where.exists() and where != where.parent:
-        where = where.parent
-    return where
 
 
 def _bytes_needed(model: Any) -> int:
@@ -182,25 +173,10 @@ def _check_room(model: Any, out: Path) -> None:
     """Refuse, before the logs are read, an ``out`` on a disk too full for the model: the write
     failed after the calibration, and some of its failures did not say the disk was full."""
     needed = _bytes_needed(model)
-    free = shutil.disk_usage(_existing_folder(out)).free
+    free = shutil.disk_usage(nearest_existing_folder(out)).free
     if free < needed:
         raise ValidationError(f"--out {out}: writing the int8 model needs about {needed / 1e6:.1f} MB on its disk, "
                               f"{free / 1e6:.1f} MB free; free space there, or pass a folder on another disk")
-
-
-def _check_writable(out: Path) -> None:
-    """Refuse, before the logs are read, an ``out`` that cannot be written: the mkdir found it only
-    after every log had been read for calibration. Probed by making a folder and removing it in
-    ``out`` or the nearest folder above it that exists (the one mkdir will write in): os.access
-    says yes to root on a read-only mount. The probe is hidden, as the staging folder is."""
-    where = _existing_folder(out)
-    try:
-        if not where.is_dir():
-            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
-        os.rmdir(tempfile.mkdtemp(prefix=".quantize-probe-", dir=where))
-    except OSError as exc:
-        raise ValidationError(f"--out {out}: cannot write there ({exc.strerror}: {where}); pass a folder you "
-                              "can write to") from None
 
 
 def quantize_model(model: Any, calibration: np.ndarray, out_dir: str | os.PathLike, *,

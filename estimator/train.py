@@ -37,7 +37,6 @@ graphs with the contract, including the command and data that produced it.
 from __future__ import annotations
 
 import contextlib
-import errno
 import io
 import json
 import logging
@@ -45,7 +44,6 @@ import math
 import os
 import re
 import shutil
-import tempfile
 import time
 import zipfile
 import zlib
@@ -75,7 +73,7 @@ from estimator.contract import (
 from estimator.crops import crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
-from rig.files import folder_lock, make_output_folder, sync_to_disk, write_replacing
+from rig.files import check_folder_writable, folder_lock, make_output_folder, sync_to_disk, write_replacing
 from rig.geometry import az_el_from_enu, view_angles_rad, wrap_pi
 from rig.ring import DEFAULT_MAX_AGE_S, UTC_DISAGREEMENT_TOLERANCE_S
 from rig.types import Frame, HeadingRef
@@ -1155,20 +1153,8 @@ def _with_own_unflagged(cfg: TrainConfig, ran: dict[str, Any]) -> TrainConfig:
 def _check_out_writable(out_dir: Path) -> None:
     """Refuse, before minutes of loading data, an ``--out`` that cannot be written: it was found
     by the mkdir after every log had loaded, or (a folder the user may not write) by the first
-    metrics line or checkpoint, after the training. Checked by making a folder and removing it,
-    in ``out_dir`` or the nearest folder above it that exists (the one mkdir will write in):
-    os.access says yes to root for /proc or a read-only mount. The probe is hidden, so one a kill
-    leaves behind does not make the folder "hold files"."""
-    where = out_dir
-    while not where.exists() and where != where.parent:
-        where = where.parent
-    try:
-        if not where.is_dir():
-            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
-        os.rmdir(tempfile.mkdtemp(prefix=".sunrig-probe-", dir=where))
-    except OSError as exc:
-        raise ValidationError(f"--out {out_dir}: cannot write there ({exc.strerror}: {where}); pass a folder "
-                              "you can write to") from None
+    metrics line or checkpoint, after the training (:func:`rig.files.check_folder_writable`)."""
+    check_folder_writable(out_dir, flag="--out")
 
 
 RUN_LOCK = ".train.lock"  # hidden, like every file a run keeps beside its own (_resumable_state)

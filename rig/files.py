@@ -7,6 +7,7 @@ import contextlib
 import errno
 import logging
 import os
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -167,6 +168,32 @@ def check_can_write(path: str | os.PathLike[str]) -> None:
     except OSError as exc:
         raise OSError(exc.errno, exc.strerror, str(path)) from None
     tmp.unlink(missing_ok=True)
+
+
+def nearest_existing_folder(path: Path) -> Path:
+    """``path``, or the nearest folder above it that exists: the one a mkdir of ``path`` writes in,
+    and whose disk its files take room on."""
+    where = path
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    return where
+
+
+def check_folder_writable(out: Path, *, flag: str) -> None:
+    """Refuse (ValidationError naming ``flag``), before minutes of work, an output folder ``out``
+    that cannot be written: a mkdir found it only after the work, or a folder the user may not
+    write by the first file written into it. Probed by making a hidden folder and removing it in
+    ``out`` or the nearest folder above it that exists (the one mkdir writes in): os.access says
+    yes to root for /proc or a read-only mount. Hidden, so one a kill leaves behind does not make
+    the folder "hold files"."""
+    where = nearest_existing_folder(out)
+    try:
+        if not where.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
+        os.rmdir(tempfile.mkdtemp(prefix=".sunrig-probe-", dir=where))
+    except OSError as exc:
+        raise ValidationError(f"{flag} {out}: cannot write there ({exc.strerror}: {where}); pass a folder you "
+                              "can write to") from None
 
 
 class StreamFile:
