@@ -231,7 +231,10 @@ def test_a_recorder_stuck_past_close_finishes_its_file_when_the_disk_answers(tmp
     assert not rec._writer.closed and any("stuck in a write" in r.getMessage() for r in caplog.records)
     assert rec.stuck and not rec.finished
     release.set()
-    wait_until(lambda: rec._writer.closed, "the writer thread to finish the log")
+    # Finished, not only closed: the writer says closed as its close() begins, before the summary
+    # is written and synced to the disk (a few ms more since the sync), so waiting for closed and
+    # then asking finished failed now and then.
+    wait_until(lambda: rec.finished, "the writer thread to finish the log")
     assert rec._writer.closed and rec.stats()["written"] == 3 and rec.finished and not rec.stuck
     assert [d["seq"] for d in read_estimates(tmp_path / "late.mcap")] == [0, 1, 2]
     assert (tmp_path / "late.mcap").read_bytes().endswith(MCAP_MAGIC)  # finished: a footer and its magic
