@@ -490,14 +490,27 @@ def _check_live_outputs(cfg: dict, inputs: list[Path], record_words: tuple[str, 
             check_recording_path(out["record"], overwrite=out["record_overwrite"])
 
 
-def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: bool,
+def _rig_config(r: dict, *, live_camera: bool):
+    """The pipeline's RigConfig from the ``[rig]`` table. A live camera is never paced (``realtime``
+    paces a recording: a camera's frame that came late once made the pace start again from it,
+    and hold every later frame as late, for the rest of the run), and its frames are as old as
+    their stamps on the rig's clock say (``live_clock``)."""
+    from rig.pipeline import RigConfig
+
+    return RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
+                     ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
+                     max_latency_s=r["max_latency_s"], realtime=r["realtime"] and not live_camera,
+                     live_clock=live_camera)
+
+
+def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: bool, live_camera: bool,
           record_words: tuple[str, str] = _RECORD_CONFIG_WORDS) -> int:
     """The live rig on ``source``; its outputs were checked (:func:`_check_live_outputs`).
-    ``stop``: the command's stop signals; ``record_words``: how errors name the recording's
-    options, as there."""
+    ``stop``: the command's stop signals; ``live_camera``: a camera, not a recording (a ``file:``
+    log or a video file); ``record_words``: how errors name the recording's options, as there."""
     from estimator.estimator import SunEstimator
     from rig.config import check_window_fits
-    from rig.pipeline import RigConfig, RigPipeline
+    from rig.pipeline import RigPipeline
     from rig.window import SpreadWindowPolicy
 
     model = _load_model(cfg["estimator"]["model"], stop)
@@ -506,10 +519,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     policy = SpreadWindowPolicy(n_frames=estimator.frames_per_window, span_s=cfg["window"]["span_s"],
                                 yaw_scale_rad=math.radians(cfg["window"]["yaw_scale_deg"]))
     # Checked before the outputs open: opening truncates an existing JSONL file or recording.
-    r = cfg["rig"]
-    rig_cfg = RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
-                        ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
-                        max_latency_s=r["max_latency_s"], realtime=r["realtime"])
+    rig_cfg = _rig_config(cfg["rig"], live_camera=live_camera)
     from rig.recorder import RecorderPublisher
 
     live_line = sys.stderr.isatty()
@@ -615,6 +625,8 @@ def _report_output_losses(publishers: dict[str, dict]) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from drivers.sources import is_recording
+
     cfg = _effective_config(args)
     words = _RECORD_FLAG_WORDS if args.record is not None else _RECORD_CONFIG_WORDS
     _check_live_outputs(cfg, _spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), words)
@@ -626,7 +638,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         logging.getLogger(__name__).warning("no output: estimates are made and dropped; pass --serial PORT, "
                                             "--jsonl PATH|- or --record OUT.mcap (or set [output] in --config)")
     try:
-        return _live(cfg, source, stop=args.stop, nmea_stdout=False, quiet=args.quiet, record_words=words)
+        return _live(cfg, source, stop=args.stop, nmea_stdout=False, quiet=args.quiet,
+                     live_camera=not is_recording(source.camera), record_words=words)
     finally:
         source.close()  # release the devices: the rig only iterates its source
 
@@ -794,7 +807,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     log_path = demo_log()
     _check_live_outputs(cfg, [log_path], _RECORD_CONFIG_WORDS)
     return _live(cfg, open_frames(log_path), stop=args.stop, nmea_stdout=not cfg["output"]["serial"],
-                 quiet=args.quiet)
+                 quiet=args.quiet, live_camera=False)
 
 
 def cmd_config(args: argparse.Namespace) -> int:

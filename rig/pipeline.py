@@ -69,6 +69,10 @@ class RigConfig:
     # where it is (rig/pacing.py) rather than rushing out frames already this old.
     max_latency_s: float = 1.0
     exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE  # None: every frame joins windows
+    # The frames are stamped on this pipeline's clock (a live camera): a frame is as old as its
+    # stamp says, also when it reached the rig late (the pairing holds one for its heading, up to
+    # max_age_s, and through a camera stall the last one). A recording's stamps are its own clock.
+    live_clock: bool = False
 
     def __post_init__(self) -> None:
         for name in ("queue_size", "ring_capacity"):
@@ -380,7 +384,14 @@ class RigPipeline:
             # Latency counts from here: the recorder and the exposure gate below are the controller's wait too.
             # A paced frame's from when it was due: a camera's frame is as old when the host stalled
             # in the wait (its estimate went out seconds late as a fresh one), or read it late.
-            arrived = self.clock() if pacer is None else min(self.clock(), pacer.due_s)
+            # A live camera's from its stamp: it may have waited before it reached the rig.
+            now = self.clock()
+            if pacer is not None:
+                arrived = min(now, pacer.due_s)
+            elif self.config.live_clock:
+                arrived = min(now, frame.t_mono_s)
+            else:
+                arrived = now
             self.stats.frames_captured += 1
             if self.on_frame is not None:
                 self.on_frame(frame)

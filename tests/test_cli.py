@@ -2008,3 +2008,17 @@ def test_the_exit_report_says_what_an_oak_lost_on_the_device_and_why_frames_had_
     camera = {"frames_dropped_device": 12, "no_heading_inaccurate": 40, "no_heading_gap": 0, "reconnects": 1}
     assert _source_summary({"camera": camera}) == (
         "camera frames dropped device 12, camera reconnects 1, camera frames without heading (inaccurate) 40")
+
+
+def test_a_live_camera_is_never_paced_and_its_frames_age_from_their_stamps():
+    # [rig] realtime (default true) paced every source as a recording: a live camera's frame that
+    # came 1.3 s late (a GNSS pause held it in the pairing) started the pace again from it, and
+    # every later frame was held as late, 1.4 s, flagged invalid, for the rest of the run.
+    from rig.cli import _rig_config
+    from rig.config import DEFAULTS
+
+    assert DEFAULTS["rig"]["realtime"]
+    live = _rig_config(DEFAULTS["rig"], live_camera=True)
+    recording = _rig_config(DEFAULTS["rig"], live_camera=False)
+    assert (live.realtime, live.live_clock) == (False, True)
+    assert (recording.realtime, recording.live_clock) == (True, False)

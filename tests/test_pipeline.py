@@ -484,6 +484,23 @@ def test_a_ring_too_small_for_the_window_span_at_the_cameras_rate_is_said_once(m
     assert "ring_capacity" not in caplog.text
 
 
+def test_a_live_cameras_frame_is_as_old_as_its_stamp_not_as_its_arrival(model):
+    # A live camera stamps its frames on the rig's clock. The pairing held a frame for its heading
+    # (up to max_age_s, 1.5 s; through a whole camera stall the last one) before the rig saw it,
+    # and its estimate went out 1.1-5.2 s old, flagged valid, where none may be older than
+    # max_latency_s (1 s). With live_clock its age counts from its stamp.
+    def held(n):
+        for f in frames(n):  # each reaches the rig 2 s after its exposure, by the rig's clock
+            yield dataclasses.replace(f, t_mono_s=time.monotonic() - 2.0)
+
+    out = Collect()
+    _, stats = run_pipeline(held(12), SunEstimator(model), [out], queue_size=100, live_clock=True)
+    assert out.estimates == [] and stats.estimates_stale == stats.frames_encoded == 12
+    out = Collect()
+    _, stats = run_pipeline(held(12), SunEstimator(model), [out], queue_size=100)  # a recording's stamps
+    assert len(out.estimates) == stats.estimates > 0 and stats.estimates_stale == 0
+
+
 def test_status_lines_are_reported(model):
     lines = []
     pipe = RigPipeline(frames(30, dt=0.01), SunEstimator(model), SpreadWindowPolicy(), [Collect()],
