@@ -57,7 +57,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "ring_capacity": 128,
         "ring_max_age_s": 10.0,
         "status_every_s": 5.0,
-        "max_latency_s": 1.0,  # an estimate later than this after its frame is not sent (rig.pipeline)
+        "max_latency_s": 2.0,  # an estimate later than this after its frame is not sent (rig.pipeline)
         "realtime": True,  # pace a recorded source by its timestamps
     },
     "output": {
@@ -180,6 +180,26 @@ def check_window_fits(cfg: Mapping[str, Mapping[str, Any]], frames_per_window: i
             f"{frames_per_window}, so no window would ever be full; set it to {frames_per_window} or more"
         )
     check_ring_keeps_span(cfg)
+    check_latency_covers_pairing(cfg)
+
+
+def check_latency_covers_pairing(cfg: Mapping[str, Mapping[str, Any]]) -> None:
+    """Refuse (ConfigError) a bound on an estimate's age that the heading pairing alone can pass: a
+    frame waits for the compass's next heading up to ``[source] max_age_s`` plus its
+    ``heading_latency_s`` (drivers.pairing), and under a shorter ``[rig] max_latency_s`` the frames
+    of a slow compass (1 Hz) that waited longest were all dropped as stale. Only with an ``nmea:``
+    heading, the one that is paired."""
+    source, rig = cfg["source"], cfg["rig"]
+    if not str(source["heading"]).startswith("nmea:"):
+        return
+    wait_s = source["max_age_s"] + source["heading_latency_s"]
+    if rig["max_latency_s"] <= wait_s:
+        raise ConfigError(
+            f"[rig] max_latency_s: {rig['max_latency_s']:g} s is no longer than a frame may wait for its heading "
+            f"([source] max_age_s {source['max_age_s']:g} s + heading_latency_s {source['heading_latency_s']:g} s), "
+            "so the frames that waited longest would be dropped as stale; raise max_latency_s above "
+            f"{wait_s:g} s or lower max_age_s"
+        )
 
 
 def check_ring_keeps_span(cfg: Mapping[str, Mapping[str, Any]]) -> None:

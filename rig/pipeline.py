@@ -67,7 +67,8 @@ class RigConfig:
     # The oldest an estimate may be sent: from its frame leaving the source to its publishing. Later
     # ones are skipped (stale); a paced replay that falls this far behind its schedule paces from
     # where it is (rig/pacing.py) rather than rushing out frames already this old.
-    max_latency_s: float = 1.0
+    # 2 s: longer than a frame may wait for a compass's heading (drivers.pairing, max_age_s 1.5 s).
+    max_latency_s: float = 2.0
     exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE  # None: every frame joins windows
     # The frames are stamped on this pipeline's clock (a live camera): a frame is as old as its
     # stamp says, also when it reached the rig late (the pairing holds one for its heading, up to

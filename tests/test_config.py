@@ -525,3 +525,19 @@ def test_every_rig_option_of_the_file_reaches_the_pipeline(tmp_path, monkeypatch
                  "--jsonl", str(tmp_path / "o.jsonl")]) == 0
     (cfg,) = seen
     assert {k: getattr(cfg, k) for k in values} == values
+
+
+def test_a_latency_bound_shorter_than_the_pairings_wait_is_refused_for_a_compass():
+    # A frame waits for the compass's next heading (up to [source] max_age_s, plus its latency):
+    # under a [rig] max_latency_s shorter than that, the frames of a 1 Hz compass that waited
+    # longest were all dropped as stale. Only where there is a pairing (an nmea: heading).
+    from rig.config import ConfigError, check_window_fits, merge
+
+    compass = merge(DEFAULTS, {"source": {"heading": "nmea:/dev/ttyUSB0", "heading_latency_s": 0.3},
+                               "rig": {"max_latency_s": 1.7}})
+    with pytest.raises(ConfigError, match=r"\[rig\] max_latency_s: 1.7 s is no longer than a frame may wait for "
+                                          r"its heading \(\[source\] max_age_s 1.5 s \+ heading_latency_s 0.3 s\)"):
+        check_window_fits(compass, 8)
+    check_window_fits(merge(compass, {"rig": {"max_latency_s": 2.0}}), 8)
+    check_window_fits(merge(compass, {"source": {"heading": "oak-imu"}}), 8)  # no pairing
+    check_window_fits(DEFAULTS, 8)  # the defaults hold together
