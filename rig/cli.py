@@ -1641,6 +1641,13 @@ def main(argv: list[str] | None = None, *, late_signals: str = "restore") -> int
         level=logging.DEBUG if args.debug else logging.WARNING,
         format="sunrig: %(levelname)s: %(message)s",
     )
+    if not args.debug:
+        # The rig's own INFO lines are its events, rare and each said once: an outage that ended (a
+        # serial port writing again, a GNSS or camera back), a stretch of failed windows over. At
+        # WARNING a journal said when the GNSS stopped and never that it came back. Other
+        # libraries' INFO stays out.
+        for package in ("rig", "drivers"):
+            logging.getLogger(package).setLevel(logging.INFO)
     # How this command is being stopped (rig/stopping.py): Ctrl-C, SIGTERM and SIGHUP. One per
     # call, so that commands run one after another in a process (tests), or a library caller's
     # command in a thread of its own (which signals never reach), share no stop state.

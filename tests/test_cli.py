@@ -2022,3 +2022,22 @@ def test_a_live_camera_is_never_paced_and_its_frames_age_from_their_stamps():
     recording = _rig_config(DEFAULTS["rig"], live_camera=False)
     assert (live.realtime, live.live_clock) == (False, True)
     assert (recording.realtime, recording.live_clock) == (True, False)
+
+
+def test_the_rigs_own_event_lines_reach_stderr_and_other_libraries_info_does_not():
+    # The CLI logged at WARNING, so every line saying an outage had ended ("serial port ... writes
+    # again", "GNSS source ... reopened", "camera ... is back", "estimates are in time again") was
+    # dropped: a journal said when the GNSS stopped and never that it came back.
+    script = (
+        "import logging, sys\n"
+        "from rig.cli import main\n"
+        "main(['sun', '--time', '2011-09-26T11:02:26Z', '--lat', '49', '--lon', '8'])\n"
+        "logging.getLogger('drivers.gnss').info('GNSS source x reopened')\n"
+        "logging.getLogger('rig.publishers').info('serial port y writes again')\n"
+        "logging.getLogger('somelib').info('chatter')\n"
+        "logging.getLogger('drivers.gnss').debug('detail')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.splitlines() == ["sunrig: INFO: GNSS source x reopened",
+                                       "sunrig: INFO: serial port y writes again"], res.stderr
