@@ -48,6 +48,9 @@ DEFAULT_BAUD = 115200  # what GNSS compasses ship with; NMEA 0183 itself says 48
 # heading a second, and the line and the device add latency and jitter on top.
 DEFAULT_MAX_AGE_S = 1.5
 _READ_CHUNK = 4096
+# Bytes for this long without one NMEA sentence in them is a wrong baud rate or a port that is not
+# the GNSS, not noise: said once, live (the rig's frames go without heading meanwhile).
+UNFRAMED_SAY_S = 5.0
 
 
 def boottime_offset_s() -> float | None:
@@ -218,6 +221,12 @@ class GnssReader:
         self._stream_counts = self._stream.counts
         self._last_error: str | None = None
         self._failing = False  # only the reader thread touches it
+        # Bytes since the last NMEA sentence (reader thread only): when they began, how many, and
+        # whether that was said (UNFRAMED_SAY_S).
+        self._sentences_seen = 0
+        self._unframed_since_s: float | None = None
+        self._unframed_bytes = 0
+        self._unframed_said = False
         self._read_boot_s: float | None = None  # the boot offset at the last read (reader thread only)
         self._failure: str | None = None
         self._finished = threading.Event()  # the thread has ended (end of a capture, close, a bug)
@@ -414,6 +423,7 @@ class GnssReader:
                    for u in updates]
         counts = self._stream.counts
         self._failing = False
+        self._note_framing(counts.get("sentences", 0), len(data), t_mono_s)
         with self._cond:
             self._counts["bytes"] += len(data)
             self._counts["updates"] += len(updates)
@@ -428,6 +438,26 @@ class GnssReader:
             if self._events_max and updates:
                 self._queue(updates)
                 self._cond.notify_all()
+
+    def _note_framing(self, sentences: int, n_bytes: int, t_mono_s: float) -> None:
+        """Say once when bytes come for UNFRAMED_SAY_S without one NMEA sentence in them (a wrong
+        baud rate, or a port that is not the GNSS: the exit report's garbage bytes, said only at
+        the end), and when sentences come again."""
+        if sentences != self._sentences_seen:
+            self._sentences_seen = sentences
+            if self._unframed_said:
+                log.info("GNSS port %s: NMEA sentences again, after %d bytes of none", self._name, self._unframed_bytes)
+            self._unframed_since_s, self._unframed_bytes, self._unframed_said = None, 0, False
+            return
+        if self._unframed_since_s is None:
+            self._unframed_since_s = t_mono_s
+        self._unframed_bytes += n_bytes
+        if not self._unframed_said and t_mono_s - self._unframed_since_s >= UNFRAMED_SAY_S:
+            self._unframed_said = True
+            baud = getattr(self._port, "baudrate", None)
+            log.warning("GNSS port %s: %d bytes in %.0f s and no NMEA sentence in them; check that it is the GNSS's "
+                        "NMEA output and its baud rate (--baud, now %s)", self._name, self._unframed_bytes,
+                        t_mono_s - self._unframed_since_s, baud if baud is not None else "unknown")
 
     def _queue(self, updates: list[GnssUpdate]) -> None:
         """Called under the lock. Live: drop the oldest. File: wait for room (bounded, sees stop)."""

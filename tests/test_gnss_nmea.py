@@ -9,6 +9,7 @@ import json
 import math
 import os
 import random
+import re
 import threading
 import time
 import tty
@@ -1021,3 +1022,33 @@ def test_decoder_types_for_direct_use():
     assert isinstance(gga, Gga) and gga.quality == 2 and gga.talker == "GP"
     hdg = decode_sentence(parse_sentence(nmea("HCHDG,100.0,2.0,E,10.0,W")))
     assert isinstance(hdg, Hdg) and hdg.variation_rad == pytest.approx(math.radians(-10.0))
+
+
+def test_a_port_that_sends_bytes_and_no_nmea_is_said_once_live_and_its_return(caplog):
+    # A GNSS at another baud rate (or a port that is not the GNSS) sent garbage for as long as the
+    # rig ran, and the run said nothing: only "no heading N" in the status line, and the garbage
+    # bytes at exit. Said once after a few seconds of bytes without a sentence, and when sentences come.
+    import logging
+
+    rng = np.random.default_rng(3)
+    garbage = bytes(b for b in rng.integers(0x80, 0x100, 600, dtype=np.uint8))  # no '$', no line end
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    clock = FakeClock(100.0)
+    with caplog.at_level(logging.INFO, logger="drivers.gnss"), \
+            GnssReader(port, clock=clock, events=16, timeout_s=0.05) as reader:
+        port.write(garbage)
+        assert wait_until(lambda: reader.stats()["bytes"] >= 600)
+        assert "no NMEA" not in caplog.text  # a moment of noise is no wrong baud
+        clock.now = 106.0
+        port.write(garbage)
+        assert wait_until(lambda: reader.stats()["bytes"] >= 1200)
+        clock.now = 107.0
+        port.write(garbage)
+        assert wait_until(lambda: reader.stats()["bytes"] >= 1800)
+        said = [r.getMessage() for r in caplog.records if "no NMEA" in r.getMessage()]
+        # Said once, as the bytes of the sixth second come (how many of them, the reads' sizes decide).
+        assert len(said) == 1 and re.fullmatch(
+            r"GNSS port loop://: (60[1-9]|6[1-9]\d|1[01]\d\d|1200) bytes in 6 s and no NMEA sentence in them; check "
+            rf"that it is the GNSS's NMEA output and its baud rate \(--baud, now {port.baudrate}\)", said[0]), said
+        port.write(RMC)
+        assert wait_until(lambda: "NMEA sentences again" in caplog.text)
