@@ -57,6 +57,7 @@ import cv2
 import numpy as np
 
 from rig.errors import CameraError, SunrigError, ValidationError
+from rig.lasting import EventThrottle
 from rig.types import MIN_FOV_DEG, Frame, Intrinsics
 
 log = logging.getLogger(__name__)
@@ -525,7 +526,7 @@ class OpenCvCamera:
         self._busy: tuple[float, str, bool] | None = None
         self._stalled = False
         self._last_image: np.ndarray | None = None  # a live source's last raw image (see _repeats)
-        self._repeats_said_at: float | None = None
+        self._repeats_said = EventThrottle(60.0)  # said at most once a minute
         self._stop = threading.Event()
         self._closed = False
         self._thread: threading.Thread | None = None
@@ -757,8 +758,7 @@ class OpenCvCamera:
         with self._lock:
             self._stats["repeated"] += 1
             self._last_error = "frames identical to the one before (a frozen camera or stream?)"
-        if self._repeats_said_at is None or now - self._repeats_said_at >= 60.0:
-            self._repeats_said_at = now
+        if self._repeats_said.note(now) is not None:
             log.warning("%s: a frame identical to the one before (a frozen camera or stream?); dropping such frames "
                         "(counted in repeated)", self._named)
         return True

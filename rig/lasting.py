@@ -109,3 +109,26 @@ class LastingCondition:
         else:
             self._next_remind_s = math.inf
         return said
+
+
+class EventThrottle:
+    """When to say an event that may repeat (a replay falling behind again, a camera repeating a
+    frame): the first time, then at most once every ``every_s`` with how many came since. For
+    events, not states: nothing says when they stop (:class:`LastingCondition` does, for states).
+
+    Pure: :meth:`note` takes each event's time by the caller's clock."""
+
+    def __init__(self, every_s: float = 60.0) -> None:
+        self.every_s = every_s
+        self._said_s: float | None = None  # when an event was last said
+        self._unsaid = 0  # events since, this one included once noted
+
+    def note(self, now_s: float) -> tuple[int, float | None] | None:
+        """None: leave this event unsaid. Else say it: (events since the last one said, this one
+        included; the time that one was said, None the first time)."""
+        self._unsaid += 1
+        before = self._said_s
+        if before is not None and now_s - before < self.every_s:
+            return None
+        n, self._unsaid, self._said_s = self._unsaid, 0, now_s
+        return n, before

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 
+from rig.lasting import EventThrottle
 from rig.types import Frame
 
 log = logging.getLogger(__name__)
@@ -39,8 +40,7 @@ class Pacer:
         self.max_behind_s = max_behind_s
         self.speed = speed
         self.reanchors = 0
-        self._behind_said_s: float | None = None  # when falling behind was last said (now_s)
-        self._behind_unsaid = 0  # times it fell behind since
+        self._behind = EventThrottle(_BEHIND_SAID_EVERY_S)  # falling behind, said by now_s
         self._start_s: float | None = None
         self._first_t_s = 0.0
         self._last_t_s = 0.0
@@ -72,14 +72,14 @@ class Pacer:
     def _say_behind(self, behind_s: float, seq: int, now_s: float) -> None:
         # A source slower than its recording falls behind again and again (every few seconds with a
         # small max_behind_s): said once, then once a minute, not at each re-anchor.
-        self._behind_unsaid += 1
-        if self._behind_said_s is None:
+        said = self._behind.note(now_s)
+        if said is None:
+            return
+        n, said_before_s = said
+        if said_before_s is None:
             log.info("the replay is %.1f s off the recording's schedule at seq %d (it fell behind): "
                      "pacing from here, not rushing", behind_s, seq)
-        elif now_s - self._behind_said_s >= _BEHIND_SAID_EVERY_S:
+        else:
             log.info("the replay fell behind the recording's schedule and re-anchored %d times in %.0f s, the last "
                      "%.1f s behind at seq %d: a source slower than its recording (said once a minute while it "
-                     "goes on)", self._behind_unsaid, now_s - self._behind_said_s, behind_s, seq)
-        else:
-            return
-        self._behind_said_s, self._behind_unsaid = now_s, 0
+                     "goes on)", n, now_s - said_before_s, behind_s, seq)

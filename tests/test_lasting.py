@@ -51,3 +51,14 @@ def test_time_that_steps_back_neither_refills_the_budget_nor_delays_a_reminder()
     assert cond.update("dark", 5.0) is None  # stepped back 996 s: still no token
     still = cond.update("dark", 35.0)  # the reminder comes 30 s after the step back, not at 1030
     assert still is not None and still.kind == "still" and still.state == "dark"
+
+
+def test_an_event_throttle_says_the_first_event_then_one_a_period_with_the_count_since():
+    from rig.lasting import EventThrottle
+
+    throttle = EventThrottle(60.0)
+    assert throttle.note(0.0) == (1, None)  # the first, at once
+    assert [throttle.note(t) for t in (10.0, 20.0, 59.9)] == [None, None, None]
+    assert throttle.note(60.0) == (4, 0.0)  # three unsaid and this one, since the line at 0 s
+    assert throttle.note(61.0) is None
+    assert throttle.note(200.0) == (2, 60.0)
