@@ -1,5 +1,6 @@
-"""A long live run of `sunrig run` with every device failing on a schedule: does the rig's memory,
-descriptor or thread count grow, and does it stop cleanly at the end?
+"""A long live run of `sunrig run` with every device failing on a schedule: growth and clean stop.
+
+Does the rig's memory, descriptor or thread count grow, and does it stop cleanly at the end?
 
 What a vehicle rig meets over a day is a camera stream that drops, a GNSS link that goes away and
 a controller that stops reading. This runs the real command, as a subprocess, against real

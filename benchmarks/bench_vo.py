@@ -1,5 +1,6 @@
-"""Visual odometry (drivers/visual_odometry.py) on synthetic drives: heading drift against the
-truth, per 100 m driven, and the cost per frame.
+"""Visual odometry (drivers/visual_odometry.py) on synthetic drives: heading drift and frame cost.
+
+The drift is the heading error against the truth, per 100 m driven.
 
 Each drive (``drive_seed(seed, i)``, i < drives) is rendered once at ``--scale`` of KITTI's image
 size; the odometry then runs over its frames. Per drive: the heading error (odometry minus the

@@ -89,3 +89,12 @@ def test_float_in_takes_finite_numbers_in_its_range_only():
                        (from_0_to_60, "60.5")):
         with pytest.raises(argparse.ArgumentTypeError, match="expected a finite number"):
             parse(bad)
+
+
+def test_every_benchmarks_help_opens_with_a_whole_sentence():
+    # `--help` shows the docstring's first line as the description: one cut mid-sentence read
+    # "does the rig's memory," and stopped.
+    import ast
+    for path in sorted((Path(common.__file__).parent).glob("bench_*.py")):
+        first = (ast.get_docstring(ast.parse(path.read_text()), clean=False) or "").splitlines()[0]
+        assert first.rstrip().endswith((".", "?")), f"{path.name}: {first!r}"
