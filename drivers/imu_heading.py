@@ -425,26 +425,28 @@ class GyroIntegrator:
     rates; a complementary (Mahony proportional) term pulls the estimated up towards the
     accelerometer's while its magnitude is within 10% of g, so the tilt does not drift. That term
     cannot correct the heading: nothing in a 6-axis IMU can, and gyro bias makes it drift.
+
+    It starts (and starts again after a gap) only at a report that comes with an accelerometer
+    reading: without one there is no up to start from, and a guessed one can be half a turn off
+    (a camera mounted upside down), where the tilt term is zero and never pulls it back.
     """
 
     def __init__(self, cam_from_imu, *, tilt_gain: float = 0.5, max_step_s: float = 0.1) -> None:
         c = validate_rotation("cam_from_imu", cam_from_imu)
         self._forward_imu = c.T @ np.array([0.0, 0.0, 1.0])  # optical axis in IMU axes
-        self._up_imu_level = c.T @ np.array([0.0, -1.0, 0.0])  # camera up, if no accelerometer yet
         self.tilt_gain = float(tilt_gain)
         self.max_step_s = float(max_step_s)
         self._q: np.ndarray | None = None
         self._t: float | None = None
         self._w: np.ndarray | None = None
-        self.counts = {"gyro_steps": 0, "gyro_gaps": 0, "gyro_out_of_order": 0}
+        self.counts = {"gyro_steps": 0, "gyro_gaps": 0, "gyro_out_of_order": 0, "gyro_no_gravity": 0}
 
     @property
     def initialized(self) -> bool:
         return self._q is not None
 
-    def _initial(self, accel_imu) -> np.ndarray:
-        up = self._up_imu_level if accel_imu is None else np.asarray(accel_imu, dtype=np.float64)
-        up = up / np.linalg.norm(up)
+    def _initial(self, up_imu: np.ndarray) -> np.ndarray:
+        up = up_imu / np.linalg.norm(up_imu)
         fwd = self._forward_imu - (self._forward_imu @ up) * up
         if np.linalg.norm(fwd) < 1e-3:  # camera looking straight up or down: any heading will do
             fwd = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -455,23 +457,31 @@ class GyroIntegrator:
 
     def update(self, t_s: float, gyro_imu_rad_s, accel_imu=None) -> np.ndarray | None:
         """Advance to ``t_s`` with the rate measured then; returns world-from-IMU, or None for a
-        sample that is not newer than the previous one."""
+        sample that is not newer than the previous one, or that would start the integration
+        (the first, or the first after a gap) without an accelerometer reading to give up."""
         w = np.asarray(gyro_imu_rad_s, dtype=np.float64)
-        if self._q is None:
-            self._q, self._t, self._w = self._initial(accel_imu), float(t_s), w
-            return self._q.copy()
-        assert self._t is not None and self._w is not None  # set with _q, above
-        dt = float(t_s) - self._t
-        if not dt > 0:
-            self.counts["gyro_out_of_order"] += 1
-            return None
-        if dt > self.max_step_s:
+        if self._q is not None:
+            assert self._t is not None and self._w is not None  # set with _q
+            dt = float(t_s) - self._t
+            if not dt > 0:
+                self.counts["gyro_out_of_order"] += 1
+                return None
+            if dt <= self.max_step_s:
+                return self._step(float(t_s), dt, w, accel_imu)
             # Reports lost: the rotation meanwhile is unknown, and integrating across the gap would
             # invent one (the mean of the rates at its ends times its length). Start again from the
             # accelerometer, with a new zero; the tracker gives its headings a new epoch.
             self.counts["gyro_gaps"] += 1
-            self._q, self._t, self._w = self._initial(accel_imu), float(t_s), w
-            return self._q.copy()
+            self._q = self._t = self._w = None
+        up = None if accel_imu is None else np.asarray(accel_imu, dtype=np.float64)
+        if up is None or not np.all(np.isfinite(up)) or float(np.linalg.norm(up)) < 1e-3:
+            self.counts["gyro_no_gravity"] += 1  # no up to start from: wait for the accelerometer
+            return None
+        self._q, self._t, self._w = self._initial(up), float(t_s), w
+        return self._q.copy()
+
+    def _step(self, t_s: float, dt: float, w: np.ndarray, accel_imu) -> np.ndarray:
+        assert self._q is not None and self._w is not None
         rate = 0.5 * (w + self._w)
         if accel_imu is not None and self.tilt_gain > 0:
             a = np.asarray(accel_imu, dtype=np.float64)
@@ -480,7 +490,7 @@ class GyroIntegrator:
                 up_est = rotation_from_quat(self._q).T @ np.array([0.0, 0.0, 1.0])
                 rate = rate + self.tilt_gain * np.cross(a / n, up_est)
         self._q = quat_normalize(quat_multiply(self._q, quat_from_rotvec(rate * dt)))
-        self._t, self._w = float(t_s), w
+        self._t, self._w = t_s, w
         self.counts["gyro_steps"] += 1
         return self._q.copy()
 

@@ -638,20 +638,23 @@ def test_gyro_tilt_follows_the_accelerometer():
     assert abs(p - math.radians(10.0)) < TILT_RAD and abs(r) < TILT_RAD and ang_diff(h, 0.0) < TILT_RAD
 
 
+UP_PRO_LEVEL = level_pro_imu(0.0).T @ np.array([0.0, 0.0, 9.81])  # accelerometer of a level OAK-D Pro
+
+
 def test_gyro_counts_gaps_and_ignores_old_samples():
     integ = GyroIntegrator(CAM_FROM_IMU_OAK_D_PRO)
-    integ.update(1.0, np.zeros(3))
-    assert integ.update(1.0, np.zeros(3)) is None
-    integ.update(1.5, np.zeros(3))  # a gap: the integrator starts again, no step across it
-    assert integ.counts == {"gyro_steps": 0, "gyro_gaps": 1, "gyro_out_of_order": 1}
+    integ.update(1.0, np.zeros(3), UP_PRO_LEVEL)
+    assert integ.update(1.0, np.zeros(3), UP_PRO_LEVEL) is None
+    integ.update(1.5, np.zeros(3), UP_PRO_LEVEL)  # a gap: the integrator starts again, no step across it
+    assert integ.counts == {"gyro_steps": 0, "gyro_gaps": 1, "gyro_out_of_order": 1, "gyro_no_gravity": 0}
 
 
 def test_gyro_gap_is_a_step_longer_than_a_tenth_of_a_second():
     """docs/oak.md: a gap *longer* than 0.1 s between gyro reports is counted."""
     integ = GyroIntegrator(CAM_FROM_IMU_OAK_D_PRO)
     for t in (0.0, 0.1, 0.22):  # steps of 0.1 s (not a gap) and 0.12 s (a gap)
-        integ.update(t, np.zeros(3))
-    assert integ.counts == {"gyro_steps": 1, "gyro_gaps": 1, "gyro_out_of_order": 0}
+        integ.update(t, np.zeros(3), UP_PRO_LEVEL)
+    assert integ.counts == {"gyro_steps": 1, "gyro_gaps": 1, "gyro_out_of_order": 0, "gyro_no_gravity": 0}
 
 
 def _gyro_report(tracker, t, heading_deg, rate_deg_s):
@@ -698,11 +701,12 @@ def test_reset_starts_a_relative_heading_in_a_new_epoch():
 )
 def test_tracker_gyro_integrates_body_rates_about_each_axis(w_cam, want_deg):
     """Gyro rates are body rates in IMU axes; on the OAK-D (IMU x down, y left, z forward) the
-    three camera axes are three different IMU axes. Without an accelerometer the integrator starts
-    level and looking at its own north (relative 0). A constant rate about a fixed body axis
-    integrates exactly, even in 1.5 deg steps (20 Hz)."""
-    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D)
+    three camera axes are three different IMU axes. Started level (the first accelerometer
+    report) and looking at its own north (relative 0), with no tilt term, a constant rate about a
+    fixed body axis integrates exactly, even in 1.5 deg steps (20 Hz)."""
+    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D, tilt_gain=0.0)
     assert tr.gyro is not None and not tr.gyro.initialized
+    tr.add_accelerometer(0.0, CAM_FROM_IMU_OAK_D.T @ np.array([0.0, -9.81, 0.0]))  # +g along the camera's up
     w_imu = CAM_FROM_IMU_OAK_D.T @ (math.radians(30.0) * np.array(w_cam))
     for k in range(21):  # 1 s
         assert tr.add_gyro(k * 0.05, w_imu) is True
@@ -772,3 +776,34 @@ def test_gyro_tilt_correction_only_within_ten_percent_of_g():
             q = integ.update(k * 0.01, np.zeros(3), scale * (pitched.T @ g_up))
         _, p, _ = attitude_from_world_from_cam(world_from_cam_of_imu(q, CAM_FROM_IMU_OAK_D_PRO))
         assert (deg(p) > 5.0) if moves else (abs(p) < EXACT_F64), (scale, deg(p))
+
+
+def test_gyro_waits_for_gravity_so_an_upside_down_camera_turns_the_right_way():
+    """The integrator's world is z up from the accelerometer: a gyro report before the first
+    accelerometer report (or the first after a gap) has no up to start from. Assumed upright, an
+    OAK mounted upside down starts with up half a turn off, where the tilt term (a x up) is zero
+    and cannot pull it back: a clockwise turn read as anticlockwise, roll 0 for 180, all run."""
+    rate = math.radians(30.0)
+    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D_PRO, history_s=5.0)
+    for k in range(301):
+        t = 100.0 + k * 0.01
+        imu_to_world = world_from_cam(rate * k * 0.01, 0.0, math.pi) @ CAM_FROM_IMU_OAK_D_PRO  # upside down
+        if k > 0:  # the first packet carries a gyro report only
+            tr.add_accelerometer(t, imu_to_world.T @ np.array([0.0, 0.0, 9.81]))
+        assert tr.add_gyro(t, imu_to_world.T @ np.array([0.0, 0.0, -rate])) is (k > 0)
+    assert tr.attitude_at(100.0) == (None, "too_old")  # nothing before gravity was known
+    att, reason = tr.attitude_at(103.0)
+    assert reason == OK and att is not None and att.roll_rad is not None
+    assert ang_diff(att.heading_rad, math.radians(90.0 - 0.3)) < GYRO_RAD, deg(att.heading_rad)  # zero at 0.01 s
+    assert ang_diff(att.roll_rad, math.pi) < TILT_RAD, deg(att.roll_rad)
+    assert tr.gyro is not None and tr.gyro.counts["gyro_no_gravity"] == 1
+
+
+def test_gyro_after_a_gap_waits_for_gravity_too():
+    integ = GyroIntegrator(CAM_FROM_IMU_OAK_D_PRO)
+    up_imu = level_pro_imu(0.0).T @ np.array([0.0, 0.0, 9.81])
+    assert integ.update(0.0, np.zeros(3), up_imu) is not None
+    assert integ.update(0.5, np.zeros(3)) is None  # a gap, and no up to start again from
+    assert not integ.initialized
+    assert integ.update(0.51, np.zeros(3), up_imu) is not None
+    assert integ.counts == {"gyro_steps": 0, "gyro_gaps": 1, "gyro_out_of_order": 0, "gyro_no_gravity": 1}
