@@ -546,7 +546,10 @@ class AttitudeTracker:
         self.epoch = int(epoch) if self.heading_ref is HeadingRef.RELATIVE else 0
         self.max_accuracy_rad = float(max_accuracy_rad)
         self.buffer = OrientationBuffer(history_s=history_s, capacity=capacity, max_gap_s=max_gap_s)
-        self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=tilt_gain) if self.mode is ImuMode.GYRO else None
+        # The same gap for both: a gap the buffer would interpolate across is no reason to restart
+        # the integration (with a new zero and epoch), nor the reverse.
+        self.gyro = (GyroIntegrator(self.cam_from_imu, tilt_gain=tilt_gain, max_step_s=max_gap_s)
+                     if self.mode is ImuMode.GYRO else None)
         self._accel: tuple[float, np.ndarray] | None = None
         self._zero_rad: float | None = None
         self.gravity_mismatch_rad: float | None = None  # smoothed check, at rest only (fusion modes)
@@ -650,7 +653,8 @@ class AttitudeTracker:
         self._in_inaccurate_run = False
         self._new_zero()
         if self.gyro is not None:
-            self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=self.gyro.tilt_gain)
+            g = self.gyro
+            self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=g.tilt_gain, max_step_s=g.max_step_s)
 
     def _new_zero(self) -> None:
         """Orientations from here on have another zero: none before is kept to interpolate with,

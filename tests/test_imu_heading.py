@@ -807,3 +807,16 @@ def test_gyro_after_a_gap_waits_for_gravity_too():
     assert not integ.initialized
     assert integ.update(0.51, np.zeros(3), up_imu) is not None
     assert integ.counts == {"gyro_steps": 0, "gyro_gaps": 1, "gyro_out_of_order": 0, "gyro_no_gravity": 1}
+
+
+def test_gyro_gap_is_the_trackers_max_gap():
+    """max_gap_s is what the tracker calls a gap between reports, for interpolation and for the
+    integrator alike. At 8 Hz with max_gap_s 0.3 the rotation vector modes interpolate, and gyro
+    integration restarted at every report (the integrator's own 0.1 s): a new epoch each time."""
+    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D_PRO, max_gap_s=0.3, epoch=2)
+    for k in range(17):  # 2 s at 8 Hz, 30 deg/s clockwise
+        _gyro_report(tr, k / 8.0, 30.0 * k / 8.0, 30.0)
+    att, reason = tr.attitude_at(2.0)
+    assert reason == OK and att is not None and att.epoch == 2
+    assert ang_diff(att.heading_rad, math.radians(60.0)) < GYRO_RAD, deg(att.heading_rad)
+    assert tr.gyro is not None and tr.gyro.counts["gyro_gaps"] == 0
