@@ -167,6 +167,16 @@ class OakConfig:
             )
         if self.imu_mode not in WANTS:
             raise ValidationError(f"OakConfig.imu_mode: expected one of {', '.join(WANTS)}, got {self.imu_mode!r}")
+        # Two report intervals within the gap the tracker bridges, so one late or lost report is
+        # bridged; at one interval per gap, jitter alone leaves frames without heading (imu_gap)
+        # and restarts gyro integration (a new zero and epoch) over and over.
+        min_rate_hz = math.ceil(2.0 / self.max_imu_gap_s - 1e-9)
+        if self.imu_mode != "none" and self.imu_rate_hz < min_rate_hz:
+            raise ValidationError(
+                f"OakConfig.imu_rate_hz: {self.imu_rate_hz} Hz puts the IMU reports {1.0 / self.imu_rate_hz:.3g} s "
+                f"apart, too far for max_imu_gap_s {self.max_imu_gap_s:g} s to bridge a late or lost one, and "
+                f"frames would go without heading (imu_gap); use at least {min_rate_hz} Hz, or raise max_imu_gap_s"
+            )
         d = self.declination_deg
         if d is not None and not (isinstance(d, int | float) and math.isfinite(d) and -180 <= d <= 180):
             raise ValidationError(f"OakConfig.declination_deg: expected within [-180, 180] (east +), got {d!r}")

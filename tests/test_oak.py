@@ -756,3 +756,15 @@ def test_stdout_is_swapped_for_the_first_depthai_import_only(monkeypatch):
     monkeypatch.setattr(oak, "_stdout_to_stderr", counted)
     oak._dai()
     assert swaps == []
+
+
+def test_an_imu_rate_too_slow_for_the_gap_it_may_bridge_is_refused():
+    """At 10 Hz the reports are max_imu_gap_s (0.1 s) apart: with any jitter, about every other
+    frame went without heading (imu_gap) and gyro integration restarted with a new epoch whenever
+    a step came out longer. Two report intervals must fit in the gap: one late or lost is bridged."""
+    with pytest.raises(ValidationError, match=r"^OakConfig.imu_rate_hz: 10 Hz .* at least 20 Hz") as err:
+        OakConfig(imu_rate_hz=10)
+    assert "\n" not in str(err.value)
+    assert OakConfig(imu_rate_hz=20).imu_rate_hz == 20
+    assert OakConfig(imu_rate_hz=8, max_imu_gap_s=0.3).imu_rate_hz == 8
+    assert OakConfig(imu_rate_hz=1, imu_mode="none").imu_rate_hz == 1  # no IMU: nothing to bridge
