@@ -246,6 +246,9 @@ class SerialPublisher:
         # The writer's outage: None while writes go through, "failing" while they fail, time out or the
         # port cannot be reopened; its events are counted under the names of the counters above.
         self._outage = LastingCondition(None, remind_s=_STILL_FAILING_FIRST_S)
+        # The newest error of the current outage, for its reminder: ``_last_error`` is the run's, and
+        # an outage of write timeouts alone has none (it said "last error: None", or an old outage's).
+        self._outage_error: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sunrig-serial {self._name}", daemon=True)
         self._thread.start()
@@ -478,6 +481,10 @@ class SerialPublisher:
         """Count a write or reopen in the outage (:class:`LastingCondition`) and say what it decides:
         an outage when it starts, at doubling intervals while it lasts, and when it ends."""
         now = time.monotonic()
+        if state is None:
+            self._outage_error = None
+        elif error is not None:
+            self._outage_error = f"reopen: {error}" if event == "reopen_failed" else error  # as in last_error
         said = self._outage.update(state, now, event)
         if said is None:
             return
@@ -502,7 +509,9 @@ class SerialPublisher:
                         said.changes, n.get("written", 0), counted,
                         "failing now" if said.state is not None else "writing now")
         else:
-            log.warning("serial writes to %s still failing: %s; last error: %s", self._name, counted, self._last_error)
+            last = (f"last error: {self._outage_error}" if self._outage_error is not None
+                    else "they timed out with no error (a reader that stopped reading?)")
+            log.warning("serial writes to %s still failing: %s; %s", self._name, counted, last)
 
 
 class JsonRow(Protocol):

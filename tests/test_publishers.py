@@ -748,6 +748,61 @@ def test_a_reader_that_stopped_reading_is_said_once_not_at_every_reopen(pty, cap
     assert f"{stats['dropped_write_timeout']} timed out" in said[1].getMessage()
 
 
+class SwitchingPort(FailingPort):
+    """FAKE serial port: a loop:// port whose write() fails (``mode`` "error"), times out ("timeout")
+    or goes through ("ok"), as an adapter that hangs and later a controller that stops reading."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.failing.clear()
+        self.mode = "error"
+
+    def write(self, data: bytes) -> int:
+        if self.mode == "error":
+            raise serial.SerialException("write failed: [Errno 5] Input/output error")
+        if self.mode == "timeout":
+            raise serial.SerialTimeoutException("Write timeout")
+        return super().write(data)
+
+
+def test_a_lasting_outage_of_timeouts_says_they_timed_out_not_an_error_of_none_or_of_an_earlier_outage(
+        caplog, monkeypatch):
+    # The reminder of a lasting outage said "last error: None" when its writes only timed out, and
+    # after an earlier outage with an error it named that old error as this one's.
+    monkeypatch.setattr("rig.publishers._STILL_FAILING_FIRST_S", 0.02)  # the reminder without a minute's wait
+    caplog.set_level(logging.INFO, logger="rig.publishers")
+    port = SwitchingPort()
+    port.mode = "timeout"
+    with SerialPublisher(port, format="nmea", backoff_s=(0.005, 0.01)) as pub:
+        def still_said(count: int, text: str = "") -> Callable[[], bool]:
+            def check() -> bool:
+                pub.publish(make_estimate(40, 5, seq=1))
+                return sum("still failing" in r.getMessage() and text in r.getMessage()
+                           for r in serial_lines(caplog)) >= count
+            return check
+
+        wait_until(still_said(1), "an outage of timeouts said again")
+        port.mode = "error"
+        wait_until(still_said(1, "last error: "), "the same outage, now with errors, said again")
+        port.mode = "ok"
+
+        def written() -> bool:
+            pub.publish(make_estimate(40, 5, seq=2))
+            return pub.stats()["written"] >= 1
+
+        wait_until(written, "a write that goes through")
+        port.mode = "timeout"
+        count = sum("still failing" in r.getMessage() for r in serial_lines(caplog))
+        wait_until(still_said(count + 1), "a second outage of timeouts said again")
+        stats = pub.stats()
+    still = [r.getMessage() for r in serial_lines(caplog) if "still failing" in r.getMessage()]
+    error = "SerialException: write failed: [Errno 5] Input/output error"
+    assert "timed out with no error" in still[0] and "None" not in still[0], still
+    assert any(f"last error: {error}" in line for line in still), still
+    assert stats["dropped_write_timeout"] >= 1 and stats["last_error"] == error
+    assert "timed out with no error" in still[-1] and error not in still[-1], still
+
+
 # --- loop://, close(), errors --------------------------------------------------------------
 
 
