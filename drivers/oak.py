@@ -74,7 +74,7 @@ HANDLER_COUNTS = (
     "pending_overflow",  # frames released without waiting for the IMU because too many waited
     "imu_messages",  # IMUData received
     "imu_reports",  # reports in them that were used
-    "bad_imu",  # IMU messages that could not be read
+    "bad_imu",  # IMU messages, or reports in them, that could not be read
     *(f"no_heading_{r}" for r in _HEADING_REASONS),  # frames without attitude, by reason
 )
 CAMERA_COUNTS = (
@@ -336,24 +336,36 @@ class OakMessageHandler:
         if tr is None:
             return
         try:
-            for packet in msg.packets:
-                a = packet.acceleroMeter
-                if _stamped(a):
-                    tr.add_accelerometer(a.getTimestamp().total_seconds(), (a.x, a.y, a.z))
-                    self.counts["imu_reports"] += 1
-                if tr.mode is ImuMode.GYRO:
-                    g = packet.gyroscope
-                    if _stamped(g) and tr.add_gyro(g.getTimestamp().total_seconds(), (g.x, g.y, g.z)):
-                        self.counts["imu_reports"] += 1
-                else:
-                    rv = packet.rotationVector  # DepthAI puts every rotation-vector kind here
-                    if _stamped(rv) and tr.add_rotation_vector(
-                        rv.getTimestamp().total_seconds(), (rv.real, rv.i, rv.j, rv.k), rv.rotationVectorAccuracy
-                    ):
-                        self.counts["imu_reports"] += 1
-        except (AttributeError, TypeError, ValueError) as exc:  # not IMUData, or a zero quaternion
+            packets = list(msg.packets)
+        except (AttributeError, TypeError) as exc:  # not IMUData
             self.counts["bad_imu"] += 1
             log.debug("unusable IMU message: %s", exc)
+            return
+        for packet in packets:
+            # Report by report: a bad one (a zero quaternion) costs itself, not the rest of a batch
+            # of up to 10 packets, whose loss would leave a hole of imu_gap frames.
+            self._on_report(tr, packet, "acceleroMeter")
+            self._on_report(tr, packet, "gyroscope" if tr.mode is ImuMode.GYRO else "rotationVector")
+
+    def _on_report(self, tr: AttitudeTracker, packet: Any, kind: str) -> None:
+        try:
+            r = getattr(packet, kind)
+            if not _stamped(r):
+                return
+            t = r.getTimestamp().total_seconds()
+            if kind == "acceleroMeter":
+                tr.add_accelerometer(t, (r.x, r.y, r.z))
+                used = True
+            elif kind == "gyroscope":
+                used = tr.add_gyro(t, (r.x, r.y, r.z))
+            else:  # DepthAI puts every rotation-vector kind here
+                used = tr.add_rotation_vector(t, (r.real, r.i, r.j, r.k), r.rotationVectorAccuracy)
+        except (AttributeError, TypeError, ValueError) as exc:  # not an IMUPacket, or a zero quaternion
+            self.counts["bad_imu"] += 1
+            log.debug("unusable IMU report: %s", exc)
+            return
+        if used:
+            self.counts["imu_reports"] += 1
 
     # -- frames -----------------------------------------------------------------------------
     def on_frame(self, msg: Any, now_s: float) -> None:

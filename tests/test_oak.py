@@ -283,6 +283,24 @@ def test_handler_frames_wait_for_the_imu_then_get_the_interpolated_heading():
     assert c["no_heading_imu_pending"] == 1 and c["imu_reports"] == 4  # 2 rotation vectors + 2 accelerometers
 
 
+def test_handler_one_bad_report_costs_only_itself_not_the_rest_of_its_batch():
+    """An IMUData carries up to 10 packets (setMaxBatchReports), more after a USB hiccup. A zero
+    quaternion among them is counted bad; the packets after it were dropped with it, a 0.1 s hole
+    at 100 Hz in which frames had no heading (imu_gap)."""
+    tracker = AttitudeTracker(ImuMode.ROTATION_VECTOR, MOUNT)
+    h = OakMessageHandler(INTR, tracker)
+    times = [BASE_S + k * 0.01 for k in range(10)]
+    packets = [imu_rv(t, q_level(ramp_deg(t))).packets[0] for t in times]
+    packets[1].rotationVector = imu_rv(times[1], (0.0, 0.0, 0.0, 0.0)).packets[0].rotationVector
+    batch = dai.IMUData()
+    batch.packets = packets
+    h.on_imu(batch)
+    assert h.counts["bad_imu"] == 1 and h.counts["imu_reports"] == 10 + 9  # every accelerometer, 9 of 10 vectors
+    att, reason = tracker.attitude_at(BASE_S + 0.085)
+    assert reason == "ok" and att is not None
+    assert math.degrees(att.heading_rad) == pytest.approx(ramp_deg(BASE_S + 0.085), abs=HEADING_DEG)
+
+
 def test_handler_a_frame_of_the_wrong_size_is_bad_not_also_dropped_by_the_device():
     # It was left out of the sequence, so the next frame counted it as never sent too: 4 device
     # frames accounted for where the device sent 3.
