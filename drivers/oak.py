@@ -122,6 +122,11 @@ def _stdout_to_stderr() -> Iterator[None]:
 # Configuration
 # ---------------------------------------------------------------------------------------------
 
+# The dai.ImgFrame.Type names whose getCvFrame() is a BGR uint8 colour image, and their bytes a
+# pixel on the link. Any other type (GRAY8, RAW10, ...) would make every frame a bad one.
+FRAME_TYPES_BGR = {"NV12": 1.5, "NV21": 1.5, "YUV420p": 1.5, "YUV422i": 2.0,
+                   "BGR888i": 3.0, "BGR888p": 3.0, "RGB888i": 3.0, "RGB888p": 3.0}
+
 
 @dataclass(frozen=True)
 class OakConfig:
@@ -161,6 +166,9 @@ class OakConfig:
                 raise ValidationError(f"OakConfig.{name}: expected a finite number > 0, got {v!r}")
         if not (isinstance(self.imu_wait_s, int | float) and 0 <= self.imu_wait_s < 10):
             raise ValidationError(f"OakConfig.imu_wait_s: expected seconds in [0, 10), got {self.imu_wait_s!r}")
+        if self.frame_type is not None and self.frame_type not in FRAME_TYPES_BGR:
+            raise ValidationError(f"OakConfig.frame_type: expected one of {', '.join(FRAME_TYPES_BGR)} "
+                                  f"(a colour image), or None for the device's choice, got {self.frame_type!r}")
         if self.sensor_world not in ENU_FROM_SENSOR_WORLD:
             raise ValidationError(
                 f"OakConfig.sensor_world: expected one of {', '.join(ENU_FROM_SENSOR_WORLD)}, got {self.sensor_world!r}"
@@ -758,7 +766,7 @@ class OakCamera:
         dai = _dai()
         cfg = self.config
         tracker = self._tracker(session)
-        bpp = 3.0 if cfg.frame_type and "888" in cfg.frame_type else 1.5  # BGR/RGB888 vs NV12
+        bpp = FRAME_TYPES_BGR[cfg.frame_type] if cfg.frame_type else 1.5  # the device's choice: NV12
         usb = usb_bandwidth_warning(session.usb_speed, cfg.width, cfg.height, cfg.fps, bpp)
         if usb is not None:
             self._warn_once(f"usb_{session.usb_speed}", "OAK %s: %s", session.description, usb)

@@ -31,6 +31,7 @@ from drivers.imu_heading import (
     world_from_cam,
 )
 from drivers.oak import (
+    FRAME_TYPES_BGR,
     NO_DEVICE_MESSAGE,
     OakCamera,
     OakConfig,
@@ -786,3 +787,19 @@ def test_an_imu_rate_too_slow_for_the_gap_it_may_bridge_is_refused():
     assert OakConfig(imu_rate_hz=20).imu_rate_hz == 20
     assert OakConfig(imu_rate_hz=8, max_imu_gap_s=0.3).imu_rate_hz == 8
     assert OakConfig(imu_rate_hz=1, imu_mode="none").imu_rate_hz == 1  # no IMU: nothing to bridge
+
+
+def test_a_frame_type_that_is_not_a_colour_image_is_refused_at_once():
+    """OakConfig.frame_type names a dai.ImgFrame.Type. One whose getCvFrame() is not BGR uint8
+    (GRAY8, RAW10, ...) made every frame a bad_frame with nothing said, and a name that is no type
+    at all ('BGR') was an AttributeError after the device was opened, which left it open."""
+    for bad in ("GRAY8", "RAW10", "BGR", "nv12"):
+        with pytest.raises(ValidationError, match=rf"^OakConfig.frame_type: expected one of .*NV12.*, got '{bad}'$"):
+            OakConfig(frame_type=bad)
+    colour = np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    for name in FRAME_TYPES_BGR:  # each accepted type reads back as a BGR colour image
+        OakConfig(frame_type=name)
+        f = dai.ImgFrame()
+        f.setCvFrame(colour, getattr(dai.ImgFrame.Type, name))
+        out = f.getCvFrame()
+        assert out.shape == (H, W, 3) and out.dtype == np.uint8, name
