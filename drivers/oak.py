@@ -785,13 +785,16 @@ class OakCamera:
         session.pipeline.start()
         started = self._clock()
         last_frame: float | None = None
+        last_imu: float | None = None
         try:
             while not self._stop.is_set():
                 dai.MessageQueue.waitAny(queues, wait)  # bounded: returns at the timeout or on close
-                if qi is not None:
-                    for msg in qi.tryGetAll():
-                        handler.on_imu(msg)
+                imu_msgs = [] if qi is None else qi.tryGetAll()
+                for msg in imu_msgs:
+                    handler.on_imu(msg)
                 now = self._clock()
+                if imu_msgs:
+                    last_imu = now
                 for msg in qv.tryGetAll():
                     handler.on_frame(msg, now)
                     last_frame = now
@@ -804,6 +807,12 @@ class OakCamera:
                 limit = cfg.startup_timeout_s if last_frame is None else cfg.stall_timeout_s
                 if quiet > limit:
                     raise _DeviceLost(f"no frame for {quiet:.1f} s")
+                # An IMU that stops while the camera goes on (it happens: depthai-python #354)
+                # leaves every frame without heading, which the rig skips: as lost as no frames.
+                quiet_imu = now - (started if last_imu is None else last_imu)
+                limit_imu = cfg.startup_timeout_s if last_imu is None else cfg.stall_timeout_s
+                if tracker is not None and quiet_imu > limit_imu:
+                    raise _DeviceLost(f"no IMU report for {quiet_imu:.1f} s while frames came")
         finally:
             self._publish(handler.drain())
             self._next_seq = handler.next_seq

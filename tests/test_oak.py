@@ -557,6 +557,33 @@ def test_a_stalled_device_counts_as_lost():
     assert len(frames) == 4 and stats["device_lost"] >= 1 and "no frame for" in stats["last_error"]
 
 
+def test_an_imu_that_goes_quiet_while_frames_come_counts_as_a_lost_device(caplog):
+    """An OAK's IMU can stop sending while its camera goes on (depthai-python #354; depthai-ros
+    #736: 71.5 min pauses). Each frame then waited imu_wait_s and went without heading, which the
+    rig skips: no estimate, and not a word until the exit summary. The IMU is part of the device:
+    no IMU report for stall_timeout_s is a loss, said and reconnected, as a camera stall is."""
+    first = [m for m in script(100) if m[1] == "video" or m[0] < BASE_S + 0.3]  # IMU quiet after 0.3 s
+    opener = host_sessions(first, script(3, first_seq=200))
+    opener_pause = 0.02  # 90 frames after the IMU's last report: 1.8 s, past stall_timeout_s
+    cfg = OakConfig(**{**FAST, "stall_timeout_s": 0.5})
+
+    def paced(config):
+        session = opener(config)
+        opener.opened[-1].pause_s = opener_pause
+        return session
+
+    with caplog.at_level(logging.WARNING, logger="drivers.oak"), OakCamera(cfg, open_session=paced) as cam:
+        deadline = time.monotonic() + HANG_GUARD_S
+        got_second = False
+        while not got_second and time.monotonic() < deadline:
+            f = cam.get(0.1)
+            got_second = f is not None and np.array_equal(f.image_bgr, image(200))
+        stats = cam.stats()
+    assert got_second and stats["device_lost"] >= 1 and stats["reconnects"] >= 1
+    lost = [r.getMessage() for r in caplog.records if "lost" in r.getMessage()]
+    assert lost and "no IMU report for" in lost[0], lost
+
+
 def test_no_imu_session_gives_frames_without_attitude():
     msgs = [m for m in script(3) if m[1] == "video"]
     with OakCamera(OakConfig(**FAST), open_session=host_sessions(msgs, imu_mode=None)) as cam:
