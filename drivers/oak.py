@@ -42,8 +42,10 @@ import numpy as np
 from drivers.imu_heading import (
     ENU_FROM_SENSOR_WORLD,
     IMU_PENDING,
+    INACCURATE,
     NO_IMU_YET,
     OK,
+    VERTICAL,
     WANTS,
     AttitudeTracker,
     ImuMode,
@@ -336,6 +338,9 @@ class OakMessageHandler:
         self._last_dev_seq: int | None = None
         self._pending: deque[tuple[float, int, np.ndarray, float]] = deque()
         self.counts = counts if counts is not None else dict.fromkeys(HANDLER_COUNTS, 0)
+        # When (the ready() time) a frame last found IMU reports around it, with a heading or not
+        # for a reason of its own (inaccurate, vertical): None before the first.
+        self.covered_s: float | None = None
 
     # -- IMU --------------------------------------------------------------------------------
     def on_imu(self, msg: Any) -> None:
@@ -422,6 +427,8 @@ class OakMessageHandler:
                         break
                     self.counts["pending_overflow"] += 1
             self._pending.popleft()
+            if reason in (OK, INACCURATE, VERTICAL) and math.isfinite(now_s):
+                self.covered_s = now_s
             frame = self._make(t_mid, seq, img, att, reason)
             if frame is not None:
                 out.append(frame)
@@ -785,16 +792,13 @@ class OakCamera:
         session.pipeline.start()
         started = self._clock()
         last_frame: float | None = None
-        last_imu: float | None = None
         try:
             while not self._stop.is_set():
                 dai.MessageQueue.waitAny(queues, wait)  # bounded: returns at the timeout or on close
-                imu_msgs = [] if qi is None else qi.tryGetAll()
-                for msg in imu_msgs:
-                    handler.on_imu(msg)
+                if qi is not None:
+                    for msg in qi.tryGetAll():
+                        handler.on_imu(msg)
                 now = self._clock()
-                if imu_msgs:
-                    last_imu = now
                 for msg in qv.tryGetAll():
                     handler.on_frame(msg, now)
                     last_frame = now
@@ -807,12 +811,15 @@ class OakCamera:
                 limit = cfg.startup_timeout_s if last_frame is None else cfg.stall_timeout_s
                 if quiet > limit:
                     raise _DeviceLost(f"no frame for {quiet:.1f} s")
-                # An IMU that stops while the camera goes on (it happens: depthai-python #354)
+                # An IMU that stops while the camera goes on (depthai-python #354), or whose stamps
+                # step away from the camera's (an IMU clock wrapping at 2^32 us, depthai-core #965),
                 # leaves every frame without heading, which the rig skips: as lost as no frames.
-                quiet_imu = now - (started if last_imu is None else last_imu)
-                limit_imu = cfg.startup_timeout_s if last_imu is None else cfg.stall_timeout_s
+                covered = handler.covered_s
+                quiet_imu = now - (started if covered is None else covered)
+                limit_imu = cfg.startup_timeout_s if covered is None else cfg.stall_timeout_s
                 if tracker is not None and quiet_imu > limit_imu:
-                    raise _DeviceLost(f"no IMU report for {quiet_imu:.1f} s while frames came")
+                    raise _DeviceLost(f"no frame covered by the IMU's reports for {quiet_imu:.1f} s while frames "
+                                      "came (the IMU quiet, or its stamps off the camera's)")
         finally:
             self._publish(handler.drain())
             self._next_seq = handler.next_seq

@@ -557,21 +557,18 @@ def test_a_stalled_device_counts_as_lost():
     assert len(frames) == 4 and stats["device_lost"] >= 1 and "no frame for" in stats["last_error"]
 
 
-def test_an_imu_that_goes_quiet_while_frames_come_counts_as_a_lost_device(caplog):
-    """An OAK's IMU can stop sending while its camera goes on (depthai-python #354; depthai-ros
-    #736: 71.5 min pauses). Each frame then waited imu_wait_s and went without heading, which the
-    rig skips: no estimate, and not a word until the exit summary. The IMU is part of the device:
-    no IMU report for stall_timeout_s is a loss, said and reconnected, as a camera stall is."""
-    first = [m for m in script(100) if m[1] == "video" or m[0] < BASE_S + 0.3]  # IMU quiet after 0.3 s
+def _lost_to_the_imu_then_reconnected(first: list, caplog) -> str:
+    """Run ``first`` (100 frames at 50 Hz, IMU broken after 0.3 s) paced at 10 ms a message, so
+    its frames go on for 1.8 s past the break, longer than stall_timeout_s 0.5; then a good
+    session. Returns the first loss said."""
     opener = host_sessions(first, script(3, first_seq=200))
-    opener_pause = 0.02  # 90 frames after the IMU's last report: 1.8 s, past stall_timeout_s
-    cfg = OakConfig(**{**FAST, "stall_timeout_s": 0.5})
 
     def paced(config):
         session = opener(config)
-        opener.opened[-1].pause_s = opener_pause
+        opener.opened[-1].pause_s = 0.01
         return session
 
+    cfg = OakConfig(**{**FAST, "stall_timeout_s": 0.5})
     with caplog.at_level(logging.WARNING, logger="drivers.oak"), OakCamera(cfg, open_session=paced) as cam:
         deadline = time.monotonic() + HANG_GUARD_S
         got_second = False
@@ -581,7 +578,27 @@ def test_an_imu_that_goes_quiet_while_frames_come_counts_as_a_lost_device(caplog
         stats = cam.stats()
     assert got_second and stats["device_lost"] >= 1 and stats["reconnects"] >= 1
     lost = [r.getMessage() for r in caplog.records if "lost" in r.getMessage()]
-    assert lost and "no IMU report for" in lost[0], lost
+    assert lost
+    return lost[0]
+
+
+def test_an_imu_that_goes_quiet_while_frames_come_counts_as_a_lost_device(caplog):
+    """An OAK's IMU can stop sending while its camera goes on (depthai-python #354). Each frame
+    then waited imu_wait_s and went without heading, which the rig skips: no estimate, and not a
+    word until the exit summary. The IMU is part of the device: no frame covered by its reports
+    for stall_timeout_s is a loss, said and reconnected, as a camera stall is."""
+    first = [m for m in script(100) if m[1] == "video" or m[0] < BASE_S + 0.3]
+    assert "no frame covered by the IMU's reports for" in _lost_to_the_imu_then_reconnected(first, caplog)
+
+
+def test_imu_stamps_that_jump_off_the_cameras_count_as_a_lost_device(caplog):
+    """The IMU's stamps can step while the camera's do not: an IMU clock that wraps at 2^32 us
+    (depthai-core #965; depthai-ros #736, the IMU gone for exactly 71.6 min). Its reports still
+    came, each refused as out of order, and every frame went without heading for 71.6 minutes."""
+    wrap_s = 2.0**32 / 1e6
+    first = [(t, kind, imu_rv(t - wrap_s, q_level(ramp_deg(t))) if kind == "imu" and t >= BASE_S + 0.3 else msg)
+             for t, kind, msg in script(100)]
+    assert "no frame covered by the IMU's reports for" in _lost_to_the_imu_then_reconnected(first, caplog)
 
 
 def test_no_imu_session_gives_frames_without_attitude():
