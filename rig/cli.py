@@ -28,7 +28,7 @@ from rig.progress import Progress
 from rig.stopping import StopSignals
 
 if TYPE_CHECKING:
-    from rig.recorder import RecorderPublisher
+    from rig.recorder import DiskFull, RecorderPublisher
     from rig.types import Frame
 
 EXIT_USER_ERROR = 2
@@ -568,7 +568,9 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
         details = _source_summary(source_stats()) if callable(source_stats) else ""
         if details:
             print(f"sunrig: source: {details}", file=sys.stderr)
-    if recorder is not None and recorder.finished and not _discard_empty_recording(recorder) and not quiet:
+    full = recorder.disk_full if recorder is not None else None
+    if (recorder is not None and recorder.finished and full is None and not _discard_empty_recording(recorder)
+            and not quiet):
         print(f"sunrig: recorded to {recorder.path}", file=sys.stderr)  # {start} made its name
     if stats.frames_captured == 0 and not stop.requested:
         # The source ended without one frame (a log none of whose frames could be read, a camera
@@ -581,7 +583,39 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
         print(f"sunrig: error: the recording {recorder.path} is unfinished ({why}); its complete chunks "
               f"still replay (sunrig replay {recorder.path})", file=sys.stderr)
         return EXIT_USER_ERROR
+    if recorder is not None and full is not None:
+        from rig.publishers import publisher_name
+
+        # Its own words for its losses: when, what it holds, what to do; and frames, not "estimates".
+        others = {k: v for k, v in stats.publishers.items() if k != publisher_name(recorder)}
+        return max(_report_disk_full(recorder, full), _report_output_losses(others))
     return _report_output_losses(stats.publishers)
+
+
+def _counted(frames: int, estimates: int, with_frames: bool) -> str:
+    def n(k: int, what: str) -> str:
+        return f"{k} {what}" + ("" if k == 1 else "s")
+
+    return f"{n(frames, 'frame')} and {n(estimates, 'estimate')}" if with_frames else n(estimates, "estimate")
+
+
+def _report_disk_full(recorder: RecorderPublisher, full: DiskFull) -> int:
+    """The end of a run whose recording's disk filled. The serial output, the rig's job, went on
+    (docs/deploy.md, "On the road"): a recording that keeps part of the run is a warning, and the
+    run exits 0 as it would have; one that got nothing is exit 2, as any output that wrote nothing
+    (:func:`_report_output_losses`), and no file is left of it."""
+    with_frames = recorder.record_frames
+    lost = _counted(full.frames_lost, full.estimates_lost, with_frames)
+    again = f"free space in {recorder.path.parent if recorder.path else 'its folder'}, and the next start records again"
+    if full.removed:
+        print(f"sunrig: error: nothing could be recorded to {recorder.path}: its disk is full ({full.reason}), so no "
+              f"file is kept, and {lost} were not recorded; {again}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    kept = _counted(full.frames_recorded, full.estimates_recorded, with_frames)
+    logging.getLogger(__name__).warning(
+        "the recording %s ends at %s, where its disk filled (%s): it keeps the %s before, and %s from then on were "
+        "not recorded; %s", recorder.path, f"{full.since_utc:%H:%M:%S} UTC", full.reason, kept, lost, again)
+    return 0
 
 
 def _discard_empty_recording(recorder: RecorderPublisher | None) -> bool:

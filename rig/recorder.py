@@ -2,13 +2,17 @@
 
 Disk writes happen on the recorder's own thread behind a bounded queue. When the disk cannot keep
 up, the oldest waiting items are dropped and counted rather than stalling capture or the estimator.
+A disk that fills ends the recording at its last complete chunk (:class:`Recording`).
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
-from datetime import datetime
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +25,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# A write the disk has no room for: a full disk, a quota, a file size limit.
+DISK_FULL_ERRNOS = frozenset((errno.ENOSPC, errno.EDQUOT, errno.EFBIG))
 START_FIELD = "{start}"
 MAX_SAME_START = 100  # NAME, NAME-1 .. NAME-99: more starts in one second than any boot loop makes
 
@@ -112,25 +118,144 @@ def discard_if_empty(writer: LogWriter) -> bool:
     return True
 
 
+@dataclass(frozen=True)
+class DiskFull:
+    """What a full disk cost a recording. It holds what came before ``since_utc`` (its complete
+    chunks: ``frames_recorded``, ``estimates_recorded``); from then on nothing was recorded
+    (``frames_lost``, ``estimates_lost``). ``removed``: it held nothing, and its file is gone.
+    ``reason``: the OS's words ("No space left on device")."""
+
+    reason: str
+    since_utc: datetime
+    frames_recorded: int
+    estimates_recorded: int
+    frames_lost: int
+    estimates_lost: int
+    removed: bool
+
+
+class Recording:
+    """A recording's log, and how much of it is on the disk.
+
+    A full disk ends the recording. The write that did not fit left part of a chunk in the file,
+    and a log cannot go on past that: what was written after it once space was freed replays as a
+    damaged record (and filled the freed disk again with it). So from the first write the disk
+    has no room for, nothing more is written: that item, those since the last complete chunk (held
+    in memory until the chunk ends) and every later one are counted as lost, and :meth:`close`
+    cuts the file back to the end of that chunk, a log cut off there that replays whole, or
+    removes it when it holds no chunk (an empty log would only be refused by every replay).
+
+    A chunk ends on the disk when the file grows: the log writes to its file only as a chunk ends
+    (and synced then), so its size is where the complete chunks end.
+    """
+
+    def __init__(self, writer: LogWriter, *, clock: Callable[[], datetime] = lambda: datetime.now(UTC)) -> None:
+        self.writer = writer
+        self.path = writer.path
+        self._clock = clock
+        self._bytes_on_disk = 0  # the file's size when its last complete chunk ended
+        self._on_disk = (0, 0)  # frames, estimates in those chunks
+        self._given = [0, 0]  # frames, estimates handed to the log, lost ones too
+        self._pending_since: datetime | None = None  # the first item not yet in a complete chunk
+        self._full: tuple[str, datetime] | None = None  # (reason, since) once the disk is full
+        self._removed = False
+
+    @property
+    def disk_full(self) -> DiskFull | None:
+        """None while every write fit (and after a close that fit)."""
+        if self._full is None:
+            return None
+        reason, since = self._full
+        frames, estimates = self._on_disk
+        return DiskFull(reason, since, frames, estimates, self._given[0] - frames, self._given[1] - estimates,
+                        self._removed)
+
+    def write_frame(self, frame: Frame, *, jpeg_quality: int = 90) -> bool:
+        """False: not recorded, the disk is full (:attr:`disk_full`)."""
+        return self._write(0, lambda: self.writer.write_frame(frame, jpeg_quality=jpeg_quality))
+
+    def write_estimate(self, est: SunEstimate) -> bool:
+        """False: not recorded, the disk is full (:attr:`disk_full`)."""
+        return self._write(1, lambda: self.writer.write_estimate(est))
+
+    def _write(self, kind: int, write: Callable[[], None]) -> bool:
+        if self._full is None:
+            if self._pending_since is None:
+                self._pending_since = self._clock()
+            try:
+                write()
+            except OSError as exc:
+                if exc.errno not in DISK_FULL_ERRNOS:
+                    raise
+                self._filled(exc)
+            else:
+                self._given[kind] += 1
+                self._note_chunk_end()
+                return True
+        self._given[kind] += 1
+        return False
+
+    def _note_chunk_end(self) -> None:
+        if self.path is None:
+            return
+        try:
+            size = os.stat(self.path).st_size
+        except OSError:  # moved away under the rig: what is on the disk stays as last seen
+            return
+        if size > self._bytes_on_disk:
+            self._bytes_on_disk = size
+            self._on_disk = (self.writer.frames_written, self.writer.estimates_written)
+            self._pending_since = None
+
+    def _filled(self, exc: OSError) -> None:
+        reason = exc.strerror or os.strerror(exc.errno or errno.ENOSPC)
+        self._full = (reason, self._pending_since or self._clock())
+
+    def close(self) -> None:
+        """Finish the log: its summary and index. After a full disk (or when they do not fit), cut
+        it back to its last complete chunk instead, or remove it when it has none."""
+        try:
+            self.writer.close()
+        except OSError as exc:
+            if exc.errno not in DISK_FULL_ERRNOS:
+                raise
+            if self._full is None:
+                self._filled(exc)
+        if self._full is None:
+            return
+        # Only a file: a device (--out /dev/full with --overwrite, as root) is left as it is.
+        if self.path is None or not self.path.is_file():
+            return
+        if self._bytes_on_disk:
+            os.truncate(self.path, self._bytes_on_disk)  # the part of a chunk, and what came after it
+        else:
+            self.path.unlink(missing_ok=True)
+            self._removed = True
+
+
 class RecorderPublisher:
     """Writes what it is given to a native log on a writer thread; ``close`` finishes the file.
 
     ``writer``: the log, made by :func:`open_recording` (which never replaces a file by accident).
     The thread is a :class:`~rig.publishers.QueuedWriter`: when the disk cannot keep up, the
-    oldest of ``queue_size`` waiting items are dropped and counted, and a failed write (a full
-    disk) is counted, not raised. ``close`` waits up to ``join_timeout_s`` for the queue to be
-    written, so a recording keeps its last seconds; a write stuck longer (a disk that stopped
-    answering) is left behind, and the thread finishes the file when that write returns.
+    oldest of ``queue_size`` waiting items are dropped and counted, and a failed write is counted,
+    not raised. A full disk ends the recording at its last complete chunk (:class:`Recording`),
+    said once as it happens, and each item not recorded since is counted in ``errors`` (the status
+    line's publish errors); :attr:`disk_full` says what it cost. ``close`` waits up to
+    ``join_timeout_s`` for the queue to be written, so a recording keeps its last seconds; a
+    write stuck longer (a disk that stopped answering) is left behind, and the thread finishes the
+    file when that write returns.
     """
 
     def __init__(self, writer: LogWriter, *, record_frames: bool = False, queue_size: int = 64,
                  join_timeout_s: float = 10.0) -> None:
         self._writer = writer
+        self._recording = Recording(writer)
         self.path = writer.path
         self.record_frames = record_frames
         self.join_timeout_s = join_timeout_s
         self._worker: QueuedWriter[Frame | SunEstimate] = QueuedWriter(
-            self._write, writer.close, what=f"recorder {self.path}", max_pending=queue_size)
+            self._write, self._finish, what=f"recorder {self.path}", max_pending=queue_size)
 
     def record_frame(self, frame: Frame) -> None:
         if self.record_frames:
@@ -141,13 +266,44 @@ class RecorderPublisher:
             raise PublishError(f"publish() on the closed recorder of {self.path}; make a new one")
 
     def _write(self, item: Frame | SunEstimate) -> None:
+        was_full = self._recording.disk_full is not None
         if isinstance(item, Frame):
-            self._writer.write_frame(item)
+            self._recording.write_frame(item)
         else:
-            self._writer.write_estimate(item)
+            self._recording.write_estimate(item)
+        if not was_full:
+            self._say_if_full()
+
+    def _finish(self) -> None:
+        was_full = self._recording.disk_full is not None
+        self._recording.close()
+        if not was_full:
+            self._say_if_full()  # the disk had no room for the last chunk and the summary
+
+    def _say_if_full(self) -> None:
+        """Once, as the disk fills: the journal's line of when, what the recording keeps, what to do."""
+        full = self._recording.disk_full
+        if full is None:
+            return
+        folder = self.path.parent if self.path is not None else "its folder"
+        log.warning("recording %s: its disk is full (%s): the recording ends at %s, and what comes later is "
+                    "counted as not recorded while the other outputs go on; free space in %s, and the next start "
+                    "records again", self.path, full.reason, f"{full.since_utc:%H:%M:%S} UTC", folder)
+
+    @property
+    def disk_full(self) -> DiskFull | None:
+        """What a full disk cost the recording (:class:`DiskFull`); None while every write fit."""
+        return self._recording.disk_full
 
     def stats(self) -> dict:
-        return {"written": self._worker.written, **self._worker.stats()}
+        stats = {"written": self._worker.written, **self._worker.stats()}
+        full = self._recording.disk_full
+        if full is not None:  # taken by the log, then lost with the chunk the disk had no room for
+            lost = full.frames_lost + full.estimates_lost
+            stats["written"] = full.frames_recorded + full.estimates_recorded
+            stats["errors"] += lost
+            stats["last_error"] = stats["last_error"] or f"OSError: {full.reason}"
+        return stats
 
     @property
     def finished(self) -> bool:

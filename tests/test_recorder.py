@@ -1,7 +1,10 @@
 """Where a recording goes: never over an existing one by accident, a new file per start with {start}."""
 
+import errno
+import io
 import logging
 import os
+import re
 import shutil
 import threading
 from datetime import UTC, datetime
@@ -167,23 +170,117 @@ def test_the_recorder_keeps_frames_only_when_asked_and_every_estimate_on_close(t
 
 
 def test_a_recorder_write_that_fails_is_counted_not_raised(tmp_path):
-    # A full disk must not stop the rig: the estimate is lost, counted in `errors` (which the status
-    # line sums as a publish error) with its reason, and the next ones are tried.
-    rec = RecorderPublisher(LogWriter(tmp_path / "full.mcap"))
+    # A failed write must not stop the rig: the estimate is lost, counted in `errors` (which the
+    # status line sums as a publish error) with its reason, and the next ones are tried. (A full
+    # disk ends the recording instead: the tests above.)
+    rec = RecorderPublisher(LogWriter(tmp_path / "failing.mcap"))
     real = rec._writer.write_estimate
 
-    def disk_full_once(est):
+    def fails_once(est):
         if est.seq == 1:
-            raise OSError(28, "No space left on device")
+            raise OSError(errno.EIO, "Input/output error")
         real(est)
 
-    rec._writer.write_estimate = disk_full_once
+    rec._writer.write_estimate = fails_once
     for seq in range(3):
         rec.publish(make_estimate(10.0, 20.0, seq=seq))
     rec.close()
     stats = rec.stats()
-    assert (stats["written"], stats["errors"]) == (2, 1) and "No space left" in stats["last_error"]
-    assert [d["seq"] for d in read_estimates(tmp_path / "full.mcap")] == [0, 2]
+    assert (stats["written"], stats["errors"]) == (2, 1) and "Input/output error" in stats["last_error"]
+    assert [d["seq"] for d in read_estimates(tmp_path / "failing.mcap")] == [0, 2]
+
+
+class FakeDisk:
+    """FAKE disk of ``free`` more bytes under every log a LogWriter makes (reading is untouched):
+    as Linux writes to a full disk, a write that does not fit writes what fits and the next one
+    fails with ENOSPC. Raise ``free`` to free space mid-test. The bytes written are real files."""
+
+    def __init__(self, free: int) -> None:
+        self.free = free
+
+    def open(self, file, mode="r", *args, **kwargs):
+        if "w" not in mode and "x" not in mode:
+            return open(file, mode, *args, **kwargs)
+        return io.BufferedWriter(_FileOnDisk(self, file, mode.replace("b", "")))
+
+
+class _FileOnDisk(io.FileIO):
+    def __init__(self, disk: FakeDisk, file, mode: str) -> None:
+        super().__init__(file, mode)
+        self._disk = disk
+
+    def write(self, b) -> int:
+        data = bytes(b)
+        if data and self._disk.free <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = super().write(data[:self._disk.free])
+        self._disk.free -= n
+        return n
+
+
+@pytest.fixture
+def disk(monkeypatch) -> FakeDisk:
+    """A FakeDisk with no room left; set ``free`` before the log is made."""
+    import replay.native
+
+    fake = FakeDisk(free=0)
+    monkeypatch.setattr(replay.native, "open", fake.open, raising=False)
+    return fake
+
+
+def chunk_ends(path, estimates: int) -> list[int]:
+    """The size of a log of ``estimates`` estimates, each in a chunk of its own, after each chunk."""
+    sizes = []
+    with LogWriter(path, chunk_size=1) as w:
+        for seq in range(estimates):
+            w.write_estimate(make_estimate(10.0, 20.0, seq=seq))
+            sizes.append(path.stat().st_size)
+    return sizes
+
+
+def test_a_recording_on_a_full_disk_keeps_no_file_and_counts_what_it_did_not_record(tmp_path, disk, caplog):
+    # A rig booting on a full disk left a 0-byte {start}.mcap at every boot, and its close failed
+    # ("unfinished", exit 2): the header and the one chunk of estimates never reached the disk.
+    rec = RecorderPublisher(open_recording(tmp_path / "{start}.mcap", start_utc=START), record_frames=True)
+    with caplog.at_level(logging.WARNING, logger="rig.recorder"):
+        for f in make_frames(2):
+            rec.record_frame(f)
+        for seq in range(5):
+            rec.publish(make_estimate(10.0, 20.0, seq=seq))
+        rec.close()
+    assert rec.finished and list(tmp_path.iterdir()) == []
+    full = rec.disk_full
+    assert full is not None and full.removed and full.reason == "No space left on device"
+    assert (full.frames_recorded, full.estimates_recorded, full.frames_lost, full.estimates_lost) == (0, 0, 2, 5)
+    stats = rec.stats()
+    assert (stats["written"], stats["errors"]) == (0, 7)
+    (said,) = [r.getMessage() for r in caplog.records]
+    assert "disk is full (No space left on device)" in said and f"free space in {tmp_path}" in said, said
+
+
+def test_a_recording_whose_disk_fills_ends_at_its_last_chunk_and_does_not_resume(tmp_path, disk, caplog):
+    # The first write that does not fit leaves part of a chunk in the file. Writing went on after
+    # it, and once space was freed the log took all of it in bytes that replay as a damaged record
+    # (a real 2 MB tmpfs: 23 frames replayed of 137, the disk full again), and its close failed.
+    disk.free = 10**9
+    sizes = chunk_ends(tmp_path / "measure.mcap", 4)
+    disk.free = sizes[2] + 40  # three chunks fit, and the start of the fourth
+    rec = RecorderPublisher(LogWriter(tmp_path / "drive.mcap", chunk_size=1), queue_size=64)
+    with caplog.at_level(logging.WARNING):
+        for seq in range(5):
+            rec.publish(make_estimate(10.0, 20.0, seq=seq))
+        wait_until(lambda: rec.stats()["errors"], "the recorder to find its disk full")
+        disk.free = 10**9  # space freed while the rig runs
+        for seq in range(5, 8):
+            rec.publish(make_estimate(10.0, 20.0, seq=seq))
+        rec.close()
+    assert rec.finished and not rec.stuck
+    assert (tmp_path / "drive.mcap").stat().st_size == sizes[2]  # cut back to its last complete chunk
+    assert [d["seq"] for d in read_estimates(tmp_path / "drive.mcap")] == [0, 1, 2]
+    assert not [r for r in caplog.records if "corrupt" in r.getMessage() or "damaged" in r.getMessage()]
+    full = rec.disk_full
+    assert full is not None and (full.estimates_recorded, full.estimates_lost, full.removed) == (3, 5, False)
+    assert (rec.stats()["written"], rec.stats()["errors"]) == (3, 5)
 
 
 def stall_estimate_writes(monkeypatch) -> tuple[threading.Event, threading.Event]:
@@ -361,3 +458,50 @@ def test_record_seconds_of_a_video_file_counts_the_videos_own_time(tmp_path, cap
     assert rc == 0, capsys.readouterr().err
     times = [f.t_mono_s for f in read_frames(out)]
     assert len(times) == 11 and times[-1] - times[0] == pytest.approx(1.0, abs=1e-3), times
+
+
+# --- A full disk under the live rig and `record` -------------------------------------------
+
+
+def test_a_run_on_a_full_disk_keeps_no_recording_and_says_what_to_do(tmp_path, disk, capsys):
+    # Booting on a full disk left a 0-byte {start}.mcap at every boot, "unfinished (closing it
+    # failed)". Nothing was recorded: exit 2, as for any output that wrote nothing.
+    from replay.sources import DEMO_LOG
+    from rig.cli import main
+
+    code = main(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--fast",
+                 "--record", str(tmp_path / "{start}.mcap")])
+    err = capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == [] and code == 2, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("sunrig: error: nothing could be recorded to ") and "unfinished" not in err, err
+    assert "its disk is full (No space left on device), so no file is kept" in last, last
+    assert re.search(r", and \d+ estimates were not recorded; ", last), last
+    assert last.endswith(f"free space in {tmp_path}, and the next start records again"), last
+
+
+def test_a_run_whose_disk_fills_keeps_what_it_recorded_and_says_what_it_lost(tmp_path, disk, capsys, caplog):
+    # The disk filled mid-run: the serial output went on, and the stop that followed (systemd's
+    # SIGTERM) exited 2 "unfinished (closing it failed)", a failed unit. The run did its job: exit 0,
+    # with the journal told when the recording ended, what it keeps and what it lost.
+    from replay.sources import DEMO_LOG
+    from rig.cli import main
+
+    disk.free = 1_200_000  # the bundled drive's first chunk (1 MiB of frames) fits, not the rest
+    out = tmp_path / "drive.mcap"
+    with caplog.at_level(logging.WARNING):
+        code = main(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--fast", "--record-frames",
+                     "--record", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    said = [r.getMessage() for r in caplog.records if r.name == "rig.cli"]
+    assert len(said) == 1, said
+    m = re.fullmatch(rf"the recording {re.escape(str(out))} ends at \d\d:\d\d:\d\d UTC, where its disk filled "
+                     r"\(No space left on device\): it keeps the (\d+) frames and (\d+) estimates before, and (\d+) "
+                     r"frames and \d+ estimates from then on were not recorded; free space in "
+                     rf"{re.escape(str(tmp_path))}, and the next start records again", said[0])
+    assert m, said[0]
+    kept, estimates, lost = (int(g) for g in m.groups())
+    assert kept == len(list(read_frames(out))) and 0 < kept < kept + lost <= 40
+    assert estimates == len(list(read_estimates(out)))
+    assert "recorded to" not in err and "unfinished" not in err
