@@ -592,11 +592,12 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     return _report_output_losses(stats.publishers)
 
 
-def _counted(frames: int, estimates: int, with_frames: bool) -> str:
-    def n(k: int, what: str) -> str:
-        return f"{k} {what}" + ("" if k == 1 else "s")
+def _n(k: int, what: str) -> str:
+    return f"{k} {what}" + ("" if k == 1 else "s")
 
-    return f"{n(frames, 'frame')} and {n(estimates, 'estimate')}" if with_frames else n(estimates, "estimate")
+
+def _counted(frames: int, estimates: int, with_frames: bool) -> str:
+    return f"{_n(frames, 'frame')} and {_n(estimates, 'estimate')}" if with_frames else _n(estimates, "estimate")
 
 
 def _report_disk_full(recorder: RecorderPublisher, full: DiskFull) -> int:
@@ -608,8 +609,9 @@ def _report_disk_full(recorder: RecorderPublisher, full: DiskFull) -> int:
     lost = _counted(full.frames_lost, full.estimates_lost, with_frames)
     again = f"free space in {recorder.path.parent if recorder.path else 'its folder'}, and the next start records again"
     if full.removed:
+        lost_too = f", and {lost} were not recorded" if full.frames_lost or full.estimates_lost else ""
         print(f"sunrig: error: nothing could be recorded to {recorder.path}: its disk is full ({full.reason}), so no "
-              f"file is kept, and {lost} were not recorded; {again}", file=sys.stderr)
+              f"file is kept{lost_too}; {again}", file=sys.stderr)
         return EXIT_USER_ERROR
     kept = _counted(full.frames_recorded, full.estimates_recorded, with_frames)
     logging.getLogger(__name__).warning(
@@ -685,7 +687,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     one while a frame (or the summary) is being written lets that write finish first (rig.stopping).
     """
     from drivers.sources import is_recording
-    from rig.recorder import check_recording_path, discard_if_empty, open_recording
+    from rig.recorder import Recording, check_recording_path, discard_if_empty, open_recording
 
     cfg = _effective_config(args)
     _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=args.out)
@@ -700,7 +702,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     start = time.monotonic()
     next_status = start + 5.0
     interrupted = False
-    disk_full: OSError | None = None
     # A log or a video file is read as fast as it can be: its own time, not the wall clock, says how
     # much of it --seconds keeps, and no wall-clock backstop cuts a slow re-recording (visual
     # odometry) short.
@@ -718,6 +719,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             # Made now, after the sources: a wrong camera or port leaves no file.
             writer = open_recording(args.out, start_utc=datetime.now(UTC), overwrite=args.overwrite)
         out = writer.path
+        recording = Recording(writer)  # a full disk ends it at its last complete chunk
         try:
             for frame in source:
                 if replayed and args.seconds is not None:
@@ -725,7 +727,8 @@ def cmd_record(args: argparse.Namespace) -> int:
                     if frame.t_mono_s - first_t_s > args.seconds:
                         break
                 with stop.finishing():  # a frame is written whole or not at all
-                    writer.write_frame(frame, jpeg_quality=args.jpeg_quality)
+                    if not recording.write_frame(frame, jpeg_quality=args.jpeg_quality):
+                        break  # the disk is full: said below
                 n += 1
                 n_heading += frame.attitude is not None
                 now = time.monotonic()
@@ -744,18 +747,9 @@ def cmd_record(args: argparse.Namespace) -> int:
                     break
         except KeyboardInterrupt:
             interrupted = True  # Ctrl-C (or SIGTERM from a service manager) is how a live recording ends
-        except OSError as exc:
-            if exc.errno not in _DISK_FULL:
-                raise
-            disk_full = exc
         finally:
-            try:
-                with stop.finishing():  # a stop signal now must not cut the summary short
-                    writer.close()
-            except OSError as exc:
-                if exc.errno not in _DISK_FULL:
-                    raise
-                disk_full = disk_full or exc
+            with stop.finishing():  # a stop signal now must not cut the summary short
+                recording.close()
     except Exception:
         # The source failed before its first frame (a calibration of another resolution, found on
         # that frame): its error says what to do, and an empty log left behind would refuse the
@@ -767,10 +761,19 @@ def cmd_record(args: argparse.Namespace) -> int:
         if deadline is not None:
             deadline.cancel()
         source.close()
-    if disk_full is not None:
-        assert disk_full.errno is not None  # one of _DISK_FULL
-        raise SunrigError(f"record: {out}: {os.strerror(disk_full.errno)} after {n} frames; its complete "
-                          f"chunks still replay (sunrig replay {out}); free space or pass another --out")
+    full = recording.disk_full
+    if full is not None:
+        if live_line and not quiet:
+            sys.stderr.write("\n")  # below the progress line, not over it
+        lost = _n(full.frames_lost, "frame")
+        if full.removed:
+            lost_too = f", and its {lost} were not recorded" if full.frames_lost else ""
+            raise SunrigError(f"record: nothing could be recorded to {out}: its disk is full ({full.reason}), so no "
+                              f"file is kept{lost_too}; free space or pass another --out")
+        raise SunrigError(f"record: {out} ends at {full.since_utc:%H:%M:%S} UTC, where its disk filled "
+                          f"({full.reason}): it keeps the {_n(full.frames_recorded, 'frame')} before "
+                          f"(sunrig replay {out}), and {lost} from then on were not recorded; free space or pass "
+                          "another --out")
     if discard_if_empty(writer):
         said = f"record: no frame came in {time.monotonic() - start:.1f} s, so {out} is not kept"
         if interrupted or stop.requested:  # stopped as a service is: not a failure of the command

@@ -505,3 +505,33 @@ def test_a_run_whose_disk_fills_keeps_what_it_recorded_and_says_what_it_lost(tmp
     assert kept == len(list(read_frames(out))) and 0 < kept < kept + lost <= 40
     assert estimates == len(list(read_estimates(out)))
     assert "recorded to" not in err and "unfinished" not in err
+
+
+@pytest.mark.parametrize("free", [0, 1_200_000])
+def test_record_to_a_disk_that_fills_keeps_its_complete_chunks_and_says_what_it_lost(tmp_path, disk, capsys, caplog,
+                                                                                    free):
+    # `record` said "No space left on device after 23 frames; its complete chunks still replay" of
+    # a 0-byte file it kept (and of one that held 24 of "40 frames", its part chunk left on).
+    from replay.sources import DEMO_LOG
+    from rig.cli import main
+
+    disk.free = free
+    out = tmp_path / "drive.mcap"
+    with caplog.at_level(logging.WARNING):
+        code = main(["record", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    (said,) = err.strip().splitlines()
+    assert code == 2 and said.endswith("free space or pass another --out"), err
+    if not free:
+        assert list(tmp_path.iterdir()) == []
+        assert said.startswith(f"sunrig: error: record: nothing could be recorded to {out}: its disk is full (No "
+                               "space left on device), so no file is kept, and its "), said
+        return
+    m = re.fullmatch(rf"sunrig: error: record: {re.escape(str(out))} ends at \d\d:\d\d:\d\d UTC, where its disk "
+                     rf"filled \(No space left on device\): it keeps the (\d+) frames before \(sunrig replay "
+                     rf"{re.escape(str(out))}\), and (\d+) frames from then on were not recorded; free space or pass "
+                     r"another --out", said)
+    assert m, said
+    kept, lost = int(m[1]), int(m[2])
+    assert kept == len(list(read_frames(out))) and 0 < kept < kept + lost <= 40
+    assert not [r for r in caplog.records if "corrupt" in r.getMessage() or "damaged" in r.getMessage()]
