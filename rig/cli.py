@@ -687,7 +687,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     one while a frame (or the summary) is being written lets that write finish first (rig.stopping).
     """
     from drivers.sources import is_recording
-    from rig.recorder import Recording, check_recording_path, discard_if_empty, open_recording
+    from rig.recorder import CHUNK_EVERY_S, Recording, check_recording_path, discard_if_empty, open_recording
 
     cfg = _effective_config(args)
     _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=args.out)
@@ -719,7 +719,8 @@ def cmd_record(args: argparse.Namespace) -> int:
             # Made now, after the sources: a wrong camera or port leaves no file.
             writer = open_recording(args.out, start_utc=datetime.now(UTC), overwrite=args.overwrite)
         out = writer.path
-        recording = Recording(writer)  # a full disk ends it at its last complete chunk
+        # A full disk ends it at its last complete chunk; a slow camera's chunk ends within CHUNK_EVERY_S.
+        recording = Recording(writer, chunk_every_s=CHUNK_EVERY_S)
         try:
             for frame in source:
                 if replayed and args.seconds is not None:

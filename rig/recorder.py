@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -27,6 +28,10 @@ log = logging.getLogger(__name__)
 
 # A write the disk has no room for: a full disk, a quota, a file size limit.
 DISK_FULL_ERRNOS = frozenset((errno.ENOSPC, errno.EDQUOT, errno.EFBIG))
+# A chunk ends at the latest once its oldest item waited this long. A log's own bound is 1 MiB,
+# which an estimates-only recording fills in about 5 minutes at 10 Hz: held in memory that long,
+# they were all lost at a power cut or a full disk, and a full disk was found (and said) only then.
+CHUNK_EVERY_S = 10.0
 START_FIELD = "{start}"
 MAX_SAME_START = 100  # NAME, NAME-1 .. NAME-99: more starts in one second than any boot loop makes
 
@@ -146,17 +151,23 @@ class Recording:
     removes it when it holds no chunk (an empty log would only be refused by every replay).
 
     A chunk ends on the disk when the file grows: the log writes to its file only as a chunk ends
-    (and synced then), so its size is where the complete chunks end.
+    (and synced then), so its size is where the complete chunks end. ``chunk_every_s``: end the
+    chunk in progress, besides at the log's own size bound, once its oldest item waited this long
+    (``monotonic`` seconds); None: at the size bound only.
     """
 
-    def __init__(self, writer: LogWriter, *, clock: Callable[[], datetime] = lambda: datetime.now(UTC)) -> None:
+    def __init__(self, writer: LogWriter, *, chunk_every_s: float | None = None,
+                 clock: Callable[[], datetime] = lambda: datetime.now(UTC),
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
         self.writer = writer
         self.path = writer.path
-        self._clock = clock
+        self.chunk_every_s = chunk_every_s
+        self._clock, self._monotonic = clock, monotonic
         self._bytes_on_disk = 0  # the file's size when its last complete chunk ended
         self._on_disk = (0, 0)  # frames, estimates in those chunks
         self._given = [0, 0]  # frames, estimates handed to the log, lost ones too
         self._pending_since: datetime | None = None  # the first item not yet in a complete chunk
+        self._pending_since_s = 0.0  # the same, in `monotonic` seconds
         self._full: tuple[str, datetime] | None = None  # (reason, since) once the disk is full
         self._removed = False
 
@@ -179,21 +190,32 @@ class Recording:
         return self._write(1, lambda: self.writer.write_estimate(est))
 
     def _write(self, kind: int, write: Callable[[], None]) -> bool:
-        if self._full is None:
-            if self._pending_since is None:
-                self._pending_since = self._clock()
+        if self._full is not None:
+            self._given[kind] += 1
+            return False
+        if self._pending_since is None:
+            self._pending_since, self._pending_since_s = self._clock(), self._monotonic()
+        try:
+            write()
+        except OSError as exc:
+            if exc.errno not in DISK_FULL_ERRNOS:
+                raise
+            self._given[kind] += 1  # the item the disk had no room for
+            self._filled(exc)
+            return False
+        self._given[kind] += 1
+        self._note_chunk_end()
+        if (self._pending_since is not None and self.chunk_every_s is not None
+                and self._monotonic() - self._pending_since_s >= self.chunk_every_s):
             try:
-                write()
+                self.writer.flush()
             except OSError as exc:
                 if exc.errno not in DISK_FULL_ERRNOS:
                     raise
                 self._filled(exc)
-            else:
-                self._given[kind] += 1
-                self._note_chunk_end()
-                return True
-        self._given[kind] += 1
-        return False
+                return False
+            self._note_chunk_end()
+        return True
 
     def _note_chunk_end(self) -> None:
         if self.path is None:
@@ -241,16 +263,17 @@ class RecorderPublisher:
     oldest of ``queue_size`` waiting items are dropped and counted, and a failed write is counted,
     not raised. A full disk ends the recording at its last complete chunk (:class:`Recording`),
     said once as it happens, and each item not recorded since is counted in ``errors`` (the status
-    line's publish errors); :attr:`disk_full` says what it cost. ``close`` waits up to
+    line's publish errors); :attr:`disk_full` says what it cost. A chunk ends at least every
+    ``chunk_every_s`` (:data:`CHUNK_EVERY_S`). ``close`` waits up to
     ``join_timeout_s`` for the queue to be written, so a recording keeps its last seconds; a
     write stuck longer (a disk that stopped answering) is left behind, and the thread finishes the
     file when that write returns.
     """
 
     def __init__(self, writer: LogWriter, *, record_frames: bool = False, queue_size: int = 64,
-                 join_timeout_s: float = 10.0) -> None:
+                 join_timeout_s: float = 10.0, chunk_every_s: float = CHUNK_EVERY_S) -> None:
         self._writer = writer
-        self._recording = Recording(writer)
+        self._recording = Recording(writer, chunk_every_s=chunk_every_s)
         self.path = writer.path
         self.record_frames = record_frames
         self.join_timeout_s = join_timeout_s

@@ -283,6 +283,41 @@ def test_a_recording_whose_disk_fills_ends_at_its_last_chunk_and_does_not_resume
     assert (rec.stats()["written"], rec.stats()["errors"]) == (3, 5)
 
 
+def test_a_recording_ends_a_chunk_once_its_oldest_item_waited_chunk_every_s(tmp_path):
+    # A chunk ended only at 1 MiB: about 3000 estimates, 5 minutes at 10 Hz, of an estimates-only
+    # recording held in memory, so a full disk was found (and said) minutes late, all of them lost
+    # with it, and as many lost at a power cut.
+    from rig.recorder import Recording
+
+    now = [0.0]
+    path = tmp_path / "estimates.mcap"
+    rec = Recording(LogWriter(path), chunk_every_s=10.0, monotonic=lambda: now[0])
+    for seq, t in enumerate((100.0, 105.0, 109.9)):
+        now[0] = t
+        assert rec.write_estimate(make_estimate(10.0, 20.0, seq=seq))
+    assert path.stat().st_size == 0  # all three wait in the chunk in progress
+    now[0] = 110.0
+    assert rec.write_estimate(make_estimate(10.0, 20.0, seq=3))
+    assert [d["seq"] for d in read_estimates(path)] == [0, 1, 2, 3]  # on the disk, the log still open
+    now[0] = 115.0
+    assert rec.write_estimate(make_estimate(10.0, 20.0, seq=4))
+    size = path.stat().st_size
+    now[0] = 119.9  # counted from the first estimate after the chunk ended, not from the last chunk
+    assert rec.write_estimate(make_estimate(10.0, 20.0, seq=5)) and path.stat().st_size == size
+    rec.close()
+    assert [d["seq"] for d in read_estimates(path)] == list(range(6))
+
+
+def test_a_run_recorder_finds_a_full_disk_as_its_first_chunk_ends_not_at_its_close(tmp_path, disk, caplog):
+    rec = RecorderPublisher(LogWriter(tmp_path / "estimates.mcap"), chunk_every_s=0.0)
+    with caplog.at_level(logging.WARNING, logger="rig.recorder"):
+        rec.publish(make_estimate(10.0, 20.0, seq=0))
+        wait_until(lambda: caplog.records, "the recorder to say its disk is full")
+    assert "disk is full" in caplog.records[0].getMessage() and rec.disk_full is not None
+    rec.close()
+    assert list(tmp_path.iterdir()) == []
+
+
 def stall_estimate_writes(monkeypatch) -> tuple[threading.Event, threading.Event]:
     """FAKE stalled disk: every LogWriter's estimate writes wait (up to 10 s, a guard, not a
     timing) until the returned ``release`` is set; ``entered`` is set once a writer is inside one."""
