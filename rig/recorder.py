@@ -309,9 +309,10 @@ class RecorderPublisher:
         if full is None:
             return
         folder = self.path.parent if self.path is not None else "its folder"
-        log.warning("recording %s: its disk is full (%s): the recording ends at %s, and what comes later is "
-                    "counted as not recorded while the other outputs go on; free space in %s, and the next start "
-                    "records again", self.path, full.reason, f"{full.since_utc:%H:%M:%S} UTC", folder)
+        log.warning("recording %s: its disk is full (%s): the recording ends at %s; what comes later is not "
+                    "recorded (counted in the status line's publish errors), and the other outputs go on; free space "
+                    "in %s, and the next start records again", self.path, full.reason,
+                    f"{full.since_utc:%H:%M:%S} UTC", folder)
 
     @property
     def disk_full(self) -> DiskFull | None:

@@ -256,6 +256,7 @@ def test_a_recording_on_a_full_disk_keeps_no_file_and_counts_what_it_did_not_rec
     assert (stats["written"], stats["errors"]) == (0, 7)
     (said,) = [r.getMessage() for r in caplog.records]
     assert "disk is full (No space left on device)" in said and f"free space in {tmp_path}" in said, said
+    assert "not recorded (counted in the status line's publish errors)" in said, said  # where to watch it
 
 
 def test_a_recording_whose_disk_fills_ends_at_its_last_chunk_and_does_not_resume(tmp_path, disk, caplog):
