@@ -607,16 +607,16 @@ def _report_disk_full(recorder: RecorderPublisher, full: DiskFull) -> int:
     (:func:`_report_output_losses`), and no file is left of it."""
     with_frames = recorder.record_frames
     lost = _counted(full.frames_lost, full.estimates_lost, with_frames)
-    again = f"free space in {recorder.path.parent if recorder.path else 'its folder'}, and the next start records again"
+    again = f"{full.remedy(recorder.path.parent if recorder.path else 'its folder')}, and the next start records again"
     if full.removed:
         lost_too = f", and {lost} were not recorded" if full.frames_lost or full.estimates_lost else ""
-        print(f"sunrig: error: nothing could be recorded to {recorder.path}: its disk is full ({full.reason}), so no "
-              f"file is kept{lost_too}; {again}", file=sys.stderr)
+        print(f"sunrig: error: nothing could be recorded to {recorder.path}: {full.cause}, so no file is "
+              f"kept{lost_too}; {again}", file=sys.stderr)
         return EXIT_USER_ERROR
     kept = _counted(full.frames_recorded, full.estimates_recorded, with_frames)
     logging.getLogger(__name__).warning(
-        "the recording %s ends at %s, where its disk filled (%s): it keeps the %s before, and %s from then on were "
-        "not recorded; %s", recorder.path, f"{full.since_utc:%H:%M:%S} UTC", full.reason, kept, lost, again)
+        "the recording %s ends at %s: %s; it keeps the %s before, and %s from then on were not recorded; %s",
+        recorder.path, f"{full.since_utc:%H:%M:%S} UTC", full.cause, kept, lost, again)
     return 0
 
 
@@ -767,14 +767,14 @@ def cmd_record(args: argparse.Namespace) -> int:
         if live_line and not quiet:
             sys.stderr.write("\n")  # below the progress line, not over it
         lost = _n(full.frames_lost, "frame")
+        folder = out.parent if out is not None else "its folder"  # (open_recording's writer has a path)
         if full.removed:
             lost_too = f", and its {lost} were not recorded" if full.frames_lost else ""
-            raise SunrigError(f"record: nothing could be recorded to {out}: its disk is full ({full.reason}), so no "
-                              f"file is kept{lost_too}; free space or pass another --out")
-        raise SunrigError(f"record: {out} ends at {full.since_utc:%H:%M:%S} UTC, where its disk filled "
-                          f"({full.reason}): it keeps the {_n(full.frames_recorded, 'frame')} before "
-                          f"(sunrig replay {out}), and {lost} from then on were not recorded; free space or pass "
-                          "another --out")
+            raise SunrigError(f"record: nothing could be recorded to {out}: {full.cause}, so no file is "
+                              f"kept{lost_too}; {full.remedy(folder)} or pass another --out")
+        raise SunrigError(f"record: {out} ends at {full.since_utc:%H:%M:%S} UTC: {full.cause}; it keeps the "
+                          f"{_n(full.frames_recorded, 'frame')} before (sunrig replay {out}), and {lost} from then "
+                          f"on were not recorded; {full.remedy(folder)} or pass another --out")
     if discard_if_empty(writer):
         said = f"record: no frame came in {time.monotonic() - start:.1f} s, so {out} is not kept"
         if interrupted or stop.requested:  # stopped as a service is: not a failure of the command

@@ -128,15 +128,30 @@ class DiskFull:
     """What a full disk cost a recording. It holds what came before ``since_utc`` (its complete
     chunks: ``frames_recorded``, ``estimates_recorded``); from then on nothing was recorded
     (``frames_lost``, ``estimates_lost``). ``removed``: it held nothing, and its file is gone.
-    ``reason``: the OS's words ("No space left on device")."""
+    ``errno``: ENOSPC, EDQUOT or EFBIG (:data:`DISK_FULL_ERRNOS`)."""
 
-    reason: str
+    errno: int
     since_utc: datetime
     frames_recorded: int
     estimates_recorded: int
     frames_lost: int
     estimates_lost: int
     removed: bool
+
+    @property
+    def cause(self) -> str:
+        """What filled, in the OS's words too: "its disk is full (No space left on device)"."""
+        reason = os.strerror(self.errno)
+        if self.errno == errno.EFBIG:
+            # A FAT32 stick's 4 GiB: about 2.5 hours of 1242 x 375 frames at 10 Hz. Space is not what it lacks.
+            return f"its file is as large as its file system allows ({reason})"
+        return f"its disk quota is used up ({reason})" if self.errno == errno.EDQUOT else f"its disk is full ({reason})"
+
+    def remedy(self, folder: Path | str) -> str:
+        """What to do about it, for a recording in ``folder``."""
+        if self.errno == errno.EFBIG:
+            return f"record to a file system that allows larger files than that of {folder} (ext4 or exFAT, not FAT32)"
+        return f"free space in {folder}"
 
 
 class Recording:
@@ -168,7 +183,7 @@ class Recording:
         self._given = [0, 0]  # frames, estimates handed to the log, lost ones too
         self._pending_since: datetime | None = None  # the first item not yet in a complete chunk
         self._pending_since_s = 0.0  # the same, in `monotonic` seconds
-        self._full: tuple[str, datetime] | None = None  # (reason, since) once the disk is full
+        self._full: tuple[int, datetime] | None = None  # (errno, since) once the disk is full
         self._removed = False
 
     @property
@@ -176,9 +191,9 @@ class Recording:
         """None while every write fit (and after a close that fit)."""
         if self._full is None:
             return None
-        reason, since = self._full
+        code, since = self._full
         frames, estimates = self._on_disk
-        return DiskFull(reason, since, frames, estimates, self._given[0] - frames, self._given[1] - estimates,
+        return DiskFull(code, since, frames, estimates, self._given[0] - frames, self._given[1] - estimates,
                         self._removed)
 
     def write_frame(self, frame: Frame, *, jpeg_quality: int = 90) -> bool:
@@ -230,8 +245,7 @@ class Recording:
             self._pending_since = None
 
     def _filled(self, exc: OSError) -> None:
-        reason = exc.strerror or os.strerror(exc.errno or errno.ENOSPC)
-        self._full = (reason, self._pending_since or self._clock())
+        self._full = (exc.errno or errno.ENOSPC, self._pending_since or self._clock())
 
     def close(self) -> None:
         """Finish the log: its summary and index. After a full disk (or when they do not fit), cut
@@ -309,10 +323,9 @@ class RecorderPublisher:
         if full is None:
             return
         folder = self.path.parent if self.path is not None else "its folder"
-        log.warning("recording %s: its disk is full (%s): the recording ends at %s; what comes later is not "
-                    "recorded (counted in the status line's publish errors), and the other outputs go on; free space "
-                    "in %s, and the next start records again", self.path, full.reason,
-                    f"{full.since_utc:%H:%M:%S} UTC", folder)
+        log.warning("recording %s: %s: the recording ends at %s; what comes later is not recorded (counted in the "
+                    "status line's publish errors), and the other outputs go on; %s, and the next start records "
+                    "again", self.path, full.cause, f"{full.since_utc:%H:%M:%S} UTC", full.remedy(folder))
 
     @property
     def disk_full(self) -> DiskFull | None:
@@ -326,7 +339,7 @@ class RecorderPublisher:
             lost = full.frames_lost + full.estimates_lost
             stats["written"] = full.frames_recorded + full.estimates_recorded
             stats["errors"] += lost
-            stats["last_error"] = stats["last_error"] or f"OSError: {full.reason}"
+            stats["last_error"] = stats["last_error"] or f"OSError: {os.strerror(full.errno)}"
         return stats
 
     @property

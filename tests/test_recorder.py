@@ -193,10 +193,11 @@ def test_a_recorder_write_that_fails_is_counted_not_raised(tmp_path):
 class FakeDisk:
     """FAKE disk of ``free`` more bytes under every log a LogWriter makes (reading is untouched):
     as Linux writes to a full disk, a write that does not fit writes what fits and the next one
-    fails with ENOSPC. Raise ``free`` to free space mid-test. The bytes written are real files."""
+    fails with ENOSPC (``errno``: EFBIG, a file system's file size limit). Raise ``free`` to free
+    space mid-test. The bytes written are real files."""
 
-    def __init__(self, free: int) -> None:
-        self.free = free
+    def __init__(self, free: int, errno: int = errno.ENOSPC) -> None:
+        self.free, self.errno = free, errno
 
     def open(self, file, mode="r", *args, **kwargs):
         if "w" not in mode and "x" not in mode:
@@ -212,7 +213,7 @@ class _FileOnDisk(io.FileIO):
     def write(self, b) -> int:
         data = bytes(b)
         if data and self._disk.free <= 0:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            raise OSError(self._disk.errno, os.strerror(self._disk.errno))
         n = super().write(data[:self._disk.free])
         self._disk.free -= n
         return n
@@ -250,7 +251,7 @@ def test_a_recording_on_a_full_disk_keeps_no_file_and_counts_what_it_did_not_rec
         rec.close()
     assert rec.finished and list(tmp_path.iterdir()) == []
     full = rec.disk_full
-    assert full is not None and full.removed and full.reason == "No space left on device"
+    assert full is not None and full.removed and full.errno == errno.ENOSPC
     assert (full.frames_recorded, full.estimates_recorded, full.frames_lost, full.estimates_lost) == (0, 0, 2, 5)
     stats = rec.stats()
     assert (stats["written"], stats["errors"]) == (0, 7)
@@ -532,8 +533,8 @@ def test_a_run_whose_disk_fills_keeps_what_it_recorded_and_says_what_it_lost(tmp
     assert code == 0, err
     said = [r.getMessage() for r in caplog.records if r.name == "rig.cli"]
     assert len(said) == 1, said
-    m = re.fullmatch(rf"the recording {re.escape(str(out))} ends at \d\d:\d\d:\d\d UTC, where its disk filled "
-                     r"\(No space left on device\): it keeps the (\d+) frames and (\d+) estimates before, and (\d+) "
+    m = re.fullmatch(rf"the recording {re.escape(str(out))} ends at \d\d:\d\d:\d\d UTC: its disk is full "
+                     r"\(No space left on device\); it keeps the (\d+) frames and (\d+) estimates before, and (\d+) "
                      r"frames and \d+ estimates from then on were not recorded; free space in "
                      rf"{re.escape(str(tmp_path))}, and the next start records again", said[0])
     assert m, said[0]
@@ -543,30 +544,36 @@ def test_a_run_whose_disk_fills_keeps_what_it_recorded_and_says_what_it_lost(tmp
     assert "recorded to" not in err and "unfinished" not in err
 
 
-@pytest.mark.parametrize("free", [0, 1_200_000])
+@pytest.mark.parametrize(("free", "code", "cause", "remedy"), [
+    (0, errno.ENOSPC, "its disk is full (No space left on device)", "free space in {folder}"),
+    (1_200_000, errno.ENOSPC, "its disk is full (No space left on device)", "free space in {folder}"),
+    # A FAT32 stick's 4 GiB: free space would not help.
+    (1_200_000, errno.EFBIG, "its file is as large as its file system allows (File too large)",
+     "record to a file system that allows larger files than that of {folder} (ext4 or exFAT, not FAT32)"),
+])
 def test_record_to_a_disk_that_fills_keeps_its_complete_chunks_and_says_what_it_lost(tmp_path, disk, capsys, caplog,
-                                                                                    free):
+                                                                                    free, code, cause, remedy):
     # `record` said "No space left on device after 23 frames; its complete chunks still replay" of
     # a 0-byte file it kept (and of one that held 24 of "40 frames", its part chunk left on).
     from replay.sources import DEMO_LOG
     from rig.cli import main
 
-    disk.free = free
+    disk.free, disk.errno = free, code
+    remedy = remedy.format(folder=tmp_path)
     out = tmp_path / "drive.mcap"
     with caplog.at_level(logging.WARNING):
-        code = main(["record", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out), "--quiet"])
+        rc = main(["record", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--out", str(out), "--quiet"])
     err = capsys.readouterr().err
     (said,) = err.strip().splitlines()
-    assert code == 2 and said.endswith("free space or pass another --out"), err
+    assert rc == 2 and said.endswith(f"; {remedy} or pass another --out"), err
     if not free:
         assert list(tmp_path.iterdir()) == []
-        assert said.startswith(f"sunrig: error: record: nothing could be recorded to {out}: its disk is full (No "
-                               "space left on device), so no file is kept, and its "), said
+        assert said.startswith(f"sunrig: error: record: nothing could be recorded to {out}: {cause}, so no file is "
+                               "kept, and its "), said
         return
-    m = re.fullmatch(rf"sunrig: error: record: {re.escape(str(out))} ends at \d\d:\d\d:\d\d UTC, where its disk "
-                     rf"filled \(No space left on device\): it keeps the (\d+) frames before \(sunrig replay "
-                     rf"{re.escape(str(out))}\), and (\d+) frames from then on were not recorded; free space or pass "
-                     r"another --out", said)
+    m = re.fullmatch(rf"sunrig: error: record: {re.escape(str(out))} ends at \d\d:\d\d:\d\d UTC: {re.escape(cause)}; "
+                     rf"it keeps the (\d+) frames before \(sunrig replay {re.escape(str(out))}\), and (\d+) frames "
+                     rf"from then on were not recorded; {re.escape(remedy)} or pass another --out", said)
     assert m, said
     kept, lost = int(m[1]), int(m[2])
     assert kept == len(list(read_frames(out))) and 0 < kept < kept + lost <= 40
