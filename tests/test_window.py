@@ -122,8 +122,65 @@ def test_bad_policy():
         SpreadWindowPolicy(8, 0.0)
     with pytest.raises(ValidationError):
         SpreadWindowPolicy(8, 1.0, yaw_scale_rad=0.0)
+    with pytest.raises(ValidationError, match="max_yaw_rate_rad_s"):
+        SpreadWindowPolicy(8, 1.0, max_yaw_rate_rad_s=float("nan"))
 
 
 def test_smallest_policy_is_the_newest_frame_alone():
     ring = [feats(i, i * 0.1) for i in range(5)]
     assert [f.frame.seq for f in SpreadWindowPolicy(1, 1.0).select(ring)] == [4]
+
+
+def _drive(n, yaw_deg, dt=0.1, ref=HeadingRef.TRUE):
+    """``n`` frames ``dt`` apart with headings ``yaw_deg(i)`` (degrees)."""
+    return [feats(i, i * dt, yaw=np.radians(yaw_deg(i)), ref=ref) for i in range(n)]
+
+
+def test_a_single_frame_whose_heading_jumps_half_a_turn_and_back_is_left_out():
+    # A compass glitch: one frame's heading half a turn off its neighbours' at 10 Hz (1800 deg/s,
+    # out and back), the picture the same. The spread policy took it as the most different view
+    # into every window for a whole span (40 windows), rotating its crops' answers half a turn:
+    # on the bundled drive that moved the estimate from ~10 deg off to 15-31 deg off.
+    policy = SpreadWindowPolicy(8, 4.0)
+    for end in range(47, 90):
+        ring = _drive(end, lambda i: 50.0 + 180.0 * (i == 45))
+        chosen = policy.select([f for f in ring if f.frame.t_mono_s >= ring[-1].frame.t_mono_s - 10.0])
+        assert 45 not in [f.frame.seq for f in chosen], end
+        assert len(chosen) == 8, end
+    # As the newest frame nothing says yet whether it is a glitch or the heading's new zero: the
+    # window is that frame alone (partial), never one that mixes it with the frames before.
+    assert [f.frame.seq for f in policy.select(_drive(46, lambda i: 50.0 + 180.0 * (i == 45)))] == [45]
+
+
+def test_a_heading_that_jumps_half_a_turn_and_stays_starts_a_new_zero():
+    # A heading source whose zero moved by half a turn unsaid (the frames after it look where the
+    # frames before did): no window mixes frames across the jump; it refills from it, partial.
+    policy = SpreadWindowPolicy(8, 4.0)
+    for end, expected in ((46, [45]), (48, [45, 46, 47]), (60, None)):
+        chosen = policy.select(_drive(end, lambda i: 50.0 + 180.0 * (i >= 45)))
+        seqs = [f.frame.seq for f in chosen]
+        assert min(seqs) >= 45, (end, seqs)
+        if expected is not None:
+            assert seqs == expected
+    assert len(policy.select(_drive(60, lambda i: 50.0 + 180.0 * (i >= 45)))) == 8
+
+
+@pytest.mark.parametrize(("name", "ring"), [
+    # A U-turn in 1 s at 10 Hz (180 deg/s), a roundabout through north at 90 deg/s.
+    ("u-turn", _drive(60, lambda i: 10.0 + 180.0 * min(max(i - 40, 0), 10) / 10)),
+    ("roundabout", _drive(60, lambda i: 300.0 + 9.0 * i)),
+    # Half a turn across a 2 s gap with no frames (90 deg/s): the vehicle may have turned.
+    ("gap", [feats(i, i * 0.1 + 2.0 * (i >= 30), yaw=np.pi * (i >= 30)) for i in range(50)]),
+    # A frozen clock at a standstill with a noisy compass (every frame at one time, +-3 deg).
+    ("frozen clock", [feats(i, 5.0, yaw=np.radians(100.0 + 3.0 * (-1) ** i)) for i in range(30)]),
+    # A 2 Hz camera whose heading swings 80 deg and back between frames (160 deg/s): a turn, not a jump.
+    ("slow camera", _drive(20, lambda i: 80.0 * (i % 2), dt=0.5)),
+])
+def test_turns_a_vehicle_can_make_keep_the_frames_before_them(name, ring):
+    policy = SpreadWindowPolicy(8, 4.0)
+    chosen = policy.select(ring)
+    # The window is the one chosen from every frame of the span: none was taken for a jump.
+    t_s = np.array([f.frame.t_mono_s for f in ring])
+    heading_rad = np.array([f.frame.attitude.heading_rad for f in ring])
+    assert [f.frame.seq for f in chosen] == policy.select_indices(t_s, heading_rad), name
+    assert len(chosen) == 8, name
