@@ -184,3 +184,11 @@ def test_turns_a_vehicle_can_make_keep_the_frames_before_them(name, ring):
     heading_rad = np.array([f.frame.attitude.heading_rad for f in ring])
     assert [f.frame.seq for f in chosen] == policy.select_indices(t_s, heading_rad), name
     assert len(chosen) == 8, name
+
+
+@pytest.mark.parametrize(("fps", "n_frames"), [(20.0, 8), (2.0, 8), (1.76, 8), (1.74, 7), (1.0, 5)])
+def test_a_window_fills_from_seven_frame_intervals_within_the_span(fps, n_frames):
+    # 8 frames need 7 intervals within the 4 s span (its ends included): a camera at 1.75 frames a
+    # second or faster fills it, as docs/protocol.md says of PARTIAL_WINDOW, not only one at 2.
+    ring = [feats(i, i / fps, yaw=0.0) for i in range(int(12 * fps))]
+    assert len(SpreadWindowPolicy(8, 4.0).select(ring)) == n_frames
