@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
 from rig.errors import SunrigError
-from rig.progress import Progress
+from rig.progress import Progress, StatusRow
 from rig.stopping import StopSignals
 
 if TYPE_CHECKING:
@@ -522,13 +522,11 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     rig_cfg = _rig_config(cfg["rig"], live_camera=live_camera)
     from rig.recorder import RecorderPublisher
 
-    live_line = sys.stderr.isatty()
+    status_row = StatusRow(sys.stderr)  # on a terminal one row rewritten in place; in a log, a line each time
 
     def status(line: str) -> None:
-        # On a terminal the status is one line rewritten in place; in a log, one line each time.
         if not quiet:
-            sys.stderr.write(f"\rsunrig: {line}\033[K" if live_line else f"sunrig: {line}\n")
-            sys.stderr.flush()
+            status_row.show(f"sunrig: {line}")
 
     out = cfg["output"]
     recorder: RecorderPublisher | None = None
@@ -560,8 +558,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
     # was reported "0 written" (exit 2, "wrote none") of a file that held estimates.
     pipe.collect_publisher_stats()
     if not quiet:
-        if live_line:
-            sys.stderr.write("\n")
+        status_row.end()
         print(f"sunrig: done: {stats.status_line(stats.ended_s)}", file=sys.stderr)
         # The status line counts frames without heading, not why. (demo's source is a log: no devices.)
         source_stats = getattr(source, "stats", None)
@@ -697,7 +694,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     source = _open_camera(cfg["source"]["camera"], cfg["source"]["heading"], _source_options(cfg))
     stop = args.stop
     quiet = args.quiet
-    live_line = sys.stderr.isatty()
+    status_row = StatusRow(sys.stderr)  # on a terminal one row rewritten in place; in a log, a line each 5 s
     n = n_heading = 0
     start = time.monotonic()
     next_status = start + 5.0
@@ -733,14 +730,10 @@ def cmd_record(args: argparse.Namespace) -> int:
                 n += 1
                 n_heading += frame.attitude is not None
                 now = time.monotonic()
-                if not quiet and (live_line or now >= next_status):
-                    line = f"{n} frames ({n_heading} with heading) in {now - start:.1f} s"
-                    if live_line:
-                        sys.stderr.write(f"\rrecord: {line}\033[K")
-                    else:
-                        sys.stderr.write(f"record: {line}\n")
+                if not quiet and (status_row.tty or now >= next_status):
+                    status_row.show(f"record: {n} frames ({n_heading} with heading) in {now - start:.1f} s")
+                    if not status_row.tty:
                         next_status = now + 5.0
-                    sys.stderr.flush()
                 if stop.requested:  # held while the frame was written
                     break
                 if (args.frames is not None and n >= args.frames) or (
@@ -764,8 +757,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         source.close()
     full = recording.disk_full
     if full is not None:
-        if live_line and not quiet:
-            sys.stderr.write("\n")  # below the progress line, not over it
+        status_row.end()  # below the progress line, not over it
         lost = _n(full.frames_lost, "frame")
         folder = out.parent if out is not None else "its folder"  # (open_recording's writer has a path)
         if full.removed:
@@ -782,8 +774,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             return 0
         raise SunrigError(f"{said}; check the camera and its cable (docs/drivers.md)")
     if not quiet:
-        if live_line:
-            sys.stderr.write("\n")
+        status_row.end()
         summary = f"{n} frames ({n_heading} with heading) in {time.monotonic() - start:.1f} s to {out}"
         if interrupted or stop.requested:
             summary += f" (stopped by {stop.by or 'Ctrl-C'}; the log is complete)"

@@ -9,6 +9,7 @@ rate, so the rate and the time left describe this run.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from typing import TextIO
@@ -18,6 +19,54 @@ def _clock(seconds: float) -> str:
     m, s = divmod(int(round(seconds)), 60)
     h, m = divmod(m, 60)
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+def terminal_columns(stream: TextIO) -> int | None:
+    """The width of the terminal ``stream`` writes to, now (it may have been resized); None when it
+    is not a terminal or does not say."""
+    try:
+        return os.get_terminal_size(stream.fileno()).columns or None
+    except (AttributeError, OSError, ValueError):  # no fileno (StringIO), not a tty, closed
+        return None
+
+
+def fit_row(text: str, columns: int | None) -> str:
+    """``text`` cut to fit one row of a terminal ``columns`` wide (whole when unknown).
+
+    A line as wide as the terminal or wider wraps, and ``\\r`` goes back to the start of its last
+    row only: every redraw in place then left the rows above it behind."""
+    if columns is None or len(text) < columns:
+        return text
+    return text[:max(columns - 4, 0)] + "..."
+
+
+class StatusRow:
+    """Status lines on ``stream``: on a terminal, one row redrawn in place; elsewhere (a log file,
+    the journal), a line each time. A line too wide for the terminal is written whole as a line of
+    its own too: cut to the row, the rig's status would lose its estimates and latency, and wrapped,
+    each redraw left the rows above it behind."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream = stream
+        self.tty = stream.isatty()
+        self.drawn = False  # a row drawn in place is on the screen, the cursor at its end
+
+    def show(self, text: str) -> None:
+        columns = terminal_columns(self.stream) if self.tty else None
+        if self.tty and (columns is None or len(text) < columns):
+            self.stream.write(f"\r{text}\033[K")
+            self.drawn = True
+        else:
+            self.stream.write(f"\r\033[K{text}\n" if self.drawn else f"{text}\n")
+            self.drawn = False
+        self.stream.flush()
+
+    def end(self) -> None:
+        """Close a row drawn in place, so that what is written next starts on a line of its own."""
+        if self.drawn:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.drawn = False
 
 
 class Progress:
@@ -64,7 +113,7 @@ class Progress:
         if now - self.last < self.min_interval_s:
             return
         self.last = now
-        self.stream.write(f"\r{self.line(extra)}\033[K")
+        self.stream.write(f"\r{fit_row(self.line(extra), terminal_columns(self.stream))}\033[K")
         self.stream.flush()
 
     def advance(self, n: int = 1, extra: str = "") -> None:

@@ -147,3 +147,50 @@ def test_the_default_stream_is_stderr_when_made_not_when_imported():
         p.close("2 logs")
     assert p.stream is second and second.getvalue() == "eval: 2 logs\n"
 
+
+
+def _pty_stream(columns: int):
+    """A real pseudo-terminal ``columns`` wide: the stream a redraw writes to, and the fd to read it back."""
+    import fcntl
+    import os
+    import struct
+    import termios
+    master, slave = os.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
+    return os.fdopen(slave, "w", encoding="utf-8"), master
+
+
+def _read_all(master: int) -> str:
+    import os
+    import select
+    out = b""
+    while select.select([master], [], [], 0.2)[0]:
+        try:
+            out += os.read(master, 65536)
+        except OSError:
+            break
+    return out.decode()
+
+
+def test_a_redraw_never_wraps_on_a_narrow_terminal():
+    # A line wider than the terminal wraps, and "\r" goes back to its last row only: each redraw
+    # then left the rows above it behind, a scrolling heap of half lines instead of one counter.
+    from rig.progress import Progress
+    stream, master = _pty_stream(40)
+    with stream:
+        p = Progress("train", total=900, unit="steps", stream=stream, enabled=True, min_interval_s=0.0)
+        p.update(12, extra="loss 0.2345 lr 1.0e-04 val mean 7.1 deg, best 6.9 deg at step 600")
+        p.update(13, extra="loss 0.2345 lr 1.0e-04 val mean 7.1 deg, best 6.9 deg at step 600")
+        written = _read_all(master)
+    import os
+    os.close(master)
+    rows = [r.split("\x1b[K")[0] for r in written.split("\r") if r]
+    assert rows and all(len(r) < 40 for r in rows), rows
+    assert rows[-1].startswith("train: 13/900 steps"), rows
+
+
+def test_a_redraw_keeps_the_whole_line_when_it_fits_or_no_width_is_known():
+    from rig.progress import fit_row
+    assert fit_row("short line", 80) == "short line"
+    assert fit_row("x" * 200, None) == "x" * 200
+    assert fit_row("x" * 200, 40) == "x" * 36 + "..."
