@@ -526,7 +526,7 @@ def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: boo
 
     def status(line: str) -> None:
         if not quiet:
-            status_row.show(f"sunrig: {line}")
+            status_row.show(_status_text(line, source))
 
     out = cfg["output"]
     recorder: RecorderPublisher | None = None
@@ -783,6 +783,14 @@ def cmd_record(args: argparse.Namespace) -> int:
             summary += f"; {details}"
         print(f"record: {summary}", file=sys.stderr)
     return 0
+
+
+def _status_text(line: str, source: object) -> str:
+    """The rig's status line with its source's losses so far (camera drops and reconnects, frames
+    without heading and why), which the pipeline's own counters do not see."""
+    source_stats = getattr(source, "stats", None)
+    details = _source_summary(source_stats()) if callable(source_stats) else ""
+    return f"sunrig: {line} | source: {details}" if details else f"sunrig: {line}"
 
 
 def _source_summary(stats: dict) -> str:

@@ -2076,3 +2076,17 @@ def test_the_live_status_on_a_narrow_terminal_is_whole_lines_not_wrapped_redraws
     assert all(len(row) < 80 for row in drawn), drawn
     statuses = [line for line in text.split("\n") if line.startswith("sunrig: frames ")]
     assert statuses and all("| estimates " in line for line in statuses), text
+
+
+def test_the_status_line_says_the_camera_s_drops_as_they_happen():
+    # The status line's "dropped" is the rig's own queue; a camera dropping frames or reconnecting
+    # showed only in the exit report, so a journal read mid-run said nothing of it.
+    from rig.cli import _status_text
+
+    class Source:
+        def stats(self):
+            return {"camera": {"dropped": 7, "reconnects": 2}, "pairing": {"gap": 0}}
+
+    line = _status_text("frames 10 (dropped 0, ...)", Source())
+    assert line == "sunrig: frames 10 (dropped 0, ...) | source: camera dropped 7, camera reconnects 2"
+    assert _status_text("frames 10", object()) == "sunrig: frames 10"
