@@ -1041,7 +1041,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             print(f"sunrig: error: eval graded nothing: no log has {policy.n_frames} frames within "
                   f"--window-span-s {policy.span_s:g} s ({result.frames} frames in all); give longer logs, or "
                   "raise --window-span-s for a camera slower than "
-                  f"{policy.n_frames / policy.span_s:g} frames a second", file=sys.stderr)
+                  f"{(policy.n_frames - 1) / policy.span_s:g} frames a second", file=sys.stderr)
             return EXIT_USER_ERROR
         print(f"sunrig: error: eval graded nothing: no full window with ground truth in these logs ({why}); "
               "evaluate logs from `sunrig synth`, KITTI drives, or recordings with GNSS time and position "

@@ -1448,7 +1448,7 @@ def test_train_asked_for_what_it_cannot_do_says_what_to_pass_and_writes_nothing(
     (5, "noise", 0.2, "no log has 8 frames within --window-span-s 4 s (5 frames in all); give longer logs"),
     # Frames enough, too far apart: it once said "too few" and to evaluate logs from synth.
     (20, "noise", 1.0, "no log has 8 frames within --window-span-s 4 s (20 frames in all); give longer logs, or "
-                       "raise --window-span-s for a camera slower than 2 frames a second"),
+                       "raise --window-span-s for a camera slower than 1.75 frames a second"),
 ])
 def test_eval_that_grades_nothing_says_which_frames_were_unusable(tmp_path, capsys, n, image, dt, why):
     from replay.native import LogWriter
