@@ -426,16 +426,13 @@ class RigPipeline:
 
     def _log_sparse(self, candidates: list[FrameFeatures], window: list[FrameFeatures],
                     newest: FrameFeatures) -> None:
-        """Say when windows stop filling and when they fill again: a partial window although the ring
-        reaches back past the window's span with frames of the newest one's heading zero. Fewer
-        frames than a window holds come in a span (a slow camera, or frames dropped for a slow
-        estimator), so every estimate goes out flagged partial, for as long as that lasts. A window
-        still filling (start-up, a new heading zero) changes nothing."""
+        """Say when windows stop filling and when they fill again: a partial window whose frames come
+        too sparsely to fill one (a slow camera, or frames dropped for a slow estimator), so every
+        estimate goes out flagged partial, for as long as that lasts. A window still filling
+        (:meth:`_still_filling`) changes nothing."""
         partial = len(window) < self.policy.n_frames
-        if partial:
-            same_zero = self.policy.same_zero(candidates)
-            if not same_zero or newest.frame.t_mono_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
-                return  # still filling
+        if partial and self._still_filling(candidates, window):
+            return
         said = self._sparse.update("sparse" if partial else None, newest.frame.t_mono_s)
         if said is None:
             return
@@ -452,6 +449,29 @@ class RigPipeline:
                     "%d %s (said once a minute while it goes on; the camera's frame rate is at the edge of [window] "
                     "span_s)", said.changes, newest.frame.t_mono_s - said.since_s, said.counts.get("sparse", 0),
                     sum(said.counts.values()), newest.frame.seq, "partial" if partial else "full")
+
+    def _still_filling(self, candidates: list[FrameFeatures], window: list[FrameFeatures]) -> bool:
+        """Whether a partial ``window`` (then all the frames of its span) is partial only because its
+        frames began less than a span ago: the ring holds none of the newest frame's heading zero
+        from before the span (start-up, a new heading zero), or the window's frames come at least as
+        densely as a full window's (8 frames in 7 intervals within the 4 s span: 0.571 s apart on
+        average): after a gap (a tunnel whose frames the exposure gate refused, a camera's outage)
+        they are refilling it, and the camera's rate is not at fault. A window of the newest frame
+        alone shows no rate: the interval before the gap stands for it."""
+        same_zero = self.policy.same_zero(candidates)
+        newest_s = window[-1].frame.t_mono_s
+        if not same_zero or newest_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
+            return True
+        full_interval_s = self.policy.span_s / max(self.policy.n_frames - 1, 1)
+        if len(window) >= 2:
+            mean_interval_s = (newest_s - window[0].frame.t_mono_s) / (len(window) - 1)
+        else:
+            before = [f.frame.t_mono_s for f in same_zero if f.frame.t_mono_s < newest_s][-2:]
+            if len(before) < 2:
+                return True  # nothing shows the rate yet
+            mean_interval_s = before[1] - before[0]
+        # The tolerance keeps a camera exactly at the full window's rate (1.75 fps) from flipping on rounding.
+        return mean_interval_s <= full_interval_s * (1.0 + 1e-9)
 
     def _log_failing(self, feats: FrameFeatures, exc: EstimationError | None) -> None:
         """Say when windows start failing and when estimates come again: a model answering NaN fails

@@ -112,6 +112,42 @@ def test_a_camera_too_slow_to_fill_a_window_is_said_once(model, caplog):
     assert not [r for r in caplog.records if "partial window" in r.getMessage()]
 
 
+def test_a_window_refilling_after_a_tunnel_is_not_a_camera_too_slow(model, caplog):
+    # 10 fps, then 6 s in a tunnel whose frames the exposure gate refuses (dark), then daylight: the
+    # ring (10 s) still holds frames from before the tunnel, so the windows refilling after it were
+    # taken for a slow camera and "raise span_s or the camera's frame rate" was said, wrongly.
+    clock, box = FakeClock(), list[RigPipeline]()
+    dark = np.zeros((80, 128, 3), np.uint8)
+
+    def tunnel():  # each frame once the one before has come to an end: every window is tried
+        for i, frame in enumerate(lockstep(160, clock, box)):
+            yield dataclasses.replace(frame, image_bgr=dark) if 50 <= i < 110 else frame
+
+    pipe = RigPipeline(tunnel(), SunEstimator(model), SpreadWindowPolicy(8, 4.0), [Collect()],
+                       config=RigConfig(queue_size=100), clock=clock)
+    box.append(pipe)
+    with caplog.at_level(logging.INFO, logger="rig.pipeline"):
+        stats = pipe.run(timeout_s=60)
+    assert stats.frames_bad_exposure == 60 and stats.estimates == 100
+    assert not [r.getMessage() for r in caplog.records if "partial window" in r.getMessage()]
+
+
+@pytest.mark.parametrize(("fps", "held"), [(1.74, 7), (1.4, 6), (0.2, 1)])
+def test_a_camera_just_too_slow_to_fill_a_window_is_said(model, caplog, fps, held):
+    # 8 frames need 7 intervals within the 4 s span: at 1.74 fps the windows never fill, whose
+    # frames come as densely as the camera can send them; at 0.2 fps each window is its newest
+    # frame alone, as after a tunnel, but so was the one before.
+    clock, box = FakeClock(), list[RigPipeline]()
+    pipe = RigPipeline(lockstep(30, clock, box, dt=1.0 / fps), SunEstimator(model), SpreadWindowPolicy(8, 4.0),
+                       [Collect()], config=RigConfig(queue_size=100), clock=clock)
+    box.append(pipe)
+    with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
+        stats = pipe.run(timeout_s=60)
+    said = [r.getMessage() for r in caplog.records if "partial window" in r.getMessage()]
+    assert stats.estimates == 30 and len(said) == 1, said
+    assert said[0].startswith(f"windows hold {held} of the model's 8 frames"), said
+
+
 def test_every_stretch_of_windows_that_cannot_fill_is_said(model, caplog):
     # A camera that slows down (1.4 Hz), recovers (10 Hz) and slows again: the second stretch of
     # partial windows was once hidden by the first warning, said once a run.
