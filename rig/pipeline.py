@@ -107,7 +107,7 @@ class RigStats:
     per second over the run.
     ``windows_skipped`` counts every window not sent because the estimator was behind: overwritten
     in the mailbox, or stale (later than ``RigConfig.max_latency_s``), which ``estimates_stale``
-    counts apart."""
+    counts apart, or whose frame the ring let go before its turn (it started again at a clock jump)."""
 
     frames_captured: int = 0
     frames_dropped_queue: int = 0
@@ -557,7 +557,10 @@ class RigPipeline:
             feats, arrived = item
             if self._too_late(feats, self.clock() - arrived):  # waited through a stall: not worth a run
                 continue
-            candidates = [f for f in self.ring.snapshot() if f.frame.t_mono_s <= feats.frame.t_mono_s]
+            candidates = self._held_up_to(feats)
+            if candidates is None:
+                self.stats.windows_skipped += 1  # the ring let its frame go (a clock jump) before its turn
+                continue
             window = self.policy.select(candidates)
             self._log_sparse(candidates, window, feats)
             try:
@@ -579,6 +582,18 @@ class RigPipeline:
                 self._publish(est)
             self.stats.estimates += 1
             self.stats.latency.add(self.clock() - arrived)
+
+    def _held_up_to(self, feats: FrameFeatures) -> list[FrameFeatures] | None:
+        """The ring's frames up to ``feats`` by position, ``feats`` the newest: a window never holds a
+        frame that came after its own. By stamp, a driver stamping two frames alike put the later
+        one into the earlier one's window, as its newest, and its seq went out twice; and after the
+        ring started again (a clock stepped back) the frames after the jump, stamped earlier, made
+        up the window. None when the ring no longer holds ``feats``."""
+        held = self.ring.snapshot()
+        for i in range(len(held) - 1, -1, -1):  # the newest frames are the likeliest
+            if held[i] is feats:
+                return held[: i + 1]
+        return None
 
     def _too_late(self, feats: FrameFeatures, age_s: float) -> bool:
         """Whether the window of ``feats``, its frame ``age_s`` out of the source, is too late to send:

@@ -148,6 +148,50 @@ def test_a_camera_just_too_slow_to_fill_a_window_is_said(model, caplog, fps, hel
     assert said[0].startswith(f"windows hold {held} of the model's 8 frames"), said
 
 
+def estimate_behind(model, stamps_s, behind):
+    """Each frame's window estimated once the frames ``behind`` it have joined the ring (an estimator
+    behind the encoder), in order: the estimate stage run on one window at a time, no threads.
+    The published estimates, and the seqs of each window tried."""
+    windows = []
+
+    class Records(SunEstimator):
+        def estimate(self, window, aggregator=None):
+            windows.append([f.frame.seq for f in window])
+            return super().estimate(window, aggregator)
+
+    est, out = Records(model), Collect()
+    pipe = RigPipeline([], est, SpreadWindowPolicy(8, 4.0), [out], config=RigConfig(max_latency_s=100.0))
+    stamped = zip(frames(len(stamps_s)), stamps_s, strict=True)
+    feats = [est.encode(dataclasses.replace(f, t_mono_s=t)) for f, t in stamped]
+    pipe._encode_done.set()
+    n_pushed = 0
+    for i, f in enumerate(feats):
+        while n_pushed <= min(i + behind, len(feats) - 1):
+            assert pipe.ring.push(feats[n_pushed])
+            n_pushed += 1
+        pipe._mailbox.put((f, pipe.clock()))
+        pipe._estimate()  # returns once the mailbox is empty
+    return pipe, out.estimates, windows
+
+
+def test_frames_stamped_alike_are_each_estimated_once_from_no_later_frame(model):
+    # A driver stamping two frames alike: seq 0's window was chosen from the frames stamped no later
+    # than seq 0, seq 1 among them; its estimate went out as seq 1's, and seq 1's again.
+    pipe, sent, windows = estimate_behind(model, [0.1 * (i // 2) for i in range(12)], behind=1)
+    assert [e.seq for e in sent] == list(range(12)), [e.seq for e in sent]
+    assert all(max(w) == i for i, w in enumerate(windows)), windows
+    assert pipe.stats.estimates == 12
+
+
+def test_a_window_whose_frame_the_ring_let_go_is_skipped_not_made_of_later_frames(model):
+    # Seq 5 is stamped 5 s before seq 4 (a clock stepped back): the ring starts again from it. Seq 4's
+    # window, estimated after that, was chosen from the frames stamped no later than seq 4: seq 5
+    # and on, so it went out as a later frame's. Its frame is gone: the window is skipped.
+    pipe, sent, windows = estimate_behind(model, [0.0, 0.1, 0.2, 0.3, 0.4, -4.6, -4.5, -4.4], behind=1)
+    assert [e.seq for e in sent] == [0, 1, 2, 3, 5, 6, 7], [e.seq for e in sent]
+    assert pipe.stats.windows_skipped == 1 and pipe.ring.restarts == 1
+
+
 def test_every_stretch_of_windows_that_cannot_fill_is_said(model, caplog):
     # A camera that slows down (1.4 Hz), recovers (10 Hz) and slows again: the second stretch of
     # partial windows was once hidden by the first warning, said once a run.
