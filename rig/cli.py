@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
 from rig.errors import SunrigError
-from rig.progress import Progress, StatusRow
+from rig.progress import Progress, StatusRow, end_row
 from rig.stopping import StopSignals
 
 if TYPE_CHECKING:
@@ -1668,6 +1668,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _below_drawn_row(record: logging.LogRecord) -> bool:
+    """A logging filter that lets every record through, once below any row drawn in place."""
+    end_row()
+    return True
+
+
 def main(argv: list[str] | None = None, *, late_signals: str = "restore") -> int:
     """The command line. ``late_signals``: what a stop signal does once the command has returned
     (:meth:`rig.stopping.StopSignals.installed`): "restore" the handlers before it (a library
@@ -1678,6 +1684,9 @@ def main(argv: list[str] | None = None, *, late_signals: str = "restore") -> int
         level=logging.DEBUG if args.debug else logging.WARNING,
         format="sunrig: %(levelname)s: %(message)s",
     )
+    for handler in logging.getLogger().handlers:
+        # Below a status or progress row drawn in place on the terminal, not run on after its text.
+        handler.addFilter(_below_drawn_row)
     if not args.debug:
         # The rig's own INFO lines are its events, rare and each said once: an outage that ended (a
         # serial port writing again, a GNSS or camera back), a stretch of failed windows over. At

@@ -21,6 +21,28 @@ def _clock(seconds: float) -> str:
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
 
 
+# The stream whose current row a redraw in place holds (one at most): a line written there next
+# (a log line) must start below it, not run on after the row's text.
+_open_row: list[TextIO] = []
+
+
+def _drew_row(stream: TextIO, drawn: bool) -> None:
+    _open_row[:] = [stream] if drawn else [s for s in _open_row if s is not stream]
+
+
+def end_row(stream: TextIO | None = None) -> None:
+    """Start a new line below a row drawn in place on ``stream`` (on any stream when None), so that
+    what is written next begins a row of its own; the row stays on the screen."""
+    for open_stream in list(_open_row):
+        if stream is None or open_stream is stream:
+            _drew_row(open_stream, False)
+            try:
+                open_stream.write("\n")
+                open_stream.flush()
+            except (OSError, ValueError):  # a closed or full stream: nothing to move below
+                pass
+
+
 def terminal_columns(stream: TextIO) -> int | None:
     """The width of the terminal ``stream`` writes to, now (it may have been resized); None when it
     is not a terminal or does not say."""
@@ -49,24 +71,25 @@ class StatusRow:
     def __init__(self, stream: TextIO) -> None:
         self.stream = stream
         self.tty = stream.isatty()
-        self.drawn = False  # a row drawn in place is on the screen, the cursor at its end
+
+    @property
+    def drawn(self) -> bool:
+        """A row drawn in place is on the screen, the cursor at its end."""
+        return self.stream in _open_row
 
     def show(self, text: str) -> None:
         columns = terminal_columns(self.stream) if self.tty else None
         if self.tty and (columns is None or len(text) < columns):
             self.stream.write(f"\r{text}\033[K")
-            self.drawn = True
+            _drew_row(self.stream, True)
         else:
             self.stream.write(f"\r\033[K{text}\n" if self.drawn else f"{text}\n")
-            self.drawn = False
+            _drew_row(self.stream, False)
         self.stream.flush()
 
     def end(self) -> None:
         """Close a row drawn in place, so that what is written next starts on a line of its own."""
-        if self.drawn:
-            self.stream.write("\n")
-            self.stream.flush()
-            self.drawn = False
+        end_row(self.stream)
 
 
 class Progress:
@@ -114,6 +137,7 @@ class Progress:
             return
         self.last = now
         self.stream.write(f"\r{fit_row(self.line(extra), terminal_columns(self.stream))}\033[K")
+        _drew_row(self.stream, True)
         self.stream.flush()
 
     def advance(self, n: int = 1, extra: str = "") -> None:
@@ -128,6 +152,7 @@ class Progress:
         """Clear the counter; write ``summary`` as the final line when given."""
         if self.enabled:
             self.stream.write("\r\033[K")
+            _drew_row(self.stream, False)
         if summary is not None:
             self.stream.write(f"{self.label}: {summary}\n")
         self.stream.flush()

@@ -2090,3 +2090,57 @@ def test_the_status_line_says_the_camera_s_drops_as_they_happen():
     line = _status_text("frames 10 (dropped 0, ...)", Source())
     assert line == "sunrig: frames 10 (dropped 0, ...) | source: camera dropped 7, camera reconnects 2"
     assert _status_text("frames 10", object()) == "sunrig: frames 10"
+
+
+def _screen_lines(raw: str) -> list[str]:
+    """What a terminal shows of ``raw``, one string per line: a "\\r" returns to the row's start,
+    text overwrites from the cursor, and "ESC [K" erases from the cursor to the row's end."""
+    shown = []
+    for line in raw.replace("\r\n", "\n").split("\n"):
+        row, col = "", 0
+        for token in re.split(r"(\r|\x1b\[K)", line):
+            if token == "\r":
+                col = 0
+            elif token == "\x1b[K":
+                row = row[:col]
+            else:
+                row = row[:col] + token + row[col + len(token):]
+                col += len(token)
+        shown.append(row)
+    return shown
+
+
+def _run_on_pty(argv: list[str], columns: int) -> tuple[int, str]:
+    import fcntl
+    import select
+    import struct
+    import termios
+
+    master, slave = os.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *argv], stdout=subprocess.DEVNULL, stderr=slave,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    os.close(slave)
+    raw = b""
+    while select.select([master], [], [], 60)[0]:
+        try:
+            chunk = os.read(master, 65536)
+        except OSError:  # the pty's other end closed: the command is done
+            break
+        if not chunk:
+            break
+        raw += chunk
+    os.close(master)
+    return proc.wait(timeout=60), raw.decode()
+
+
+@pytest.mark.torch
+def test_a_warning_during_a_status_row_drawn_in_place_starts_a_row_of_its_own(tiny_model_dir, tmp_path):
+    # On a terminal wide enough for the status row, a warning was written after the row's text, on
+    # the same row: "sunrig: frames 11 (...) | ... errors 0sunrig: WARNING: [rig] ring_capacity ...".
+    config = tmp_path / "ring.toml"
+    config.write_text("[rig]\nring_capacity = 16\n")  # too few frames for the span: warned once, mid-run
+    rc, raw = _run_on_pty(["demo", "--model", str(tiny_model_dir), "--config", str(config)], columns=400)
+    assert rc == 0
+    warned = [line for line in _screen_lines(raw) if "WARNING" in line]
+    assert warned and all(line.startswith("sunrig: WARNING: ") for line in warned), warned
