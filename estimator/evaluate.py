@@ -9,7 +9,7 @@ aggregator is scored on the same full windows. Pure numbers here; plotting is in
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +20,7 @@ from replay.sources import corrupt_skipped
 from rig.geometry import az_el_from_enu
 from rig.offline import OfflineStats, estimate_stream
 from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_SPREAD_HIGH, FLAG_VALID, StatusRule
-from rig.types import Frame, SunEstimate
+from rig.types import Frame, HeadingRef, SunEstimate
 from rig.window import SpreadWindowPolicy
 
 THRESHOLDS_DEG = (5.0, 10.0, 20.0)
@@ -33,6 +33,61 @@ TAIL_KEY = f"windows_over_{TAIL_DEG:g}_deg"
 WORST_LOGS = 5
 LOG_KEYS = ("n_windows", "mean_deg", "max_deg", TAIL_KEY)  # of error_summary, per log
 SEQ_KEYS = ("n_windows", "mean_deg", "p99_deg", "max_deg", TAIL_KEY)  # of error_summary, per newest frame
+
+
+@dataclass
+class TruthTally:
+    """Why a log's frames have no true sun, counted as they pass (:meth:`counted`), so that a log
+    left out of ``sunrig eval`` or ``sunrig train`` is named with what its frames lack and what to
+    record: "no true sun" alone did not tell a drive recorded without GNSS from one recorded with
+    a relative heading."""
+
+    frames: int = 0
+    no_fix: int = 0  # a TRUE heading, and no true sun: no GNSS fix within reach (replay.groundtruth)
+    not_true: dict[str, int] = field(default_factory=dict)  # by heading reference (relative, magnetic)
+    no_heading: int = 0
+
+    def add(self, frame: Frame) -> None:
+        self.frames += 1
+        att = frame.attitude
+        if att is None:
+            self.no_heading += 1
+        elif att.reference != HeadingRef.TRUE:
+            self.not_true[att.reference.value] = self.not_true.get(att.reference.value, 0) + 1
+        elif frame.sun_enu_truth is None:
+            self.no_fix += 1
+
+    def counted(self, frames: Iterable[Frame]) -> Iterator[Frame]:
+        for frame in frames:
+            self.add(frame)
+            yield frame
+
+    def why(self) -> str:
+        """What the frames lack for a true sun, each with what to record."""
+        m = self.frames
+        if not m:
+            return "it holds no frames"
+        counts: list[int] = []
+
+        def of(n: int) -> str:  # "4 of its 10 frames" the first time, "3" after
+            counts.append(n)
+            return f"{n} of its {m} frames" if len(counts) == 1 else str(n)
+
+        def have(n: int) -> str:
+            return "has" if n == 1 else "have"
+
+        parts = []
+        if self.no_fix:
+            parts.append(f"{of(self.no_fix)} {have(self.no_fix)} a TRUE heading and no GNSS fix (the true sun "
+                         "needs the place and UTC: record with a GNSS, docs/ground-truth.md)")
+        if self.not_true:
+            refs = sorted(self.not_true.items(), key=lambda kv: (-kv[1], kv[0]))
+            said = [f"{of(n)} {have(n)} a {ref} heading" if i == 0 else f"{of(n)} a {ref} one"
+                    for i, (ref, n) in enumerate(refs)]
+            parts.append(" and ".join(said) + " (the true sun needs a TRUE heading: a GNSS compass or INS)")
+        if self.no_heading:
+            parts.append(f"{of(self.no_heading)} {have(self.no_heading)} no heading")
+        return "; ".join(parts)
 
 
 def error_summary(errors_deg: Sequence[float]) -> dict[str, float | int | None]:
@@ -203,12 +258,13 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
             result.logs.append(name)
             stats = OfflineStats()
             graded_before, without_truth_before = len(result.window_logs), result.windows_without_truth
+            tally = TruthTally()
             try:
-                _evaluate_log(result, name, frames, estimator, policy, aggregators, n_samples, rule, stats, progress,
-                              n_logs - 1)
+                _evaluate_log(result, name, tally.counted(frames), estimator, policy, aggregators, n_samples, rule,
+                              stats, progress, n_logs - 1)
                 if len(result.window_logs) == graded_before:
                     result.logs_not_graded[name] = _why_not_graded(
-                        stats, result.windows_without_truth - without_truth_before, policy)
+                        stats, result.windows_without_truth - without_truth_before, policy, tally)
             finally:  # an interrupted log's frames count too
                 for key in EvalResult.STREAM_COUNTS:
                     setattr(result, key, getattr(result, key) + getattr(stats, key))
@@ -223,16 +279,19 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
     return result
 
 
-def _why_not_graded(stats: OfflineStats, windows_without_truth: int, policy: SpreadWindowPolicy) -> str:
+def _why_not_graded(stats: OfflineStats, windows_without_truth: int, policy: SpreadWindowPolicy,
+                    tally: TruthTally | None = None) -> str:
     """Why a log read to its end gave no window to grade, from its own counts (in the order the
-    CLI's error for a run that graded nothing gives them)."""
+    CLI's error for a run that graded nothing gives them); ``tally``: what its frames lacked for
+    a true sun."""
     n, m = policy.n_frames, stats.frames
     if not m:
         return "no frame of it could be read"
     if stats.windows_failed:
         return f"its {stats.windows_failed} windows failed"
     if windows_without_truth:
-        return f"its {windows_without_truth} full windows have no true sun"
+        lack = tally.why() if tally is not None and tally.frames else ""
+        return f"its {windows_without_truth} full windows have no true sun" + (f": {lack}" if lack else "")
     if stats.frames_without_heading:
         return f"{stats.frames_without_heading} of its {m} frames have no heading"
     if stats.frames_bad_exposure:

@@ -265,9 +265,13 @@ def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float | Seq
         from replay.sources import open_frames
 
         read_frames = open_frames
+    from estimator.evaluate import TruthTally
+
     drives = []
+    lacking: list[str] = []  # of the logs left out: each with what its frames lack
     for i, path in enumerate(paths):
-        clock_runs = split_at_clock_jumps([f for f in read_frames(Path(path)) if trainable(f)])
+        tally = TruthTally()
+        clock_runs = split_at_clock_jumps([f for f in tally.counted(read_frames(Path(path))) if trainable(f)])
         if len(clock_runs) > 1:
             log.warning("%s: its clock jumps %d times (at seq %s); trained as %d drives, no window across a jump",
                         path, len(clock_runs) - 1, ", ".join(str(r[0].seq) for r in clock_runs[1:6]), len(clock_runs))
@@ -282,13 +286,18 @@ def load_drives(paths: Sequence[Path], crop_size: int, crop_fov_rad: float | Seq
             (f"{Path(path).name}#{k}", run) for k, run in enumerate(runs)]
         loaded = [d for name, run in named if (d := load_drive(run, name, crop_size, crop_fov_rad)) is not None]
         drives.extend(loaded)
-        if not loaded and len(paths) > 1:  # said once, at the end, when none is usable
-            log.warning("%s: no frame with both a TRUE heading and the true sun; not trained on", path)
+        if not loaded:
+            lacking.append(f"{path}: {tally.why()}")
+            if len(paths) > 1:  # said once, at the end, when none is usable
+                log.warning("%s: no frame with both a TRUE heading and the true sun (%s); not trained on", path,
+                            tally.why())
         if progress:
             progress(i + 1, len(paths))
     if not drives:
+        # One log: its cause is said here, as no warning said it.
+        cause = f" ({lacking[0]})" if len(lacking) == 1 else " (the warnings above say what each lacks)"
         raise TrainingDataError(
-            "none of the logs has frames with both a TRUE heading and the true sun; "
+            f"none of the logs has frames with both a TRUE heading and the true sun{cause}; "
             "train on logs from `sunrig synth`, KITTI drives, or recordings with GNSS time and position"
         )
     return drives

@@ -470,8 +470,31 @@ def test_a_log_of_which_no_window_was_graded_is_named_with_why(tiny_model_dir):
                       SunEstimator(OnnxModel.load(tiny_model_dir)), SpreadWindowPolicy(8, 4.0), aggregators=["mean"])
     assert result.window_logs == ["graded"] * 5
     assert result.summary()["logs_not_graded"] == {
-        "no_truth": "its 5 full windows have no true sun",
+        "no_truth": "its 5 full windows have no true sun: 12 of its 12 frames have a TRUE heading and no GNSS fix "
+                    "(the true sun needs the place and UTC: record with a GNSS, docs/ground-truth.md)",
         "short": "it has 5 frames, fewer than a window's 8",
         "no_heading": "12 of its 12 frames have no heading",
         "slow": "no 8 of its 12 frames are within 4 s of each other",
     }
+
+
+def test_why_frames_have_no_true_sun_names_what_each_lacks_and_what_to_record():
+    # A drive recorded with a compass and no GNSS fix was left out of eval and train saying only
+    # that it had "no true sun" (or "no frame with both a TRUE heading and the true sun"), which
+    # neither says what is missing nor what to record.
+    from estimator.evaluate import TruthTally
+
+    tally = TruthTally()
+    drive = noise_drive(10)
+    frames = ([dataclasses.replace(f, sun_enu_truth=None) for f in drive[:4]]
+              + [dataclasses.replace(f, attitude=Attitude(0.0, HeadingRef.RELATIVE), sun_enu_truth=None)
+                 for f in drive[4:7]]
+              + [dataclasses.replace(f, attitude=Attitude(0.0, HeadingRef.MAGNETIC), sun_enu_truth=None)
+                 for f in drive[7:8]]
+              + [dataclasses.replace(f, attitude=None) for f in drive[8:9]] + drive[9:])
+    assert list(tally.counted(frames)) == frames  # counted as they pass, not held
+    assert tally.why() == (
+        "4 of its 10 frames have a TRUE heading and no GNSS fix (the true sun needs the place and UTC: record with "
+        "a GNSS, docs/ground-truth.md); 3 have a relative heading and 1 a magnetic one (the true sun needs a TRUE "
+        "heading: a GNSS compass or INS); 1 has no heading")
+    assert TruthTally().why() == "it holds no frames"

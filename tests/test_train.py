@@ -281,6 +281,28 @@ def test_train_refuses_logs_without_truth(tmp_path):
 
 
 
+def test_a_log_without_a_gnss_fix_is_left_out_saying_so_and_what_to_record(tmp_path, caplog):
+    # A drive recorded with a compass and no GNSS: TRUE headings and UTC, no fix, so no true sun.
+    # It was left out saying only "no frame with both a TRUE heading and the true sun", and alone
+    # the error named no log and no cause.
+    from estimator.train import load_drives
+    from replay.native import LogWriter
+
+    no_fix, good = tmp_path / "no_fix.mcap", tmp_path / "good.mcap"
+    for path, truth in ((no_fix, False), (good, True)):
+        with LogWriter(path) as w:
+            for f in _frames(10, 0, truth=truth):
+                w.write_frame(replace(f, utc_ns=1_700_000_000_000_000_000 + f.seq * 500_000_000))
+    fov = math.radians(PAPER_CROP_FOV_DEG)
+    why = "10 of its 10 frames have a TRUE heading and no GNSS fix"
+    with caplog.at_level("WARNING", logger="estimator.train"):
+        assert [d.name for d in load_drives([no_fix, good], 16, fov)] == ["good.mcap"]
+    assert f"{no_fix}: no frame with both a TRUE heading and the true sun ({why}" in caplog.text
+    assert "record with a GNSS" in caplog.text
+    with pytest.raises(TrainingDataError, match=f"{no_fix}: {why}"):
+        load_drives([no_fix], 16, fov)
+
+
 @pytest.mark.parametrize("ref", [HeadingRef.RELATIVE, HeadingRef.MAGNETIC])
 def test_frames_without_a_true_heading_do_not_train(tmp_path, ref):
     # Their yaws are turned from true north by the start heading or the declination, the truth is
