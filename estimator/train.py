@@ -1387,7 +1387,10 @@ def _init_provenance(model_dir: Path, start: Any = None) -> dict[str, Any]:
     t = start.contract.training
     sun_range = start.contract.trained_sun_elevation_deg  # its own chain's, for the status rule
     return {"dir": str(model_dir), "model_id": start.model_id,
-            **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init") if t.get(k) is not None},
+            # "quantization": an int8 copy (sunrig quantize), whose float weights.npz the run
+            # started from; without it the record read as the float model's under another id.
+            **{k: t.get(k) for k in ("command", "data", "steps", "minutes", "init", "quantization")
+               if t.get(k) is not None},
             **({"sun_elevation_deg": list(sun_range)} if sun_range else {}),
             "crops_per_frame": start.contract.crops_per_frame, "crop_fov_deg": start.contract.crop_fov_deg,
             "mirror_windows": start.contract.mirror_windows}

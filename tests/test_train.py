@@ -606,6 +606,23 @@ def test_init_starts_a_new_run_from_a_model_folders_weights(logs, tmp_path):
         load_weights(tmp_path, nets.TINY, backbone, aggregator)
 
 
+def test_a_fine_tune_of_an_int8_model_records_that_it_started_from_an_int8_copy(tiny_model_dir, tmp_path):
+    # An int8 model (sunrig quantize) carries its float model's weights.npz, which --init starts
+    # from; the fine-tuned model is float. Its contract's training.init named the int8 model's id
+    # and the float model's command, and nothing said the start was an int8 copy.
+    from estimator.estimator import SunEstimator
+    from estimator.quantize import calibration_crops, quantize_model
+    from estimator.runtime import OnnxModel
+    from estimator.train import _init_provenance
+
+    model = OnnxModel.load(tiny_model_dir)
+    crops = calibration_crops(SunEstimator(model), [_frames(10, 1)], n_crops=16)
+    int8 = quantize_model(model, crops, tmp_path / "int8", record={"command": "sunrig quantize logs --out int8"})
+    quantization = OnnxModel.load(int8).contract.training["quantization"]
+    assert _init_provenance(int8)["quantization"] == quantization
+    assert "quantization" not in _init_provenance(tiny_model_dir)
+
+
 def test_an_init_model_with_an_invalid_contract_is_refused_with_trains_own_flag(tiny_model_dir, tmp_path):
     import json
 
