@@ -40,12 +40,12 @@ from estimator.calibration import EstimationError
 from estimator.estimator import SunEstimator
 from rig.errors import SunrigError, ValidationError
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
-from rig.lasting import LastingCondition
+from rig.lasting import EventThrottle, LastingCondition
 from rig.pacing import Pacer
 from rig.publishers import ErrorTally, Publisher, failed_writes, publisher_name
 from rig.ring import DEFAULT_MAX_AGE_S, DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing, ring_too_short
 from rig.types import Frame, FrameFeatures
-from rig.window import SpreadWindowPolicy
+from rig.window import MIN_JUMP_RAD, SpreadWindowPolicy
 
 log = logging.getLogger(__name__)
 
@@ -197,6 +197,10 @@ class RigPipeline:
         # each said when it changes; one that flips at every window is summed up once a minute.
         self._sparse = LastingCondition(None)
         self._failing = LastingCondition(None)
+        # The frame a heading jump started the windows again from, said once; jumps said at most
+        # once a minute (_log_heading_jump).
+        self._jump_said_at: FrameFeatures | None = None
+        self._jumps = EventThrottle(60.0)
         self._failing_since_seq = 0  # the window that began the stretch of failures last said
         # "stale" while windows come later than max_latency_s (_log_stale), said as the others are.
         self._stale = LastingCondition(None)
@@ -424,14 +428,14 @@ class RigPipeline:
             except Exception as exc:  # noqa: BLE001 - one broken output must not silence the others
                 self._raised[i].add(exc, est.seq)
 
-    def _log_sparse(self, candidates: list[FrameFeatures], window: list[FrameFeatures],
+    def _log_sparse(self, same_zero: list[FrameFeatures], window: list[FrameFeatures],
                     newest: FrameFeatures) -> None:
         """Say when windows stop filling and when they fill again: a partial window whose frames come
         too sparsely to fill one (a slow camera, or frames dropped for a slow estimator), so every
         estimate goes out flagged partial, for as long as that lasts. A window still filling
         (:meth:`_still_filling`) changes nothing."""
         partial = len(window) < self.policy.n_frames
-        if partial and self._still_filling(candidates, window):
+        if partial and self._still_filling(same_zero, window):
             return
         said = self._sparse.update("sparse" if partial else None, newest.frame.t_mono_s)
         if said is None:
@@ -450,15 +454,15 @@ class RigPipeline:
                     "span_s)", said.changes, newest.frame.t_mono_s - said.since_s, said.counts.get("sparse", 0),
                     sum(said.counts.values()), newest.frame.seq, "partial" if partial else "full")
 
-    def _still_filling(self, candidates: list[FrameFeatures], window: list[FrameFeatures]) -> bool:
+    def _still_filling(self, same_zero: list[FrameFeatures], window: list[FrameFeatures]) -> bool:
         """Whether a partial ``window`` (then all the frames of its span) is partial only because its
         frames began less than a span ago: the ring holds none of the newest frame's heading zero
-        from before the span (start-up, a new heading zero), or the window's frames come at least as
+        (``same_zero``: the policy's candidates) from before the span (start-up, a new heading zero,
+        a heading jump), or the window's frames come at least as
         densely as a full window's (8 frames in 7 intervals within the 4 s span: 0.571 s apart on
         average): after a gap (a tunnel whose frames the exposure gate refused, a camera's outage)
         they are refilling it, and the camera's rate is not at fault. A window of the newest frame
         alone shows no rate: the interval before the gap stands for it."""
-        same_zero = self.policy.same_zero(candidates)
         newest_s = window[-1].frame.t_mono_s
         if not same_zero or newest_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
             return True
@@ -472,6 +476,47 @@ class RigPipeline:
             mean_interval_s = before[1] - before[0]
         # The tolerance keeps a camera exactly at the full window's rate (1.75 fps) from flipping on rounding.
         return mean_interval_s <= full_interval_s * (1.0 + 1e-9)
+
+    def _log_heading_jump(self, candidates: list[FrameFeatures], same_zero: list[FrameFeatures]) -> None:
+        """Say when a heading jump (``rig/window.py``: faster than a camera turns) starts the windows
+        again: its frames are then only those from the jump on (``same_zero``), fewer than the ring
+        holds of that heading reference and epoch, and the estimates go out flagged partial until the
+        windows refill. Once a jump (the windows after it show the same cut for a span), at most
+        once a minute of the frames' clock: a compass that glitches every few frames is summed up."""
+        if not same_zero:
+            return
+        first = same_zero[0]
+        att = first.frame.attitude
+        assert att is not None  # same_zero holds frames with a heading only
+        zero = [c for c in candidates if (a := c.frame.attitude) is not None
+                and (a.reference, a.epoch) == (att.reference, att.epoch)]
+        if zero[0] is first or first is self._jump_said_at:
+            return  # the windows reach back to the oldest such frame held; or this jump is said
+        before = zero[next(i for i, c in enumerate(zero) if c is first) - 1]
+        assert before.frame.attitude is not None
+        if zero[-1].frame.t_mono_s - before.frame.t_mono_s > self.policy.span_s:
+            # The frames cut off are older than any window reaches: no window lost them. (A glitch
+            # that has become the ring's oldest frame, with no frame before it, looks like a jump.)
+            return
+        self._jump_said_at = first
+        turn_deg = math.degrees(abs(math.remainder(att.heading_rad - before.frame.attitude.heading_rad, math.tau)))
+        dt_s = first.frame.t_mono_s - before.frame.t_mono_s
+        said = self._jumps.note(first.frame.t_mono_s)
+        if said is None:
+            return
+        n, said_before_s = said
+        turn = f"{turn_deg:.0f} deg from seq {before.frame.seq}'s in {dt_s:.2f} s"
+        rate = (f"more than {math.degrees(MIN_JUMP_RAD):.0f} deg at over "
+                f"{math.degrees(self.policy.max_yaw_rate_rad_s):.0f} deg/s")
+        if said_before_s is None:
+            log.warning("seq %d: its heading jumped %s, faster than a camera turns (%s): a compass glitch, or a "
+                        "heading source whose zero moved unsaid. Windows start again from it, flagged partial "
+                        "until they refill; if the next heading comes back, it alone is left out",
+                        first.frame.seq, turn, rate)
+        else:
+            log.warning("the heading jumped %d times in %.0f s, the last at seq %d (%s), faster than a camera turns "
+                        "(%s): windows start again from each jump (said once a minute while it goes on)", n,
+                        first.frame.t_mono_s - said_before_s, first.frame.seq, turn, rate)
 
     def _log_failing(self, feats: FrameFeatures, exc: EstimationError | None) -> None:
         """Say when windows start failing and when estimates come again: a model answering NaN fails
@@ -562,7 +607,9 @@ class RigPipeline:
                 self.stats.windows_skipped += 1  # the ring let its frame go (a clock jump) before its turn
                 continue
             window = self.policy.select(candidates)
-            self._log_sparse(candidates, window, feats)
+            same_zero = self.policy.same_zero(candidates)  # what select chose among
+            self._log_heading_jump(candidates, same_zero)
+            self._log_sparse(same_zero, window, feats)
             try:
                 est = self.estimator.estimate(window)
             except EstimationError as exc:

@@ -192,6 +192,36 @@ def test_a_window_whose_frame_the_ring_let_go_is_skipped_not_made_of_later_frame
     assert pipe.stats.windows_skipped == 1 and pipe.ring.restarts == 1
 
 
+def test_a_heading_jump_that_starts_the_windows_again_is_said(model, caplog):
+    # A compass whose zero steps 170 deg at seq 30 and again at seq 160, and that glitches 120 deg
+    # for seq 60 alone, at 2 frames a second: the windows start again from each step (rig/window.py)
+    # and the glitch's own window is it alone, every such estimate flagged partial with nothing said.
+    clock, box = FakeClock(), list[RigPipeline]()
+
+    def offset_deg(seq):
+        return 170.0 * ((seq >= 30) + (seq >= 160)) + (120.0 if seq == 60 else 0.0)
+
+    def compass():
+        for frame in lockstep(170, clock, box, dt=0.5):
+            heading = math.radians(3.0 * frame.seq + offset_deg(frame.seq))
+            yield dataclasses.replace(frame, attitude=Attitude(heading, HeadingRef.TRUE))
+
+    out = Collect()
+    pipe = RigPipeline(compass(), SunEstimator(model), SpreadWindowPolicy(8, 4.0), [out],
+                       config=RigConfig(queue_size=100), clock=clock)
+    box.append(pipe)
+    with caplog.at_level(logging.INFO, logger="rig.pipeline"):
+        stats = pipe.run(timeout_s=200)  # of the fake clock: 85 s of frames
+    assert stats.estimates == 170
+    assert [e.n_frames for e in out.estimates if e.seq in (30, 60, 160)] == [1, 1, 1]
+    said = [r.getMessage() for r in caplog.records if "heading jumped" in r.getMessage()]
+    # Once a jump, then at most once a minute of the frames' clock (seq 60 is 15 s after seq 30).
+    assert len(said) == 2, said
+    assert said[0].startswith("seq 30: its heading jumped 173 deg from seq 29's in 0.50 s"), said
+    assert re.search(r"the heading jumped 2 times in 65 s, the last at seq 160 \(173 deg", said[1]), said
+    assert not [r.getMessage() for r in caplog.records if "partial window" in r.getMessage()]
+
+
 def test_every_stretch_of_windows_that_cannot_fill_is_said(model, caplog):
     # A camera that slows down (1.4 Hz), recovers (10 Hz) and slows again: the second stretch of
     # partial windows was once hidden by the first warning, said once a run.
