@@ -174,7 +174,8 @@ def _check_crop_span(frame: Frame, name: str, crop_size: int, crop_fov_rad: floa
     need = math.ceil(crop_size / MAX_CROP_ENLARGEMENT)  # source pixels a crop must span
     if min(k.width, k.height) < need:
         raise ValidationError(f"{name}: its frames ({k.width}x{k.height} px) are too small for {crop_size} px crops: "
-                              f"a crop needs at least {need} px of them; pass a preset with smaller crops")
+                              f"a crop needs at least {need} px of them; leave this log out, or train from scratch "
+                              "with a preset of smaller crops (a fine-tune keeps its --init model's)")
     side = crop_side_px(k, crop_fov_rad)
     if side < need:
         # The least angle whose crop rounds to `need` px (crop_side_px rounds), up to the 0.01 deg shown.
