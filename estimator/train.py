@@ -868,7 +868,8 @@ def _train_locked(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig, ne
         cfg = replace(cfg, init=os.path.abspath(cfg.init))
     if state is not None:
         if _run_finished(state, cfg) and _exported_step(out_dir) == state["step"]:
-            log.info("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
+            # At DEBUG: the progress callback has the CLI say it, as it does the resume below.
+            log.debug("the run in %s already reached its end (step %d); nothing to train", out_dir, state["step"])
             if progress:
                 progress({"phase": "finished", "step": state["step"]})
             return out_dir
@@ -933,7 +934,7 @@ def _train_locked(log_paths: Sequence[Path], out_dir: Path, cfg: TrainConfig, ne
             # A new budget: a new cosine segment from where the rate stands now, never back up.
             schedule = Schedule(start_step=step, start_lr=opt.param_groups[0]["lr"], minutes=cfg.minutes)
         drive_err = state.get("drive_err_deg")
-        log.info("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
+        log.debug("resuming from step %d (%.1f min trained)", step, elapsed_s / 60)
         dropped = _trim_metrics(out_dir / METRICS, step)
         if dropped:
             log.info("dropped %d metric lines past the checkpoint (steps lost when the run stopped)", dropped)

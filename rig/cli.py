@@ -1054,6 +1054,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from rig.errors import require_torch
 
     require_torch()
+    if args.quiet:  # its INFO lines ("loaded 40 drives ...", "training in float32") are progress
+        logging.getLogger("estimator").setLevel(logging.WARNING)
     from estimator.models import resolve_init_dir
     from estimator.recipe import command_line, data_fingerprint
     from estimator.train import TrainConfig, train
@@ -1692,7 +1694,7 @@ def main(argv: list[str] | None = None, *, late_signals: str = "restore") -> int
         # serial port writing again, a GNSS or camera back), a stretch of failed windows over. At
         # WARNING a journal said when the GNSS stopped and never that it came back. Other
         # libraries' INFO stays out.
-        for package in ("rig", "drivers"):
+        for package in ("rig", "drivers", "estimator"):
             logging.getLogger(package).setLevel(logging.INFO)
     # How this command is being stopped (rig/stopping.py): Ctrl-C, SIGTERM and SIGHUP. One per
     # call, so that commands run one after another in a process (tests), or a library caller's

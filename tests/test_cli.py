@@ -254,6 +254,7 @@ def test_train_of_a_folder_leaves_out_a_log_with_no_frames_and_its_fingerprint_t
                   "--steps", "1", "--quiet")
     assert res.returncode == 0, res.stderr
     assert f"sunrig: WARNING: train: {_CUT_LEFT_OUT.format(cut)}\n" in res.stderr
+    assert "INFO" not in res.stderr  # --quiet: warnings, not the run's progress ("loaded 1 drives ...")
     data = OnnxModel.load(tmp_path / "m").contract.training["data"]
     # The run's data are the logs it read: deleting the cut one later must not stop a resume.
     assert data["logs"] == 1 and data["fingerprint"] == data_fingerprint([good])
@@ -2034,13 +2035,15 @@ def test_the_rigs_own_event_lines_reach_stderr_and_other_libraries_info_does_not
         "main(['sun', '--time', '2011-09-26T11:02:26Z', '--lat', '49', '--lon', '8'])\n"
         "logging.getLogger('drivers.gnss').info('GNSS source x reopened')\n"
         "logging.getLogger('rig.publishers').info('serial port y writes again')\n"
+        "logging.getLogger('estimator.train').info('starting from the weights of z')\n"
         "logging.getLogger('somelib').info('chatter')\n"
         "logging.getLogger('drivers.gnss').debug('detail')\n"
     )
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
     assert res.stderr.splitlines() == ["sunrig: INFO: GNSS source x reopened",
-                                       "sunrig: INFO: serial port y writes again"], res.stderr
+                                       "sunrig: INFO: serial port y writes again",
+                                       "sunrig: INFO: starting from the weights of z"], res.stderr
 
 
 @pytest.mark.torch
