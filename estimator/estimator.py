@@ -46,6 +46,7 @@ from rig.errors import ValidationError
 from rig.geometry import wrap_pi
 from rig.protocol import StatusRule
 from rig.types import Frame, FrameFeatures, HeadingRef, SunEstimate
+from rig.window import view_signature
 
 AGGREGATORS = ("transformer", "mean", "meanshift", "single")
 # How a frame's crops are placed: "spread" (default) one per horizontal stratum, "uniform" the
@@ -238,7 +239,7 @@ class SunEstimator:
             mirrored = emb[n_all + start : n_all + start + n] if self.mirror_windows else None
             # The frame's pixels stay out of its features: the crops above are all that reads them.
             out.append(FrameFeatures(frame.meta(), boxes, angles, emb[start : start + n], self.model.model_id,
-                                     mirrored))
+                                     mirrored, view_signature=view_signature(frame.image_bgr)))
             start += n
         return out
 

@@ -16,7 +16,7 @@ from estimator.estimator import SunEstimator
 from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.ring import DEFAULT_RING_CAPACITY, FrameRing
 from rig.types import Frame, SunEstimate
-from rig.window import SpreadWindowPolicy
+from rig.window import SpreadWindowPolicy, ViewClock
 
 log = logging.getLogger(__name__)
 
@@ -55,11 +55,12 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
     # candidates, which with a frozen clock (every frame at one time, so none ever too old) once
     # grew without end: each window chose among all the frames before it, 3000 frames took 271 s.
     ring = FrameRing(capacity=ring_capacity, max_age_s=policy.span_s)
+    views = ViewClock()  # as live: a vehicle standing keeps the views from before the stop
     jumps_before = stats.clock_jumps  # the ring counts this stream's; stats may pool several streams
     pending: list[Frame] = []
 
     def flush() -> Iterator[dict[str, SunEstimate]]:
-        for feats in estimator.encode_batch(pending):
+        for feats in map(views.stamp, estimator.encode_batch(pending)):
             if not ring.push(feats):
                 stats.frames_out_of_order += 1  # as live: windows assume time order
                 continue

@@ -45,7 +45,7 @@ from rig.pacing import Pacer
 from rig.publishers import ErrorTally, Publisher, failed_writes, publisher_name
 from rig.ring import DEFAULT_MAX_AGE_S, DEFAULT_RING_CAPACITY, DropOldestQueue, FrameRing, ring_too_short
 from rig.types import Frame, FrameFeatures
-from rig.window import MIN_JUMP_RAD, SpreadWindowPolicy
+from rig.window import MIN_JUMP_RAD, SpreadWindowPolicy, ViewClock
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +188,7 @@ class RigPipeline:
         self._frames: DropOldestQueue[tuple[Frame, float]] = DropOldestQueue(self.config.queue_size)
         self._mailbox: DropOldestQueue[tuple[FrameFeatures, float]] = DropOldestQueue(1)
         self.ring = FrameRing(self.config.ring_capacity, self.config.ring_max_age_s)
+        self._views = ViewClock()  # a vehicle standing keeps the views from before the stop (rig/window.py)
         self._failure: tuple[str, BaseException] | None = None
         self._failure_lock = threading.Lock()
         # Why frames fail the exposure gate (None: they pass), said when that changes; a verdict that
@@ -463,14 +464,15 @@ class RigPipeline:
         average): after a gap (a tunnel whose frames the exposure gate refused, a camera's outage)
         they are refilling it, and the camera's rate is not at fault. A window of the newest frame
         alone shows no rate: the interval before the gap stands for it."""
-        newest_s = window[-1].frame.t_mono_s
-        if not same_zero or newest_s - same_zero[0].frame.t_mono_s <= self.policy.span_s:
+        # In view time, as the window's span: a vehicle that stood still is no slow camera.
+        newest_s = window[-1].window_t_s
+        if not same_zero or newest_s - same_zero[0].window_t_s <= self.policy.span_s:
             return True
         full_interval_s = self.policy.span_s / max(self.policy.n_frames - 1, 1)
         if len(window) >= 2:
-            mean_interval_s = (newest_s - window[0].frame.t_mono_s) / (len(window) - 1)
+            mean_interval_s = (newest_s - window[0].window_t_s) / (len(window) - 1)
         else:
-            before = [f.frame.t_mono_s for f in same_zero if f.frame.t_mono_s < newest_s][-2:]
+            before = [f.window_t_s for f in same_zero if f.window_t_s < newest_s][-2:]
             if len(before) < 2:
                 return True  # nothing shows the rate yet
             mean_interval_s = before[1] - before[0]
@@ -494,7 +496,7 @@ class RigPipeline:
             return  # the windows reach back to the oldest such frame held; or this jump is said
         before = zero[next(i for i, c in enumerate(zero) if c is first) - 1]
         assert before.frame.attitude is not None
-        if zero[-1].frame.t_mono_s - before.frame.t_mono_s > self.policy.span_s:
+        if zero[-1].window_t_s - before.window_t_s > self.policy.span_s:
             # The frames cut off are older than any window reaches: no window lost them. (A glitch
             # that has become the ring's oldest frame, with no frame before it, looks like a jump.)
             return
@@ -570,7 +572,7 @@ class RigPipeline:
                     return
                 continue
             frame, arrived = item
-            feats = self.estimator.encode(frame)
+            feats = self._views.stamp(self.estimator.encode(frame))
             self.stats.frames_encoded += 1
             if not self.ring.push(feats):
                 self.stats.frames_out_of_order += 1

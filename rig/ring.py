@@ -70,6 +70,10 @@ class DropOldestQueue(Generic[T]):
 DEFAULT_RING_CAPACITY = 128
 # The oldest frame a ring keeps behind the newest (the live rig's [rig] ring_max_age_s).
 DEFAULT_MAX_AGE_S = 10.0
+# The longest a frame is held behind the newest on the frames' own clock, however long the vehicle
+# stands (the max age counts view time, which stands still with it: rig/window.py): the sun moves
+# at most 0.25 deg a minute, 0.5 deg in this time, and a window older than that is stale anyway.
+MAX_HOLD_S = 120.0
 # How far behind the newest held a frame may be stamped and still be late (refused) rather than a
 # clock that stepped back (the ring starts again from it). A late frame is a few frames late: tens
 # of ms at 30 fps, a few hundred at 5 fps. Refusing a step back costs every frame until the stamps
@@ -103,7 +107,10 @@ def ring_too_short(ring: FrameRing, span_s: float) -> str | None:
 
 class FrameRing:
     """The last encoded frames, oldest first, at most ``capacity`` and at most ``max_age_s`` older
-    than the newest one."""
+    than the newest one in view time (``FrameFeatures.window_t_s``: time stood still left out),
+    and at most ``MAX_HOLD_S`` on the frames' clock. Of the repeats of one view (a vehicle
+    standing) it keeps the newest two: the newest, and the one before it, which the estimator may
+    still be about to take its window for; so a stop fills no room."""
 
     def __init__(self, capacity: int = DEFAULT_RING_CAPACITY, max_age_s: float = DEFAULT_MAX_AGE_S) -> None:
         if capacity < 1:
@@ -149,14 +156,28 @@ class FrameRing:
                         self._restart(f"is {utc_s:.1f} s after the frame before it in UTC but {mono_s:.1f} s "
                                       "on the monotonic clock (a suspend and resume, or a clock set)")
             self._frames.append(feats)
-            newest_s = frame.t_mono_s
-            while len(self._frames) > self.capacity or newest_s - self._frames[0].frame.t_mono_s > self.max_age_s:
-                crowded = newest_s - self._frames[0].frame.t_mono_s <= self.max_age_s
+            if feats.view_key != frame.seq:
+                self._drop_older_repeats(feats.view_key)
+            newest_s, newest_view_s = frame.t_mono_s, feats.window_t_s
+            while (len(self._frames) > self.capacity or newest_view_s - self._frames[0].window_t_s > self.max_age_s
+                   or newest_s - self._frames[0].frame.t_mono_s > MAX_HOLD_S):
+                oldest = self._frames[0]
+                crowded = (newest_view_s - oldest.window_t_s <= self.max_age_s
+                           and newest_s - oldest.frame.t_mono_s <= MAX_HOLD_S)  # let go for room, not age
                 self._frames.popleft()
                 self.evicted += 1
                 if crowded:
-                    self.crowded_span_s = newest_s - self._frames[0].frame.t_mono_s
+                    self.crowded_span_s = newest_view_s - self._frames[0].window_t_s
             return True
+
+    def _drop_older_repeats(self, view_key: int) -> None:
+        """Called under the lock, a repeat of view ``view_key`` just added: let go of the repeats of
+        that view before the newest two (the view's first frame stays, a frame of its own time)."""
+        repeats = [i for i in range(len(self._frames) - 1, -1, -1)
+                   if self._frames[i].view_key == view_key and self._frames[i].frame.seq != view_key]
+        for i in repeats[2:]:  # from the newest down: indices stay valid
+            del self._frames[i]
+            self.evicted += 1
 
     def _restart(self, why: str) -> None:
         """Called under the lock: drop every held frame (counted as evicted) and say why."""

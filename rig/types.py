@@ -298,6 +298,12 @@ class FrameFeatures:
     output per crop. ``model_id`` names the backbone that made them, so a cache never mixes models.
     ``embeddings_mirrored``, for a model run mirrored (its contract's ``mirror_windows``), are the
     same crops' embeddings flipped left to right, row for row; None otherwise.
+
+    ``view_signature`` is the frame's image shrunk to a few hundred numbers, to tell a new view
+    from the same one again (a vehicle standing: ``rig.window.ViewClock``), which then stamps
+    ``t_view_s`` (the frame's time with the time stood still before it taken out) and
+    ``view_seq`` (the seq of the first frame of its view). None where nothing measured or stamped
+    them: the frame is then a view of its own, at its own time.
     """
 
     frame: FrameMeta
@@ -306,6 +312,9 @@ class FrameFeatures:
     embeddings: np.ndarray
     model_id: str
     embeddings_mirrored: np.ndarray | None = None
+    view_signature: np.ndarray | None = None
+    t_view_s: float | None = None
+    view_seq: int | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.frame, Frame):
@@ -342,6 +351,16 @@ class FrameFeatures:
     @property
     def n_crops(self) -> int:
         return len(self.crop_boxes_px)
+
+    @property
+    def window_t_s(self) -> float:
+        """The time a window's span is measured in: ``t_view_s`` where stamped, else the frame's."""
+        return self.frame.t_mono_s if self.t_view_s is None else self.t_view_s
+
+    @property
+    def view_key(self) -> int:
+        """Which view the frame shows: the seq of the view's first frame (its own when new)."""
+        return self.frame.seq if self.view_seq is None else self.view_seq
 
 
 @dataclass(frozen=True, eq=False)

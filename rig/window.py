@@ -20,10 +20,19 @@ frame first, as the most different view, into every window for a whole span. So 
 away from both its neighbours while they agree (one glitched heading) is left out, and otherwise
 the window starts again from the jump, as after a new epoch: until the next frame says which it
 was, a newest frame that jumped is a window of its own.
+
+A vehicle that stands still (a red light, a jam) shows one view frame after frame: its span would
+soon hold that view only, 8 times, and the estimate fall to what one view gives, with a small
+spread that looks sure. So a frame showing the same view as the frame that began it (its image
+shrunk to a signature, ``SAME_VIEW_MAX_RMS``, and its heading) is a repeat of that view
+(:class:`ViewClock`): a window takes one frame a view, the newest, and the time stood still does
+not count towards the span (``FrameFeatures.t_view_s``), so that the views before the stop stay in
+the windows for as long as the vehicle stands, up to ``rig.ring.MAX_HOLD_S``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,6 +53,92 @@ DEFAULT_MAX_YAW_RATE_RAD_S = math.radians(180.0)
 # A smaller change is never a jump, however close the frames' stamps: a compass's noise (a few
 # degrees) between frames stamped together (a burst, a frozen clock) is an impossible rate too.
 MIN_JUMP_RAD = math.radians(45.0)
+
+
+# A frame's view signature: its image in gray, shrunk by area to this size (width, height: about a
+# KITTI frame's 3.3:1), to zero mean and unit spread (an exposure change is no new view). Each
+# number averages about 1200 pixels of a KITTI frame, so sensor noise all but leaves it.
+SIGNATURE_SIZE = (32, 12)
+# The RMS difference of two signatures up to which they show the same view. On synthetic drives
+# (seeds 3000-3011, stops as benchmarks/bench_standstill.py makes them), one pose captured again
+# with fresh noise and JPEG differed by at most 0.013, two frames 0.1 s apart while driving by at
+# least 0.16 (median 0.64). Between, with room for a real sensor's noise: a frame wrongly taken
+# for a new view only makes the windows as they were before views were told apart.
+SAME_VIEW_MAX_RMS = 0.05
+# A heading this far from the view's first frame's is a new view, whatever the image (a turn on the
+# spot, which a blank scene would not show).
+SAME_VIEW_MAX_TURN_RAD = math.radians(2.0)
+# How long a view must have lasted before a frame showing it again is a repeat: a vehicle standing.
+# Driving, even slowly or with a fast camera, the view has changed past SAME_VIEW_MAX_RMS well before
+# (the held-out drives' nearest frames 0.1 s apart differ by 0.078), so frames in motion stay views
+# of their own, at their own times, whatever the camera's rate.
+MIN_STAND_S = 0.5
+
+
+def view_signature(image_bgr: np.ndarray) -> np.ndarray | None:
+    """The image shrunk to ``SIGNATURE_SIZE``, gray, zero mean, unit spread (float32); None for an
+    image without contrast to compare (a black or flat frame), which is then a view of its own."""
+    import cv2
+
+    gray = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
+    small = cv2.resize(gray, SIGNATURE_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
+    small -= small.mean()
+    spread = float(small.std())
+    return small / spread if spread > 1e-3 else None
+
+
+def same_view(first: FrameFeatures, other: FrameFeatures) -> bool:
+    """Whether ``other`` shows the view ``first`` showed: the same camera, heading zero and (within
+    ``SAME_VIEW_MAX_TURN_RAD``) heading, and signatures within ``SAME_VIEW_MAX_RMS``."""
+    a, b = first.view_signature, other.view_signature
+    att_a, att_b = first.frame.attitude, other.frame.attitude
+    if a is None or b is None or att_a is None or att_b is None or a.shape != b.shape:
+        return False
+    if (att_a.reference, att_a.epoch) != (att_b.reference, att_b.epoch):
+        return False
+    if first.frame.intrinsics != other.frame.intrinsics:
+        return False
+    if abs(math.remainder(att_b.heading_rad - att_a.heading_rad, math.tau)) > SAME_VIEW_MAX_TURN_RAD:
+        return False
+    return float(np.sqrt(np.mean(np.square(a - b)))) <= SAME_VIEW_MAX_RMS
+
+
+class ViewClock:
+    """Stamps the frames of one stream, in order, with their view and view time: a frame that shows
+    the view of the frame that began it (:func:`same_view`), ``MIN_STAND_S`` or more after it, is a
+    repeat of it (``view_seq`` that frame's seq) and the time since the frame before it is time
+    stood still; ``t_view_s`` is the frame's time less all the time stood still so far. Until the
+    vehicle first stands, that is the frame's own time, to the bit."""
+
+    def __init__(self) -> None:
+        self._first: FrameFeatures | None = None  # the first frame of the view now shown
+        self._last_t_s: float | None = None
+        self._last_view_s = 0.0  # the view time last stamped
+        self.stood_s = 0.0
+
+    def stamp(self, feats: FrameFeatures) -> FrameFeatures:
+        t_s = feats.frame.t_mono_s
+        last_t_s, self._last_t_s = self._last_t_s, t_s
+        first = self._first
+        if first is not None and last_t_s is not None and same_view(first, feats):
+            if t_s - first.frame.t_mono_s >= MIN_STAND_S:
+                self.stood_s += max(t_s - last_t_s, 0.0)  # a clock that stepped back stood no time
+                # The view time stands still: the frame before's, exactly (not t_s - stood_s, rounded).
+                return dataclasses.replace(feats, t_view_s=self._last_view_s, view_seq=first.frame.seq)
+            # Too soon to tell standing from creeping: a frame of its own, the view's first still first.
+            return self._own(feats)
+        self._first = self._own(feats)
+        return self._first
+
+    def _own(self, feats: FrameFeatures) -> FrameFeatures:
+        """``feats`` stamped as a view of its own."""
+        self._last_view_s = feats.frame.t_mono_s - self.stood_s
+        return dataclasses.replace(feats, t_view_s=self._last_view_s, view_seq=feats.frame.seq)
+
+
+def one_per_view(frames: Sequence[T]) -> list[T]:
+    """The newest frame of each view among ``frames`` (in order; a view's repeats follow each other)."""
+    return [f for i, f in enumerate(frames) if i + 1 == len(frames) or frames[i + 1].view_key != f.view_key]
 
 
 @dataclass(frozen=True)
@@ -71,9 +166,10 @@ class SpreadWindowPolicy:
         Only frames whose heading shares the newest heading's zero are candidates
         (:meth:`same_zero`): the same reference and, for relative headings, the same epoch (after
         a source lost its zero, the window starts again from the frames after it), and no heading
-        jump between them."""
-        usable = self.same_zero(candidates)
-        t_s = np.array([c.frame.t_mono_s for c in usable])
+        jump between them; and one frame a view, the newest (:func:`one_per_view`), the span
+        measured in view time (``FrameFeatures.window_t_s``: time stood still left out)."""
+        usable = one_per_view(self.same_zero(candidates))
+        t_s = np.array([c.window_t_s for c in usable])
         # Every one has an attitude (same_zero); the test only tells the type checker so.
         heading_rad = np.array([c.frame.attitude.heading_rad for c in usable if c.frame.attitude is not None])
         return [usable[i] for i in self.select_indices(t_s, heading_rad)] if usable else []

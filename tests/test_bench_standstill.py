@@ -69,9 +69,10 @@ def test_a_tiny_run_puts_every_window_in_one_phase(tiny_model_dir, monkeypatch, 
     assert stop["frames_bad_exposure"] == 0 and stop["windows_failed"] == 0
     assert [out["phases"][p]["n_windows"] for p in PHASES] == [5, 8, 12, 4, 8, 6]
     assert [out["control"][p]["n_windows"] for p in CONTROL_PHASES] == [5, 1, 8, 6]
-    # Standing past the span, every window is the one pose, eight times.
+    # Standing past the span, every window holds the views from before the stop (poses 0-4) and the
+    # standing one once (rig/window.py): each frame a pose of its own. It was the one pose, 8 times.
     for p in ("stop_4_10s", "stop_10s_on"):
-        assert out["phases"][p]["distinct_poses_mean"] == 1.0 and out["phases"][p]["n_frames_mean"] == 8.0
+        assert out["phases"][p]["distinct_poses_mean"] == 6.0 and out["phases"][p]["n_frames_mean"] == 6.0
     assert out["control"]["moving_after_4s_on"]["distinct_poses_mean"] == 8.0
     assert out["per_drive"][0]["drive"] == "drive_3000_0000" and "runtime_s" in out
     assert out["paired"]["drives"] == 1

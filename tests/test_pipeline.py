@@ -1090,3 +1090,26 @@ def test_a_window_that_ends_after_run_returned_is_not_published(model):
     while not (ended and (stats.windows_skipped or len(out.estimates) > published)) and time.monotonic() < deadline:
         time.sleep(0.01)
     assert len(out.estimates) == published and ended and all(e.seq < 5 for e in out.estimates)
+
+
+def test_a_vehicle_standing_still_keeps_the_views_from_before_the_stop(model):
+    # 2 s driving (a new view each frame), then 15 s standing (one view, one heading). The ring let
+    # the views before the stop go after 10 s, and every window was the standing view 8 times.
+    rng = np.random.default_rng(3)
+    views = [rng.integers(0, 256, size=(80, 128, 3), dtype=np.uint8) for _ in range(21)]
+
+    def drive():
+        for i in range(20 + 150):
+            yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=views[min(i, 20)], intrinsics=INTR,
+                        attitude=Attitude(math.radians(3.0 * min(i, 20)), HeadingRef.TRUE),
+                        sun_enu_truth=[0.0, 0.8, 0.6])
+
+    est = SunEstimator(model)
+    pub = Collect()
+    pipe, stats = run_pipeline(drive(), est, [pub], queue_size=200)  # every frame encoded and held
+    assert stats.frames_encoded == 170
+    held = [f.frame.seq for f in pipe.ring.snapshot()]
+    # The 20 views driven, the standing view's first 0.5 s, and its newest two repeats.
+    assert held[:20] == list(range(20)) and len(held) == 20 + 5 + 2
+    last = pub.estimates[-1]
+    assert last.seq == 169 and last.n_frames == 8

@@ -192,3 +192,87 @@ def test_a_window_fills_from_seven_frame_intervals_within_the_span(fps, n_frames
     # second or faster fills it, as docs/protocol.md says of PARTIAL_WINDOW, not only one at 2.
     ring = [feats(i, i / fps, yaw=0.0) for i in range(int(12 * fps))]
     assert len(SpreadWindowPolicy(8, 4.0).select(ring)) == n_frames
+
+
+# -- a vehicle standing still -------------------------------------------------------------------
+
+def _scene(view: int, rng=None, noise=0.0, gain=1.0):
+    """A 384x128 image of place ``view``: smooth shapes (a coarse random field, enlarged), as a
+    street is at the signature's scale, not pixel noise; with sensor noise and a gain."""
+    import cv2
+    coarse = np.random.default_rng(view).uniform(30, 220, (12, 32, 3)).astype(np.float32)
+    base = cv2.resize(coarse, (384, 128), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    if rng is not None and noise:
+        base = base + rng.normal(0.0, noise, base.shape)
+    return np.clip(base * gain, 0, 255).astype(np.uint8)
+
+
+def _seen(seq, t, image, yaw=0.0, epoch=0, ref=HeadingRef.TRUE):
+    from rig.window import view_signature
+    intr = Intrinsics(fx=320.0, fy=320.0, cx=192.0, cy=64.0, width=384, height=128)
+    frame = Frame(t_mono_s=t, seq=seq, image_bgr=image, intrinsics=intr, attitude=Attitude(yaw, ref, epoch=epoch))
+    return FrameFeatures(frame, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 2), np.float32), "m",
+                         view_signature=view_signature(image))
+
+
+def test_the_same_view_again_is_told_from_a_new_one():
+    from rig.window import same_view, view_signature
+    rng = np.random.default_rng(0)
+    first = _seen(0, 0.0, _scene(1, rng, noise=4.0))
+    assert same_view(first, _seen(1, 0.1, _scene(1, rng, noise=4.0)))  # fresh sensor noise
+    assert same_view(first, _seen(1, 0.1, _scene(1, rng, noise=4.0, gain=0.8)))  # the exposure changed
+    assert not same_view(first, _seen(1, 0.1, _scene(2, rng, noise=4.0)))  # another place
+    assert not same_view(first, _seen(1, 0.1, _scene(1, rng, noise=4.0), yaw=np.radians(3.0)))  # turned on the spot
+    assert not same_view(first, _seen(1, 0.1, _scene(1, rng, noise=4.0), epoch=1))  # another heading zero
+    assert view_signature(np.full((32, 96, 3), 7, np.uint8)) is None  # nothing to compare: a view of its own
+    assert not same_view(first, FrameFeatures(first.frame, first.crop_boxes_px, first.crop_angles_rad,
+                                              first.embeddings, "m"))
+
+
+def test_the_view_clock_stands_still_with_the_vehicle_and_is_the_frames_clock_until_then():
+    from rig.window import ViewClock
+    clock, rng = ViewClock(), np.random.default_rng(1)
+    moving = [clock.stamp(_seen(i, 0.1 * i + 1e-3 * i * i, _scene(10 + i, rng, 3.0))) for i in range(5)]
+    assert [f.t_view_s for f in moving] == [f.frame.t_mono_s for f in moving]  # to the bit
+    assert [f.view_seq for f in moving] == [0, 1, 2, 3, 4]
+    standing = [clock.stamp(_seen(5 + i, 0.5 + 0.1 * i, _scene(99, rng, 3.0))) for i in range(30)]
+    # The view's first MIN_STAND_S (0.5 s) are frames of their own: the vehicle may be creeping.
+    assert [f.view_seq for f in standing[:5]] == [5, 6, 7, 8, 9]
+    assert [f.t_view_s for f in standing[:5]] == [f.frame.t_mono_s for f in standing[:5]]
+    assert {f.view_seq for f in standing[5:]} == {5} and {f.t_view_s for f in standing[5:]} == {0.9}
+    on = clock.stamp(_seen(35, 3.5, _scene(100, rng, 3.0)))
+    assert on.view_seq == 35 and on.t_view_s == pytest.approx(1.0)  # 3.5 s less the 2.5 s stood
+
+
+def _drive_with_a_stop(stop_s: float, fps: float = 10.0):
+    """40 frames driving (a new place each), then ``stop_s`` standing at the last place, pushed
+    through the rig's view clock and ring as the pipeline does: the ring after each frame."""
+    from rig.ring import FrameRing
+    from rig.window import ViewClock
+    clock, ring, rng = ViewClock(), FrameRing(128, 10.0), np.random.default_rng(2)
+    n_stop = int(round(stop_s * fps))
+    for seq in range(40 + n_stop):
+        place = min(seq, 40)
+        ring.push(clock.stamp(_seen(seq, seq / fps, _scene(1000 + place, rng, 3.0), yaw=0.02 * place)))
+    return ring
+
+
+def test_a_window_at_a_standstill_keeps_the_views_from_before_the_stop():
+    # Standing, every frame of the last 4 s showed one view: the window was that view 8 times, and
+    # its estimate no better than one view's (benchmarks/bench_standstill.py), flagged valid.
+    window = SpreadWindowPolicy(8, 4.0).select(_drive_with_a_stop(30.0).snapshot())
+    seqs = [f.frame.seq for f in window]
+    assert len(window) == 8 and seqs[-1] == 40 + 300 - 1  # the newest frame, standing
+    assert all(s < 40 for s in seqs[:-1])  # and 7 views from before the stop
+    assert seqs[0] <= 40 - 30  # spread over the span driven before it
+
+
+def test_a_stop_fills_no_room_in_the_ring_and_ends_after_max_hold():
+    from rig.ring import MAX_HOLD_S
+    ring = _drive_with_a_stop(30.0)
+    held = ring.snapshot()
+    # The view's first 0.5 s (5 frames, frames of their own), and its newest two repeats.
+    assert sum(f.frame.seq >= 40 for f in held) == 7
+    # Stood past MAX_HOLD_S, the views before are too old to hold: the newest view alone.
+    window = SpreadWindowPolicy(8, 4.0).select(_drive_with_a_stop(MAX_HOLD_S + 5.0).snapshot())
+    assert len(window) == 1
