@@ -17,6 +17,27 @@ from rig.errors import ValidationError
 from rig.geometry import view_angles_rad
 from rig.types import Intrinsics
 
+# The most a crop is enlarged from the frame to the model's crop size. The backbone's stem (a
+# stride-2 convolution, then a stride-2 max-pool) reduces a crop 4x before its first stage, so up
+# to 4x that stage still sees about one position per recorded pixel; beyond, it sees interpolation
+# only, not the scene (train refuses such frames; the rig and eval say so: ``enlarged_too_far``).
+MAX_CROP_ENLARGEMENT = 4
+
+
+def enlarged_too_far(intrinsics: Intrinsics, crop_fovs_rad: list[float], crop_size_px: int) -> str | None:
+    """What to say of a camera whose smallest crop (of the angles ``crop_fovs_rad``) is enlarged
+    more than ``MAX_CROP_ENLARGEMENT`` times to ``crop_size_px``: its estimates are not the model's
+    reading of a scene. None when every crop is big enough."""
+    side = min(crop_side_px(intrinsics, fov) for fov in crop_fovs_rad)
+    need = math.ceil(crop_size_px / MAX_CROP_ENLARGEMENT)
+    if side >= need:
+        return None
+    scale = need / side
+    least = f"{math.ceil(intrinsics.width * scale)}x{math.ceil(intrinsics.height * scale)}"
+    return (f"frames of {intrinsics.width}x{intrinsics.height} px give crops of {side} px, enlarged "
+            f"{crop_size_px / side:.1f}x to the model's {crop_size_px} px crops: the network sees interpolation, not "
+            f"the scene, and estimates from them are unreliable; use the camera at {least} px or more")
+
 
 def crop_side_px(intrinsics: Intrinsics, crop_fov_rad: float) -> int:
     """Side in source pixels of a square crop spanning ``crop_fov_rad`` around the optical axis.

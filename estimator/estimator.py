@@ -16,6 +16,7 @@ Aggregators (all behind :meth:`SunEstimator.estimate`):
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -37,6 +38,7 @@ from estimator.crops import (
     crop_side_px,
     crops_per_scale,
     cut_crops,
+    enlarged_too_far,
     frame_rng,
     sample_crop_boxes,
     spread_crop_boxes,
@@ -45,8 +47,10 @@ from estimator.meanshift import meanshift_aggregate
 from rig.errors import ValidationError
 from rig.geometry import wrap_pi
 from rig.protocol import StatusRule
-from rig.types import Frame, FrameFeatures, HeadingRef, SunEstimate
+from rig.types import Frame, FrameFeatures, HeadingRef, Intrinsics, SunEstimate
 from rig.window import view_signature
+
+log = logging.getLogger(__name__)
 
 AGGREGATORS = ("transformer", "mean", "meanshift", "single")
 # How a frame's crops are placed: "spread" (default) one per horizontal stratum, "uniform" the
@@ -189,6 +193,7 @@ class SunEstimator:
         self.crops_per_fov = [(fov, n) for fov, n in zip(fovs_rad, crops_per_scale(self.crops_per_frame, len(fovs_rad)),
                                                          strict=True) if n]
         self.frames_per_window = int(contract.frames_per_window)
+        self._intrinsics_checked: Intrinsics | None = None  # the camera last checked for crops too small
 
     def status_rule(self) -> StatusRule:
         """When the rig calls this model's estimates valid: a full window of its frames, and a
@@ -201,6 +206,11 @@ class SunEstimator:
         # Each crop angle lays out its own crops (spread across the frame among themselves), the
         # first angle first, all from the frame's one generator: a single-angle model draws exactly
         # what it always did.
+        if frame.intrinsics != self._intrinsics_checked:  # once a camera: a change of camera is said again
+            self._intrinsics_checked = frame.intrinsics
+            too_far = enlarged_too_far(frame.intrinsics, [fov for fov, _ in self.crops_per_fov], self.crop_size_px)
+            if too_far is not None:
+                log.warning("%s", too_far)
         rng = frame_rng(self.seed, frame.seq)
         boxes = np.concatenate([self.sample_boxes(frame.intrinsics, n, crop_side_px(frame.intrinsics, fov), rng)
                                 for fov, n in self.crops_per_fov])

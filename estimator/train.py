@@ -70,7 +70,7 @@ from estimator.contract import (
     input_affine,
     is_crop_fov_deg,
 )
-from estimator.crops import crop_side_px, crops_per_scale
+from estimator.crops import MAX_CROP_ENLARGEMENT, crop_side_px, crops_per_scale
 from estimator.recipe import TrainConfig, data_fingerprint
 from rig.errors import ContractMismatch, SunrigError, ValidationError, require_torch
 from rig.files import check_folder_writable, folder_lock, make_output_folder, sync_to_disk, write_replacing
@@ -161,12 +161,9 @@ def trainable(frame: Frame) -> bool:
     return has_true_heading and frame.sun_enu_truth is not None
 
 
-# The most a crop is enlarged from the frame to the preset's crop size. The backbone's stem (a
-# stride-2 convolution, then a stride-2 max-pool) reduces a crop 4x before its first stage, so up
-# to 4x that stage still sees about one position per recorded pixel; beyond, it sees interpolation
-# only, and every frame is stored over 16x its recorded size (--crop-fov 0.1 on a KITTI frame is
-# one pixel, enlarged 96x to the fast preset's crops: 12 GB a frame).
-MAX_CROP_ENLARGEMENT = 4
+# MAX_CROP_ENLARGEMENT (estimator/crops.py): beyond it a crop is interpolation to the network, and
+# every frame is stored over 16x its recorded size (--crop-fov 0.1 on a KITTI frame is one pixel,
+# enlarged 96x to the fast preset's crops: 12 GB a frame).
 
 
 def _check_crop_span(frame: Frame, name: str, crop_size: int, crop_fov_rad: float) -> None:

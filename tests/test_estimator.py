@@ -353,3 +353,22 @@ def test_the_mirrored_run_takes_other_crops_view_angles_when_given_and_the_plain
     other = mirrored_joint_runs(model, tokens, window, tokens.angles_rad[:, 1:] + np.float32(0.2))
     np.testing.assert_allclose(other[0], plain, atol=1e-6)
     assert np.max(np.degrees(angle_between(other[1], mirrored))) > 0.1
+
+
+def test_frames_too_small_for_the_models_crops_are_said_once_per_camera(model, caplog):
+    # Train refuses a camera whose crops would be enlarged more than 4x to the model's crop size
+    # (the network sees interpolation, not the scene); eval and the rig took it without a word, and
+    # a 75x22 px camera's fine-tune was graded 52.8 deg off as though it were a result.
+    est = SunEstimator(model)
+    size = est.crop_size_px
+    tiny = Intrinsics(fx=30.0, fy=30.0, cx=4.0, cy=2.0, width=8, height=5)
+    with caplog.at_level("WARNING", logger="estimator"):
+        est.encode_batch(make_frames(2))  # the test camera: crops big enough
+        assert not caplog.records
+        for seq in range(3):
+            est.encode(Frame(t_mono_s=seq, seq=seq, image_bgr=np.zeros((5, 8, 3), np.uint8), intrinsics=tiny,
+                             attitude=Attitude(0.0, HeadingRef.TRUE)))
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1, said
+    assert said[0].startswith("frames of 8x5 px give crops of ") and f"the model's {size} px crops" in said[0]
+    assert "use the camera at" in said[0]
