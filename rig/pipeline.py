@@ -145,13 +145,19 @@ class RigStats:
         rate = self.estimates / max(now_s - self.started_s, 1e-9)
         lat_text = f"latency p50 {lat['p50_ms']:.0f} ms p99 {lat['p99_ms']:.0f} ms" if lat else "latency -"
         pub_drops, pub_errors = publisher_losses(self.publishers.values())
+        # Each output that lost some, by name: a sum alone does not say which to look at.
+        losses = {name: publisher_losses([st]) for name, st in self.publishers.items()}
+        drops_by = ", ".join(f"{name} {d}" for name, (d, _) in losses.items() if d)
+        errors_by = ", ".join(f"{name} {e}" for name, (_, e) in losses.items() if e)
         status = f" | status errors {self.status_errors}" if self.status_errors else ""
         stale = f" ({self.estimates_stale} of them too late to send)" if self.estimates_stale else ""
         return (f"frames {self.frames_captured} (dropped {self.frames_dropped_queue}, no heading "
                 f"{self.frames_without_heading}, bad exposure {self.frames_bad_exposure}, out of order "
                 f"{self.frames_out_of_order}, clock jumps {self.clock_jumps}) | estimates "
                 f"{self.estimates} at {rate:.1f} Hz, skipped {self.windows_skipped}, failed "
-                f"{self.estimates_failed}{stale} | {lat_text} | publish drops {pub_drops}, errors {pub_errors}{status}")
+                f"{self.estimates_failed}{stale} | {lat_text} | publish drops {pub_drops}"
+                f"{f' ({drops_by})' if drops_by else ''}, errors {pub_errors}{f' ({errors_by})' if errors_by else ''}"
+                f"{status}")
 
 
 def publisher_losses(stats: Iterable[dict]) -> tuple[int, int]:

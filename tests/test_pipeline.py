@@ -391,7 +391,12 @@ def test_the_status_line_counts_every_kind_of_publisher_loss():
                             "raised": 1},
         "RecorderPublisher": {"written": 5, "dropped": 1, "errors": 2},
     }
-    assert stats.status_line(1.0).endswith("publish drops 6, errors 7")
+    # Each output named with its own: a recorder on a full disk and a serial link that went down
+    # were one sum, and a journal could not tell which to look at.
+    assert stats.status_line(1.0).endswith("publish drops 6 (SerialPublisher 5, RecorderPublisher 1), "
+                                           "errors 7 (SerialPublisher 5, RecorderPublisher 2)")
+    stats.publishers = {"SerialPublisher": {"written": 3}, "JsonlPublisher": {"written": 3}}
+    assert stats.status_line(1.0).endswith("publish drops 0, errors 0")
 
 
 def test_live_counts_late_frames_and_failed_windows(model):
