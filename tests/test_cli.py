@@ -2050,31 +2050,9 @@ def test_the_rigs_own_event_lines_reach_stderr_and_other_libraries_info_does_not
 def test_the_live_status_on_a_narrow_terminal_is_whole_lines_not_wrapped_redraws(tiny_model_dir):
     # The status line (about 200 characters) redrawn in place on an 80-column terminal wrapped, and
     # "\r" went back to its last row only: each redraw left the rows above it behind.
-    import fcntl
-    import select
-    import struct
-    import termios
-
-    master, slave = os.openpty()
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "demo", "--model", str(tiny_model_dir)],
-                            stdout=subprocess.DEVNULL, stderr=slave, env=dict(os.environ, PYTHONWARNINGS="ignore"))
-    os.close(slave)
-    err = b""
-    while True:
-        if select.select([master], [], [], 60)[0]:
-            try:
-                chunk = os.read(master, 65536)
-            except OSError:  # the pty's other end closed: the rig is done
-                break
-            if not chunk:
-                break
-            err += chunk
-        elif proc.poll() is not None:
-            break
-    os.close(master)
-    assert proc.wait(timeout=60) == 0
-    text = err.decode().replace("\r\n", "\n")  # the pty's own line ending
+    rc, raw = _run_on_pty(["demo", "--model", str(tiny_model_dir)], columns=80)
+    assert rc == 0
+    text = raw.replace("\r\n", "\n")  # the pty's own line ending
     drawn = [seg.split("\x1b[K")[0] for seg in text.split("\r") if "\x1b[K" in seg]
     assert all(len(row) < 80 for row in drawn), drawn
     statuses = [line for line in text.split("\n") if line.startswith("sunrig: frames ")]
