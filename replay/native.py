@@ -482,11 +482,27 @@ def estimate_from_dict(d: dict) -> SunEstimate:
 # Writer
 
 
+@dataclass(frozen=True)
+class LogOnDisk:
+    """How much of a log is on the disk: its first ``size_bytes`` bytes, which end with its last
+    finished chunk (or, once closed, its footer) and replay as ``frames`` frames and ``estimates``
+    estimates. ``size_bytes`` 0: no chunk has been finished yet, the log holds nothing.
+
+    "On the disk" is synced (``fsync``) in a file the writer opened; handed to the OS in one that
+    cannot sync (a device); flushed to the stream for a stream handed in, which its owner syncs.
+    """
+
+    size_bytes: int
+    frames: int
+    estimates: int
+
+
 class LogWriter:
     """Writes Frames and SunEstimates to a native (MCAP) log. A context manager; ``close()`` is
     idempotent and writes the summary that makes the file indexed. A writer never closed (a killed
     process) still leaves a log that replays up to its last finished chunk; so does a power cut,
-    as each finished chunk of a file it opened is synced to the disk.
+    as each finished chunk of a file it opened is synced to the disk. :attr:`on_disk` says how far
+    that is.
 
     ``target`` is a path or a binary stream with ``write``/``tell``/``flush`` (left open on close).
     ``chunk_size`` is the uncompressed bytes per chunk: the most a kill can lose. ``exclusive``:
@@ -568,8 +584,9 @@ class LogWriter:
         self._last_intrinsics: Intrinsics | None = None
         self._calibration_in_chunk = False
         self._closed = False
-        self.frames_written = 0
+        self.frames_written = 0  # handed to the writer, those in the chunk in progress too
         self.estimates_written = 0
+        self._on_disk = LogOnDisk(0, 0, 0)
 
     # -- public
 
@@ -637,6 +654,7 @@ class LogWriter:
             self._mcap.finish()
             self._file.flush()
             self._sync()
+            self._on_disk = LogOnDisk(self._file.tell(), self.frames_written, self.estimates_written)
         finally:
             if self._owns_file:
                 self._file.close()
@@ -646,6 +664,13 @@ class LogWriter:
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def on_disk(self) -> LogOnDisk:
+        """What of the log is on the disk: where its last finished and synced chunk ends and the
+        frames and estimates up to there. A write that raised (a full disk) leaves it as it was: a
+        file cut back to ``on_disk.size_bytes`` replays what it counts."""
+        return self._on_disk
 
     def __enter__(self) -> LogWriter:
         return self
@@ -691,8 +716,12 @@ class LogWriter:
             self._end_chunk()
 
     def _end_chunk(self) -> None:
+        chunk = self._chunk_bytes > 0  # mcap writes no chunk without messages
         self._mcap.flush()  # finishes the chunk, writes it and its index, flushes the stream
         self._sync()
+        if chunk:
+            # Chunks end only between items, so every item handed in so far is in one.
+            self._on_disk = LogOnDisk(self._file.tell(), self.frames_written, self.estimates_written)
         self._chunk_bytes = 0
         self._calibration_in_chunk = False
 

@@ -577,6 +577,49 @@ def test_a_log_written_to_a_device_that_cannot_sync_is_written(tmp_path):
     assert w.frames_written == 6
 
 
+def test_the_writer_says_how_much_of_its_log_is_on_the_disk(tmp_path, monkeypatch):
+    # The recorder worked out what a full disk left of a recording from the file's size after each
+    # write, as the writer did not say: the end of its last finished and synced chunk, and the
+    # frames and estimates before it.
+    from tests.test_protocol import make_estimate
+
+    synced: list[int] = []  # the log's size at each fsync of it
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        if stat.S_ISREG(os.fstat(fd).st_mode):
+            synced.append(os.fstat(fd).st_size)
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    path = tmp_path / "growing.mcap"
+    w = LogWriter(path, chunk_size=2500)
+    assert w.on_disk == native.LogOnDisk(size_bytes=0, frames=0, estimates=0)  # the header is not synced
+    reported, cuts = [w.on_disk], [b""]
+    for i, f in enumerate(make_frames(12)):
+        w.write_frame(f, jpeg_quality=95)
+        if i % 4 == 1:
+            w.write_estimate(make_estimate(10.0, 20.0, seq=f.seq))
+        if w.on_disk not in reported:
+            reported.append(w.on_disk)
+            cuts.append(path.read_bytes()[: w.on_disk.size_bytes])
+    before = w.on_disk
+    w.write_estimate(make_estimate(10.0, 20.0, seq=99))
+    assert w.on_disk == before  # the chunk in progress is not on the disk
+    w.flush()
+    assert w.on_disk == native.LogOnDisk(path.stat().st_size, 12, 4) and synced[-1] == path.stat().st_size
+    monkeypatch.undo()
+    assert len(reported) > 4
+    for on_disk, blob in zip(reported[1:], cuts[1:], strict=True):
+        assert on_disk.size_bytes in synced
+        cut = tmp_path / f"cut{on_disk.size_bytes}.mcap"
+        cut.write_bytes(blob)
+        assert len(list(read_frames(cut))) == on_disk.frames, on_disk
+        assert len(list(read_estimates(cut))) == on_disk.estimates, on_disk
+    w.close()
+    assert w.on_disk == native.LogOnDisk(path.stat().st_size, 12, 4)  # the summary too
+
+
 # ---------------------------------------------------------------------------------------------
 # Corrupt messages and chunks
 
