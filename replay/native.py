@@ -27,6 +27,7 @@ import json
 import logging
 import math
 import os
+import stat
 import struct
 import sys
 from collections.abc import Iterator, Mapping
@@ -502,7 +503,8 @@ class LogWriter:
     idempotent and writes the summary that makes the file indexed. A writer never closed (a killed
     process) still leaves a log that replays up to its last finished chunk; so does a power cut,
     as each finished chunk of a file it opened is synced to the disk. :attr:`on_disk` says how far
-    that is.
+    that is; after a write that raised (a full disk), :meth:`abandon` closes the log at that point
+    instead of ``close()``.
 
     ``target`` is a path or a binary stream with ``write``/``tell``/``flush`` (left open on close).
     ``chunk_size`` is the uncompressed bytes per chunk: the most a kill can lose. ``exclusive``:
@@ -661,6 +663,39 @@ class LogWriter:
             elif self._detach:
                 self._file.detach()  # type: ignore[attr-defined] # leave the caller's stream open
 
+    def abandon(self) -> None:
+        """Close the log without its summary and footer, keeping what :attr:`on_disk` counts and
+        nothing after it: for after a write that raised (a full disk). That write left part of a
+        chunk in the file, which a summary cannot index, and a summary written behind it once space
+        was freed replays as a damaged record. A file the writer opened is cut back to
+        ``on_disk.size_bytes`` and synced (to 0 bytes when no chunk was finished: removing it is the
+        caller's choice); a stream handed in is left as it is, for its owner to cut back. The log
+        then replays as one not closed. Idempotent; after :meth:`close`, nothing to do."""
+        if self._closed:
+            return
+        self._closed = True
+        if not self._owns_file:
+            if self._detach:
+                try:
+                    self._file.detach()  # type: ignore[attr-defined] # leave the caller's stream open
+                except OSError:
+                    pass  # its buffer did not fit either: the stream has what it took
+            return
+        # A second descriptor, to cut the file back after closing the first: closing writes out
+        # what its buffer still holds (or fails to, on a full disk), and that goes too.
+        fd = os.dup(self._file.fileno())
+        try:
+            try:
+                self._file.close()
+            except OSError:
+                pass  # the disk had no room for the buffer: it is cut off with the rest
+            if stat.S_ISREG(os.fstat(fd).st_mode):  # a device (/dev/full) has nothing to cut
+                os.ftruncate(fd, self._on_disk.size_bytes)
+                if self._sync_file:
+                    _fsync(fd)
+        finally:
+            os.close(fd)
+
     @property
     def closed(self) -> bool:
         return self._closed
@@ -732,13 +767,7 @@ class LogWriter:
         may be a pipe or a buffer, which its owner syncs if it can."""
         if not self._sync_file:
             return
-        try:
-            os.fsync(self._file.fileno())
-        except OSError as exc:
-            # A device or pipe (--out /dev/null) and some file systems cannot sync: nothing to
-            # keep there. A disk that failed to write (EIO) is raised as any write error.
-            if exc.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
-                raise
+        if not _fsync(self._file.fileno()):
             self._sync_file = False
             return
         if not self._folder_synced and self.path is not None:
@@ -746,6 +775,19 @@ class LogWriter:
             # first seconds of a recording can lose the file, its synced chunks with it. Once.
             self._folder_synced = True
             sync_to_disk(self.path.absolute().parent)
+
+
+def _fsync(fd: int) -> bool:
+    """Sync a file to the disk; False when it cannot be synced. A device or pipe (--out /dev/null)
+    and some file systems cannot: nothing to keep there. A disk that failed to write (EIO) is
+    raised as any write error."""
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+            raise
+        return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import base64
 import dataclasses
+import errno
 import io
 import json
 import logging
@@ -618,6 +619,93 @@ def test_the_writer_says_how_much_of_its_log_is_on_the_disk(tmp_path, monkeypatc
         assert len(list(read_estimates(cut))) == on_disk.estimates, on_disk
     w.close()
     assert w.on_disk == native.LogOnDisk(path.stat().st_size, 12, 4)  # the summary too
+
+
+class _SmallDisk(io.FileIO):
+    """FAKE file system of ``free`` bytes for the file it opens: as Linux writes to a full disk, a
+    write that does not fit writes what fits and the next one fails with ENOSPC."""
+
+    free = 0
+
+    def write(self, b) -> int:
+        data = bytes(b)
+        if data and _SmallDisk.free <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = super().write(data[:_SmallDisk.free])
+        _SmallDisk.free -= n
+        return n
+
+
+@pytest.fixture
+def small_disk(monkeypatch) -> type[_SmallDisk]:
+    """Every log a LogWriter opens is on a _SmallDisk; set ``free`` before the log is made."""
+
+    def fake_open(file, mode="r", *args, **kwargs):
+        if "w" not in mode and "x" not in mode:
+            return open(file, mode, *args, **kwargs)
+        return io.BufferedWriter(_SmallDisk(file, mode.replace("b", "")))
+
+    monkeypatch.setattr(native, "open", fake_open, raising=False)
+    monkeypatch.setattr(_SmallDisk, "free", 10**9)
+    return _SmallDisk
+
+
+@pytest.mark.parametrize("freed", [False, True])
+def test_a_log_whose_disk_filled_is_abandoned_at_its_last_synced_chunk(tmp_path, small_disk, caplog, freed):
+    # After a write the disk had no room for, close() still wrote the summary and footer, behind
+    # the part chunk, when space had been freed since (and failed when not): the recorder then cut
+    # the file back itself. abandon() writes neither and keeps only what on_disk counts.
+    from tests.test_protocol import make_estimate
+
+    path = tmp_path / "filled.mcap"
+    w = LogWriter(path, chunk_size=1)  # a chunk per estimate
+    for seq in range(3):
+        w.write_estimate(make_estimate(10.0, 20.0, seq=seq))
+    small_disk.free = 40  # the start of the next chunk fits
+    with pytest.raises(OSError, match="No space left"):
+        for seq in range(3, 10):
+            w.write_estimate(make_estimate(10.0, 20.0, seq=seq))
+    kept = w.on_disk
+    assert (kept.frames, kept.estimates) == (0, 3) and path.stat().st_size > kept.size_bytes
+    if freed:
+        small_disk.free = 10**9
+    w.abandon()
+    w.abandon()
+    assert w.closed and w.on_disk == kept
+    assert path.stat().st_size == kept.size_bytes
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        assert [d["seq"] for d in read_estimates(path)] == [0, 1, 2]
+    assert not [r for r in caplog.records if "damaged" in r.getMessage() or "corrupt" in r.getMessage()]
+    with pytest.raises(LogError, match="closed"):
+        w.write_estimate(make_estimate(10.0, 20.0, seq=11))
+
+
+def test_an_abandoned_log_keeps_its_finished_chunks_and_drops_the_one_in_progress(tmp_path):
+    frames = make_frames(12)
+    path = tmp_path / "abandoned.mcap"
+    w = LogWriter(path, chunk_size=2500)
+    for f in frames:
+        w.write_frame(f, jpeg_quality=95)
+        if w.on_disk.frames > 3 and w.on_disk.frames < w.frames_written:
+            break  # a chunk in progress
+    kept = w.on_disk
+    assert 0 < kept.frames < w.frames_written
+    w.abandon()
+    w.close()  # closed already: no summary after all
+    assert path.stat().st_size == kept.size_bytes
+    src = open_log(path)
+    assert len(list(src)) == kept.frames and src.truncated
+    empty = LogWriter(tmp_path / "empty.mcap")
+    empty.write_frame(frames[0])
+    empty.abandon()  # no chunk finished: nothing kept, the file is the caller's to remove
+    assert empty.on_disk.size_bytes == 0 and (tmp_path / "empty.mcap").stat().st_size == 0
+    stream = io.BytesIO()
+    w = LogWriter(stream, chunk_size=2500)
+    for f in frames:
+        w.write_frame(f, jpeg_quality=95)
+    held = stream.getvalue()
+    w.abandon()
+    assert not stream.closed and stream.getvalue() == held  # the owner's to cut back
 
 
 # ---------------------------------------------------------------------------------------------
