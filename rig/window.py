@@ -68,10 +68,10 @@ SAME_VIEW_MAX_RMS = 0.05
 # A heading this far from the view's first frame's is a new view, whatever the image (a turn on the
 # spot, which a blank scene would not show).
 SAME_VIEW_MAX_TURN_RAD = math.radians(2.0)
-# How long a view must have lasted before a frame showing it again is a repeat: a vehicle standing.
+# How long a view must have lasted before the time it goes on being shown is time stood still.
 # Driving, even slowly or with a fast camera, the view has changed past SAME_VIEW_MAX_RMS well before
-# (the held-out drives' nearest frames 0.1 s apart differ by 0.078), so frames in motion stay views
-# of their own, at their own times, whatever the camera's rate.
+# (the held-out drives' nearest frames 0.1 s apart differ by 0.078), so the frames of a fast
+# camera that show one view for a moment keep their own times.
 MIN_STAND_S = 0.5
 
 
@@ -105,10 +105,10 @@ def same_view(first: FrameFeatures, other: FrameFeatures) -> bool:
 
 class ViewClock:
     """Stamps the frames of one stream, in order, with their view and view time: a frame that shows
-    the view of the frame that began it (:func:`same_view`), ``MIN_STAND_S`` or more after it, is a
-    repeat of it (``view_seq`` that frame's seq) and the time since the frame before it is time
-    stood still; ``t_view_s`` is the frame's time less all the time stood still so far. Until the
-    vehicle first stands, that is the frame's own time, to the bit."""
+    the view of the frame that began it (:func:`same_view`) is a repeat of it (``view_seq`` that
+    frame's seq), and from ``MIN_STAND_S`` after that frame on, the time since the frame before it
+    is time stood still; ``t_view_s`` is the frame's time less all the time stood still so far.
+    Until the vehicle first stands, that is the frame's own time, to the bit."""
 
     def __init__(self) -> None:
         self._first: FrameFeatures | None = None  # the first frame of the view now shown
@@ -125,15 +125,15 @@ class ViewClock:
                 self.stood_s += max(t_s - last_t_s, 0.0)  # a clock that stepped back stood no time
                 # The view time stands still: the frame before's, exactly (not t_s - stood_s, rounded).
                 return dataclasses.replace(feats, t_view_s=self._last_view_s, view_seq=first.frame.seq)
-            # Too soon to tell standing from creeping: a frame of its own, the view's first still first.
-            return self._own(feats)
-        self._first = self._own(feats)
+            # Too soon to tell standing from a moment of a fast camera: time goes on, the view is one.
+            return self._stamp(feats, first.frame.seq)
+        self._first = self._stamp(feats, feats.frame.seq)
         return self._first
 
-    def _own(self, feats: FrameFeatures) -> FrameFeatures:
-        """``feats`` stamped as a view of its own."""
+    def _stamp(self, feats: FrameFeatures, view_seq: int) -> FrameFeatures:
+        """``feats`` stamped with its own time, less the time stood still so far."""
         self._last_view_s = feats.frame.t_mono_s - self.stood_s
-        return dataclasses.replace(feats, t_view_s=self._last_view_s, view_seq=feats.frame.seq)
+        return dataclasses.replace(feats, t_view_s=self._last_view_s, view_seq=view_seq)
 
 
 def one_per_view(frames: Sequence[T]) -> list[T]:

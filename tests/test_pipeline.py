@@ -1114,7 +1114,7 @@ def test_a_vehicle_standing_still_keeps_the_views_from_before_the_stop(model):
     pipe, stats = run_pipeline(drive(), est, [pub], queue_size=200)  # every frame encoded and held
     assert stats.frames_encoded == 170
     held = [f.frame.seq for f in pipe.ring.snapshot()]
-    # The 20 views driven, the standing view's first 0.5 s, and its newest two repeats.
-    assert held[:20] == list(range(20)) and len(held) == 20 + 5 + 2
+    # The 20 views driven, the standing view's first frame, and its newest two repeats.
+    assert held[:20] == list(range(20)) and len(held) == 20 + 1 + 2
     last = pub.estimates[-1]
     assert last.seq == 169 and last.n_frames == 8
