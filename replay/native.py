@@ -1235,6 +1235,8 @@ def _framed_records(f: IO[bytes], size: int) -> Iterator[Any]:
     read_magic(ReadDataStream(f))
     while True:
         head = f.read(9)
+        if not head:
+            raise _EndAfterRecord()  # no DataEnd, and no part of a record: a log never closed
         if len(head) < 9:
             raise EndOfFile()  # no DataEnd: the log was cut off
         opcode, length = struct.unpack("<BQ", head)
@@ -1252,6 +1254,10 @@ def _framed_records(f: IO[bytes], size: int) -> Iterator[Any]:
             yield kind.read(ReadDataStream(io.BytesIO(body)))
 
 
+class _EndAfterRecord(EndOfFile):
+    """The bytes end where a record ends, before the data section's end: a log not closed."""
+
+
 @dataclass(frozen=True)
 class _ChunkBody:
     body: bytes
@@ -1260,9 +1266,10 @@ class _ChunkBody:
         return Chunk.read(ReadDataStream(io.BytesIO(self.body)))
 
 
-def _warn_cut(f: IO[bytes], size: int, name: str, what: str) -> None:
-    """Say that a log ends in a record cut short: cut off mid-write, or still being written (it
-    has grown since it was opened: a recording in progress)."""
+def _warn_cut(f: IO[bytes], size: int, name: str, what: str | None) -> None:
+    """Say that a log ends early: in a record cut short (``what`` says which), after a complete
+    record without its summary (``what`` None: a recording not closed), or because it is still
+    being written (it has grown since it was opened: a recording in progress)."""
     try:
         now = os.fstat(f.fileno()).st_size
     except (OSError, AttributeError, io.UnsupportedOperation):  # not a file: cannot grow under us
@@ -1271,6 +1278,10 @@ def _warn_cut(f: IO[bytes], size: int, name: str, what: str) -> None:
         logger.warning("%s: the log is still being written (it grew from %d bytes while it was read); replayed "
                        "the complete chunks of its first %d bytes: replay it again when the recording has ended",
                        name, size, size)
+    elif what is None:
+        logger.warning("%s: the log ends after a complete record, at byte %d, without its summary: a recording "
+                       "that was not closed (killed, its power cut, or cut back after a full disk); replayed all "
+                       "it holds", name, size)
     else:
         logger.warning("%s: the log is cut off mid-write (%s, at byte %d); replayed what came before",
                        name, what, size)
@@ -1297,7 +1308,9 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
             stats.truncated = True
             stats.bytes_read = f.tell()
             if warn:
-                if stats.bytes_read >= size:  # the reader stopped at the file's end: in a cut record
+                if isinstance(exc, _EndAfterRecord):
+                    _warn_cut(f, size, name, None)
+                elif stats.bytes_read >= size:  # the reader stopped at the file's end: in a cut record
                     _warn_cut(f, size, name, "its last record is incomplete")
                 else:
                     logger.warning("%s: the log ends early at byte %d of %d (a damaged record: %s); replayed "

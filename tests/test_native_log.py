@@ -397,7 +397,7 @@ def test_finished_log_cut_anywhere_replays_a_growing_prefix(tmp_path, caplog):
         if len(got) < len(whole):
             assert src.truncated
             assert any(
-                "ends early" in r.getMessage() or "cut off" in r.getMessage()
+                "ends early" in r.getMessage() or "cut off" in r.getMessage() or "not closed" in r.getMessage()
                 for r in caplog.records
             )
         counts.append(len(got))
@@ -405,6 +405,31 @@ def test_finished_log_cut_anywhere_replays_a_growing_prefix(tmp_path, caplog):
     assert counts[0] < counts[-1]
     # at 50% about half of the frames survive (chunks hold ~2-3 frames here)
     assert 0.3 * len(frames) < counts[len(counts) // 2] < 0.8 * len(frames)
+
+
+def test_a_log_ending_after_a_whole_record_is_said_to_be_unclosed_not_cut_mid_record(tmp_path, caplog):
+    # A file that ends where a record ends (a recording killed, or cut back to its last chunk after
+    # a full disk) was said to be cut off mid-write, "its last record is incomplete": none was.
+    frames = make_frames(12)
+    path = write_log(tmp_path / "full.mcap", frames, chunk_size=2500)
+    with open(path, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    data = path.read_bytes()
+    third = chunks[2].chunk_start_offset + chunks[2].chunk_length + chunks[2].message_index_length
+    said = {}
+    for name, end in (("boundary", third), ("mid-record", third - 30)):
+        cut = tmp_path / f"{name}.mcap"
+        cut.write_bytes(data[:end])
+        src = open_log(cut)
+        with caplog.at_level(logging.WARNING, logger="replay.native"):
+            caplog.clear()
+            got = list(src)
+        assert src.truncated and got
+        (said[name],) = [r.getMessage() for r in caplog.records]
+    assert "\n" not in said["boundary"]
+    assert f"ends after a complete record, at byte {third}, without its summary" in said["boundary"]
+    assert "a recording that was not closed" in said["boundary"] and "incomplete" not in said["boundary"]
+    assert f"cut off mid-write (its last record is incomplete, at byte {third - 30})" in said["mid-record"]
 
 
 def test_a_log_still_being_written_replays_what_it_held_and_says_so(tmp_path, caplog):
@@ -1623,7 +1648,7 @@ def test_a_calibration_written_after_its_image_keeps_the_frame(tmp_path, caplog,
     assert [f.seq for f in frames] == [0, 1, 2] and source.stats.corrupt_skipped == 0
     assert [f.intrinsics.fx for f in frames] == [INTR.fx, INTR.fx, 60.0]
     assert [round(math.degrees(f.attitude.heading_rad), 9) for f in frames] == [0.0, 10.0, 20.0]
-    assert not [r for r in caplog.records if "cut off" not in r.getMessage()], caplog.text
+    assert not [r for r in caplog.records if "not closed" not in r.getMessage()], caplog.text
 
 
 def test_an_image_whose_calibration_never_comes_is_skipped_and_said_with_its_own_seq(tmp_path, caplog):
