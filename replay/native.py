@@ -807,6 +807,7 @@ class LogStats:
     truncated: bool = False  # the log ended early: cut off mid-write, or unframeable after a point
     bytes_read: int = 0  # where the pass stopped
     bytes_total: int = 0
+    zeros_from: int | None = None  # where the zeros it ended in begin (data never written: a power cut)
 
 
 _AUX_DECODERS = {
@@ -1022,9 +1023,15 @@ def _open_log_file(path: Path) -> tuple[IO[bytes], int]:
         f.close()
         raise LogError(f"cannot read {name}: {exc.strerror}; check the file and the disk") from exc
     if head[:8] != MCAP_MAGIC:
+        zeros = _zeros_from(f, size) if size and not head.strip(b"\0") else None
         f.close()
         if size == 0:
-            raise EmptyLogError(name, "it is empty, 0 bytes: the recording never started")
+            # The writer's first write to the file is its first chunk (the header waits for it).
+            raise EmptyLogError(name, "it is empty, 0 bytes: a recording stopped, or its power cut, before its "
+                                      "first chunk was written")
+        if zeros == 0:
+            raise EmptyLogError(name, f"it is {size} bytes of zeros: a recording whose file system had made room "
+                                      "for its data but never wrote it, as at a power cut")
         if MCAP_MAGIC.startswith(head):
             raise EmptyLogError(name, f"it is cut off inside the MCAP magic, {size} bytes")
         what = next((desc for sig, desc in _SIGNATURES if head.startswith(sig)), None)
@@ -1203,6 +1210,10 @@ def _inspect(path: Path) -> _LogInfo:
                     # frame: no need to read further.
                     return info
         if stats.truncated and not seen:
+            if stats.zeros_from is not None:
+                raise EmptyLogError(name, f"an MCAP log that ends in {size - stats.zeros_from} bytes of zeros from "
+                                          f"byte {stats.zeros_from}, before its first complete chunk: data its file "
+                                          "system never wrote, as at a power cut")
             raise EmptyLogError(name, "an MCAP log cut off before its first complete chunk")
         if topics is None:  # no summary vouched for the channels: the data section must have
             if not seen and info.metadata:  # sunrig's own log, closed before its first frame came
@@ -1240,6 +1251,8 @@ def _framed_records(f: IO[bytes], size: int) -> Iterator[Any]:
         if len(head) < 9:
             raise EndOfFile()  # no DataEnd: the log was cut off
         opcode, length = struct.unpack("<BQ", head)
+        if opcode == 0:  # reserved by MCAP: no record has it (zeros, most likely)
+            raise McapError(f"opcode 0x00, which no MCAP record has, at byte {f.tell() - 9}")
         if length > max(size, 1):
             raise RecordLengthLimitExceeded(opcode, length, size)
         body = f.read(length)
@@ -1264,6 +1277,41 @@ class _ChunkBody:
 
     def chunk(self) -> Chunk:
         return Chunk.read(ReadDataStream(io.BytesIO(self.body)))
+
+
+# The shortest run of zeros at a log's end taken for data a file system never wrote. Longer than any
+# run in sunrig's own records (a calibration's five zero distortion doubles, 40 bytes, in a chunk
+# stored uncompressed), so a log merely cut off where its bytes happen to be zeros is not called so.
+_MIN_ZERO_TAIL = 64
+
+
+def _zeros_from(f: IO[bytes], size: int) -> int | None:
+    """Where the run of zero bytes that ends the first ``size`` bytes begins, when it is at least
+    :data:`_MIN_ZERO_TAIL` long, else None. A power cut leaves such a run where a file system had
+    made a file longer (its size on the disk) but never wrote the data there (ext4, XFS). Restores
+    the file's position."""
+    at = f.tell()
+    start = size
+    try:
+        while start > 0:
+            n = min(start, 1 << 16)
+            f.seek(start - n)
+            block = f.read(n)
+            if len(block) < n:  # shrank under us: no answer
+                return None
+            kept = block.rstrip(b"\0")
+            start -= n - len(kept)
+            if kept:
+                break
+    finally:
+        f.seek(at)
+    return start if size - start >= _MIN_ZERO_TAIL else None
+
+
+def _warn_zeros(name: str, size: int, zeros_from: int) -> None:
+    logger.warning("%s: the log ends in %d bytes of zeros from byte %d: data its file system had made room for but "
+                   "never wrote, as at a power cut while it was recorded; replayed the complete chunks before them",
+                   name, size - zeros_from, zeros_from)
 
 
 def _warn_cut(f: IO[bytes], size: int, name: str, what: str | None) -> None:
@@ -1307,7 +1355,12 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
         except _DECODE_ERRORS as exc:
             stats.truncated = True
             stats.bytes_read = f.tell()
-            if warn:
+            zeros = _zeros_from(f, size)
+            if zeros is not None and stats.bytes_read > zeros:  # stopped in them
+                stats.zeros_from = zeros
+                if warn:
+                    _warn_zeros(name, size, zeros)
+            elif warn:
                 if isinstance(exc, _EndAfterRecord):
                     _warn_cut(f, size, name, None)
                 elif stats.bytes_read >= size:  # the reader stopped at the file's end: in a cut record
@@ -1320,6 +1373,13 @@ def _records(f: IO[bytes], stats: LogStats, name: str, *, warn: bool = True) -> 
             try:
                 inner = breakup_chunk(record.chunk(), validate_crc=True)
             except _DECODE_ERRORS as exc:
+                zeros = _zeros_from(f, size)
+                if zeros is not None and f.tell() > zeros:  # the last chunk, its end never written
+                    stats.truncated, stats.zeros_from = True, zeros
+                    stats.bytes_read = f.tell()
+                    if warn:
+                        _warn_zeros(name, size, zeros)
+                    return
                 if f.tell() >= size:  # the last chunk, partly written: a truncation
                     stats.truncated = True
                     stats.bytes_read = f.tell()

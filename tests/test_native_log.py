@@ -432,6 +432,57 @@ def test_a_log_ending_after_a_whole_record_is_said_to_be_unclosed_not_cut_mid_re
     assert f"cut off mid-write (its last record is incomplete, at byte {third - 30})" in said["mid-record"]
 
 
+@pytest.mark.parametrize("zeros", ["at-a-record", "at-a-record-9", "in-a-chunk", "in-a-record-header",
+                                   "from-a-block"])
+def test_a_log_ending_in_zeros_after_a_power_cut_replays_what_it_holds_and_says_so(tmp_path, caplog, zeros):
+    # A file system that had made the file longer but never wrote its data (ext4 after a power
+    # cut) leaves zeros where the last chunk was being written. They were read as records of
+    # opcode 0 (a log "not closed", when they came in nines), or the chunk they cut short as a
+    # corrupt chunk, skipped and counted; what they are was said by none of it.
+    path = write_log(tmp_path / "full.mcap", make_frames(30), chunk_size=2500)
+    with open(path, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    data = path.read_bytes()
+    last = chunks[5]
+    end = last.chunk_start_offset + last.chunk_length + last.message_index_length  # a record ends here
+    start, length = {
+        "at-a-record": (end, 3000),
+        "at-a-record-9": (end, 9 * 333),
+        "in-a-chunk": (chunks[6].chunk_start_offset + 100, chunks[6].chunk_length + 500),
+        "in-a-record-header": (chunks[6].chunk_start_offset + 3, 5000),
+        "from-a-block": ((end // 4096 + 1) * 4096, 4096),
+    }[zeros]
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:start])
+    want = list(read_frames(cut))  # the complete chunks before the zeros
+    zeroed = tmp_path / "zeroed.mcap"
+    zeroed.write_bytes(data[:start] + bytes(length))
+    src = open_log(zeroed)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        got = list(src)
+    assert len(want) >= 10 and src.truncated and src.stats.corrupt_skipped == 0
+    assert_same_frames(got, want)
+    (said,) = [r.getMessage() for r in caplog.records if "zeroed.mcap" in r.getMessage()]
+    z = len(data[:start].rstrip(b"\0"))  # the log's own bytes may end in zeros too (a length's high bytes)
+    assert f"ends in {start + length - z} bytes of zeros from byte {z}" in said and "power cut" in said, said
+    assert "\n" not in said
+
+
+@pytest.mark.parametrize(("content", "needle"), [
+    (b"", "it is empty, 0 bytes: a recording stopped, or its power cut, before its first chunk was written"),
+    (bytes(8192), "it is 8192 bytes of zeros"),
+    (native.MCAP_MAGIC + bytes(4000), "ends in 4000 bytes of zeros from byte 8, before its first complete chunk"),
+], ids=["empty", "zeros", "magic-then-zeros"])
+def test_a_power_cut_recording_that_holds_nothing_is_refused_saying_what_it_is(tmp_path, content, needle):
+    # A file of zeros only was "not an MCAP log (it starts with bytes 00 00 ...)", and an empty one
+    # "the recording never started", of a recording that did start.
+    path = tmp_path / "cut.mcap"
+    path.write_bytes(content)
+    with pytest.raises(EmptyLogError, match="holds no frames") as info:
+        open_log(path)
+    assert needle in str(info.value) and "\n" not in str(info.value)
+
+
 def test_a_log_still_being_written_replays_what_it_held_and_says_so(tmp_path, caplog):
     # A recording in progress, replayed while it grows: the reader read on into chunks written
     # after it opened the file, then said the log was "cut off mid-write" at a byte it had long
