@@ -649,19 +649,31 @@ class LogWriter:
         self._end_chunk()
 
     def close(self) -> None:
+        """Write the chunk in progress, the summary and the footer, and sync them. One the disk
+        has no room for (or any write error) raises, and leaves the log as :meth:`abandon` does:
+        cut back to its last synced chunk, not to the part of a record that fitted."""
         if self._closed:
             return
-        self._closed = True
         try:
             self._mcap.finish()
             self._file.flush()
             self._sync()
-            self._on_disk = LogOnDisk(self._file.tell(), self.frames_written, self.estimates_written)
-        finally:
-            if self._owns_file:
-                self._file.close()
-            elif self._detach:
-                self._file.detach()  # type: ignore[attr-defined] # leave the caller's stream open
+        except OSError:
+            self.abandon()
+            raise
+        except BaseException:
+            self._closed = True
+            self._release_file()
+            raise
+        self._closed = True
+        self._on_disk = LogOnDisk(self._file.tell(), self.frames_written, self.estimates_written)
+        self._release_file()
+
+    def _release_file(self) -> None:
+        if self._owns_file:
+            self._file.close()
+        elif self._detach:
+            self._file.detach()  # type: ignore[attr-defined] # leave the caller's stream open
 
     def abandon(self) -> None:
         """Close the log without its summary and footer, keeping what :attr:`on_disk` counts and

@@ -756,6 +756,29 @@ def test_a_log_whose_disk_filled_is_abandoned_at_its_last_synced_chunk(tmp_path,
         w.write_estimate(make_estimate(10.0, 20.0, seq=11))
 
 
+def test_a_close_the_disk_has_no_room_for_leaves_the_log_at_its_last_synced_chunk(tmp_path, small_disk, caplog):
+    # The chunk in progress and the summary did not fit: close() raised, and left the part of them
+    # that fitted in the file, a record cut short that replays as a log cut off mid-write.
+    from tests.test_protocol import make_estimate
+
+    path = tmp_path / "full-at-close.mcap"
+    w = LogWriter(path, chunk_size=2500)
+    for f in make_frames(11):
+        w.write_frame(f, jpeg_quality=95)
+    kept = w.on_disk
+    assert 0 < kept.frames < 11
+    w.write_estimate(make_estimate(10.0, 20.0, seq=99))
+    small_disk.free = 100
+    with pytest.raises(OSError, match="No space left"):
+        w.close()
+    assert w.closed and w.on_disk == kept and path.stat().st_size == kept.size_bytes
+    src = open_log(path)
+    with caplog.at_level(logging.WARNING, logger="replay.native"):
+        assert len(list(src)) == kept.frames
+    (said,) = [r.getMessage() for r in caplog.records]
+    assert "a recording that was not closed" in said, said
+
+
 def test_an_abandoned_log_keeps_its_finished_chunks_and_drops_the_one_in_progress(tmp_path):
     frames = make_frames(12)
     path = tmp_path / "abandoned.mcap"
