@@ -19,6 +19,18 @@ used: a frame gets no attitude (``None``, counted) when
 - ``ahead``: live, it is stamped after it arrived, so its stamp is not the host's clock (a device
   clock that stepped, a replayed file): the samples at its stamp were measured after it was taken.
 
+A heading sample that is impossible given its neighbours (a glitch: a dual-antenna compass's
+multipath puts one sentence half a turn off, or any wild value) is left out, counted in
+``glitches`` (samples, not frames): one that is more than ``rig.window.MIN_JUMP_RAD`` from the
+sample kept before it and from the sample after it, and by more than that farther from the line
+between them than they are from each other (the heading went out and came back). Interpolated,
+a 1 Hz compass's glitch was a 2 s ramp out and back whose every frame step passed the window's
+jump rule for a turn.
+Whether a sample is one needs the sample after it, so live, a frame whose heading depends on the
+newest sample, when that one jumped, waits for the next (still at most ``max_age_s``). A sample
+with no sample kept before it or none after it (a stream's first and last) cannot be told from a
+heading whose zero moved, and is kept, as is a jump that stays (a zero that moved).
+
 Live, the sample after a frame arrives after the frame, so the stream wrapper holds each frame
 until its heading is known (in a bounded buffer): this delays frames by up to one heading
 interval. The wait is counted from the frame's stamp, which is no later than its arrival (a
@@ -35,6 +47,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import logging
 import math
 import time
 from collections import deque
@@ -45,7 +58,11 @@ from typing import Any
 from drivers.nmea import HeadingSample, suspended_between
 from rig.errors import ValidationError
 from rig.geometry import wrap_pi
+from rig.lasting import EventThrottle
 from rig.types import Attitude, Frame, HeadingRef
+from rig.window import MIN_JUMP_RAD
+
+log = logging.getLogger(__name__)
 
 # The default gap covers a 1 Hz GNSS compass that misses one sentence now and then; the default
 # age lets a frame wait for the next of those sentences (plus its transmit time and jitter).
@@ -53,9 +70,23 @@ DEFAULT_MAX_GAP_S = 1.5
 DEFAULT_MAX_AGE_S = 1.5
 
 FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed", "ahead")
+# How many samples before a frame's are judged again for glitches at each lookup: a glitch's
+# verdict depends on the sample kept before it, so on the verdicts before; a few suffice (a run of
+# samples that each jump is no glitch of one sample), and the history (512) is not judged each frame.
+_GLITCH_LOOKBACK = 4
 # Which heading a frame takes where a source gives several references (HeadingRef.RELATIVE last:
 # its zero is the source's start, not north).
 _PREFERENCE = (HeadingRef.TRUE, HeadingRef.MAGNETIC, HeadingRef.RELATIVE)
+
+
+@dataclass(frozen=True)
+class Glitch:
+    """A heading sample left out: the sample (``t_mono_s`` on its own stamp), its turn away from the
+    sample kept before it (rad, signed) and the time between them (s)."""
+
+    t_mono_s: float
+    turn_rad: float
+    dt_s: float
 
 
 @dataclass(frozen=True)
@@ -75,7 +106,8 @@ class HeadingInterpolator:
     latency; older frames without one are stale. ``latency_s``: subtracted from every sample time
     (and so from the time a frame has waited).
     ``counts``: how many lookups ended in each status of :data:`FINAL` (``count=False`` lookups
-    and pending ones are not counted).
+    and pending ones are not counted). ``glitches``: how many samples were left out as glitches
+    (each once, whatever lookups judged it), the newest ``last_glitch``.
     """
 
     def __init__(self, max_gap_s: float = DEFAULT_MAX_GAP_S, max_age_s: float = DEFAULT_MAX_AGE_S,
@@ -90,6 +122,9 @@ class HeadingInterpolator:
         self.max_age_s = float(max_age_s)
         self.latency_s = float(latency_s)
         self.counts = dict.fromkeys(FINAL, 0)
+        self.glitches = 0
+        self.last_glitch: Glitch | None = None
+        self._newest_glitch_s: dict[HeadingRef, float] = {}  # of each reference: counted up to this stamp
 
     def lookup(self, samples: Sequence[HeadingSample], t_mono_s: float, now_s: float | None = None, *,
                arrived_s: float | None = None, count: bool = True) -> Lookup:
@@ -138,6 +173,13 @@ class HeadingInterpolator:
         if not times or t < times[0]:
             return Lookup(None, "before")
         i = bisect.bisect_left(times, t)
+        samples, times, doubtful = self._without_glitches(samples, times, i, now_s)
+        i = bisect.bisect_left(times, t)
+        if doubtful and i >= len(times) - 1 and now_s is not None and (now_s - self.latency_s) - t <= self.max_age_s:
+            # Its heading comes from the newest sample, which jumped: a glitch if the next comes back.
+            # Waited for up to max_age_s as for any sample after a frame; after that it goes as it
+            # would without the check, that sample taken as it is.
+            return Lookup(None, "pending")
         if i < len(times) and times[i] == t:
             return Lookup(samples[i].attitude(), "exact")
         if i == len(times):
@@ -158,6 +200,80 @@ class HeadingInterpolator:
         if s0.reference != s1.reference:
             return Lookup(None, "mixed")
         return Lookup(interpolate(s0, s1, (t - t0) / (t1 - t0)), "interpolated")
+
+    def _without_glitches(self, samples: Sequence[HeadingSample], times: list[float], i: int,
+                          now_s: float | None) -> tuple[Sequence[HeadingSample], list[float], bool]:
+        """``samples`` (with their ``times``) less the glitches among those around index ``i`` (from
+        ``_GLITCH_LOOKBACK`` before it to two after it), and whether the newest sample may still
+        turn out to be one (live: it jumped from the sample before, and the next may come back)."""
+        start, end = max(0, i - _GLITCH_LOOKBACK), min(len(samples), i + 3)
+        kept = list(range(start))
+        doubtful = False
+        for j in range(start, end):
+            if not kept or kept[-1] < start:
+                kept.append(j)  # nothing judged before it: taken as it is
+                continue
+            p = kept[-1]
+            if j + 1 < len(samples):
+                if self._is_glitch(samples, times, p, j, j + 1):
+                    self._count_glitch(samples[j], samples[p], times[j] - times[p])
+                    continue
+            elif now_s is not None and self._jumped(samples, times, p, j) \
+                    and (now_s - self.latency_s) - times[j] <= self.max_gap_s:
+                doubtful = True  # the next sample may come back, close enough to it to say so
+            kept.append(j)
+        if len(kept) == end:
+            return samples, times, doubtful  # none left out: as they were
+        kept.extend(range(end, len(samples)))
+        return [samples[k] for k in kept], [times[k] for k in kept], doubtful
+
+    def _neighbours(self, samples: Sequence[HeadingSample], times: list[float], a: int, b: int) -> bool:
+        """Whether samples ``a`` and ``b`` (a before b) are neighbours the interpolation would pair:
+        one reference, at most ``max_gap_s`` apart, and no suspend of the host between them."""
+        sa, sb = samples[a], samples[b]
+        return (sa.reference is sb.reference and times[b] - times[a] <= self.max_gap_s
+                and not suspended_between(sa.boot_offset_s, sb.boot_offset_s))
+
+    def _jumped(self, samples: Sequence[HeadingSample], times: list[float], p: int, g: int) -> bool:
+        """Whether sample ``g`` turned more than ``MIN_JUMP_RAD`` from its neighbour ``p`` before it:
+        it may be a glitch, told by the sample after it."""
+        turn_rad = abs(math.remainder(samples[g].heading_rad - samples[p].heading_rad, math.tau))
+        return self._neighbours(samples, times, p, g) and turn_rad > MIN_JUMP_RAD
+
+    def _is_glitch(self, samples: Sequence[HeadingSample], times: list[float], p: int, g: int, n: int) -> bool:
+        """Whether sample ``g`` is impossible given the sample ``p`` kept before it and the sample
+        ``n`` after it: more than ``MIN_JUMP_RAD`` from each, and more than that farther from the line
+        between them (their headings interpolated to its time) than they are from each other.
+
+        The window's rate (``rig.window.DEFAULT_MAX_YAW_RATE_RAD_S``, 180 deg/s) cannot tell here:
+        between samples a second apart it allows half a turn, more than two headings can differ, so
+        a 1 Hz compass's glitch would always pass for a turn. What tells is the shape: out and back,
+        each by more than the jump floor, no turn keeps on so. On the 401 synthetic drives (held-out,
+        val and demo), every 1st to 15th frame's heading taken as a compass's (10 to 0.67 Hz), one of
+        23332 samples is one (a swerve 68 deg out and 54 back in 2 s, which no car turns; the next
+        closest 29 deg by this rule); a sample half a turn off is one while the vehicle turns under
+        67 deg/s."""
+        if not (self._neighbours(samples, times, p, g) and self._neighbours(samples, times, g, n)):
+            return False
+        h_p, h_g, h_n = samples[p].heading_rad, samples[g].heading_rad, samples[n].heading_rad
+        apart_rad = math.remainder(h_n - h_p, math.tau)
+        span_s = times[n] - times[p]
+        w = (times[g] - times[p]) / span_s if span_s > 0 else 0.5  # two stamped alike: half-way
+        off_rad = abs(math.remainder(h_g - (h_p + w * apart_rad), math.tau))
+        out_rad = abs(math.remainder(h_g - h_p, math.tau))
+        back_rad = abs(math.remainder(h_n - h_g, math.tau))
+        # The margin over their distance apart also leaves alone a turn whose neighbours are half a
+        # turn apart (90 deg/s at 1 Hz), where the line between them goes either way round.
+        return min(out_rad, back_rad, off_rad - abs(apart_rad)) > MIN_JUMP_RAD
+
+    def _count_glitch(self, glitch: HeadingSample, before: HeadingSample, dt_s: float) -> None:
+        """Count a glitch once, however many lookups judge it (each reference's in stamp order)."""
+        if glitch.t_mono_s <= self._newest_glitch_s.get(glitch.reference, -math.inf):
+            return
+        self._newest_glitch_s[glitch.reference] = glitch.t_mono_s
+        self.glitches += 1
+        self.last_glitch = Glitch(glitch.t_mono_s, math.remainder(glitch.heading_rad - before.heading_rad, math.tau),
+                                  dt_s)
 
 
 def interpolate(s0: HeadingSample, s1: HeadingSample, w: float) -> Attitude:
@@ -212,7 +328,8 @@ def _gnss_extras(source: Any, t_frame: float, now_s: float, status: str) -> dict
 
 
 class PairingStats:
-    """What :func:`with_heading` did: the interpolator's counts plus frames forced out of a full buffer."""
+    """What :func:`with_heading` did: the interpolator's counts plus frames forced out of a full buffer,
+    and the heading samples left out as glitches (``glitch``: samples, not frames)."""
 
     def __init__(self, interpolator: HeadingInterpolator) -> None:
         self.interpolator = interpolator
@@ -220,7 +337,8 @@ class PairingStats:
         self.frames = 0
 
     def as_dict(self) -> dict[str, int]:
-        return {"frames": self.frames, **self.interpolator.counts, "overflow": self.overflow}
+        return {"frames": self.frames, **self.interpolator.counts, "overflow": self.overflow,
+                "glitch": self.interpolator.glitches}
 
 
 def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: HeadingInterpolator | None = None,
@@ -238,11 +356,38 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
     ``max_pending`` frames wait (then the oldest is let go without heading, counted ``overflow``).
     A frame stamped after it arrived (by ``clock``) does not wait: it is ``ahead``, without heading.
     At the end of the frames, what still waits is resolved with the samples there are.
+    A heading sample left out as a glitch is said as a warning, the first at once, then at most
+    once a minute (by the samples' clock) with how many came since.
     """
     interp = interpolator or HeadingInterpolator()
     stats = stats if stats is not None else PairingStats(interp)
     read = _samples_of(heading_source)
     pending: deque[tuple[Frame, float | None]] = deque()  # each frame with when it arrived (live)
+    glitches_said = interp.glitches
+    throttle = EventThrottle(60.0)
+
+    def say_glitches() -> None:
+        nonlocal glitches_said
+        glitch = interp.last_glitch
+        if interp.glitches == glitches_said or glitch is None:
+            return
+        new, glitches_said = interp.glitches - glitches_said, interp.glitches
+        said = None
+        for _ in range(new):  # several judged by one lookup: the first said, the rest in the next summary
+            said = throttle.note(glitch.t_mono_s) or said
+        if said is None:
+            return
+        n, before_s = said
+        turn = f"{math.degrees(glitch.turn_rad):+.0f} deg in {glitch.dt_s:.2f} s"
+        if before_s is None:
+            log.warning("heading sample at %.2f s left out: it turned %s from the one before and the next came "
+                        "back, which no vehicle turns (a compass glitch: multipath at its antennas?); the frames "
+                        "around it take the samples on either side (counted in the pairing's glitch)",
+                        glitch.t_mono_s, turn)
+        else:
+            log.warning("%d heading samples left out as glitches in %.0f s, the last at %.2f s (%s): frequent ones "
+                        "mean the compass's antennas see reflections; give them a clear view of the sky (said once "
+                        "a minute while it goes on)", n, glitch.t_mono_s - before_s, glitch.t_mono_s, turn)
 
     def release(final: bool) -> Iterator[Frame]:
         # A source that has ended (a capture file read to its end) will send nothing more: no waiting.
@@ -257,6 +402,7 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
                     return
                 stats.overflow += 1  # the buffer is full: let the oldest go without heading
             pending.popleft()
+            say_glitches()
             extras = _gnss_extras(heading_source, frame.t_mono_s, now, result.status) if live else {}
             yield dataclasses.replace(frame, attitude=result.attitude, **extras)
 

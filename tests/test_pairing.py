@@ -384,3 +384,187 @@ def test_frames_after_an_ended_source_do_not_wait():
         out.append((f.seq, clock.t))
     assert out == [(0, 0.5), (1, 1.2), (2, 1.3)]  # each released as it came, not held back
     assert stats.interpolator.counts["after"] == 2
+
+
+# --- a heading sample that glitches (one sentence off: multipath) ---------------------------------
+
+
+def compass_1hz(glitch_at: dict[int, float], n: int = 7, rate_deg_s: float = 5.0) -> list[HeadingSample]:
+    """A 1 Hz compass on a vehicle turning at ``rate_deg_s`` from 10 deg, its samples ``k`` replaced
+    by ``glitch_at[k]`` degrees."""
+    return [sample(float(k), glitch_at.get(k, 10.0 + rate_deg_s * k)) for k in range(n)]
+
+
+def off_deg(attitude, expected_deg: float) -> float:
+    return abs(math.degrees(math.remainder(attitude.heading_rad - math.radians(expected_deg), math.tau)))
+
+
+def test_a_glitched_sample_of_a_1hz_compass_is_not_interpolated_into_a_ramp():
+    # One HDT half a turn off (a dual-antenna compass's multipath): interpolated, it made a 2 s ramp
+    # out to 180 deg and back across 20 frames, each frame step under the window's jump rule, so it
+    # passed for a turn and poisoned every window for seconds. Left out, the frames around it are
+    # interpolated between the samples on either side (with a max_gap_s that spans the two intervals).
+    samples = compass_1hz({3: 10.0 + 5.0 * 3 + 180.0})
+    interp = HeadingInterpolator(max_gap_s=2.5, max_age_s=1.5)
+    for k in range(21, 40):  # 2.1 .. 3.9 s
+        t = k / 10
+        assert off_deg(interp.at(samples, t), 10.0 + 5.0 * t) < 1e-6, t
+    assert interp.glitches == 1
+    # At the default max_gap_s the samples left around it are too far apart: no heading, not a wrong one.
+    default = PairingStats(HeadingInterpolator())
+    assert all(default.interpolator.at(samples, k / 10) is None for k in range(21, 40))
+    assert default.as_dict()["glitch"] == 1 and default.as_dict()["gap"] == 19
+
+
+def headings_at(interp, samples, times) -> list:
+    return [None if (a := interp.at(samples, t)) is None else deg(a) % 360.0 for t in times]
+
+
+@pytest.mark.parametrize(("headings", "glitches"), [
+    ([10.0, 100.0, 190.0, 280.0], 0),  # a steady turn at 90 deg/s: no sample off the line between its neighbours
+    ([10.0, 10.0, 100.0, 100.0], 0),  # 90 deg in a second, then straight on: it stays
+    ([10.0, 55.0, 10.0, 10.0], 0),  # out 45 deg and back: at the jump floor, a swerve
+    ([10.0, 55.5, 10.0, 10.0], 1),  # just beyond it both ways: no vehicle turns so
+])
+def test_a_real_turn_at_the_limit_is_kept(headings, glitches):
+    samples = [sample(float(k), h) for k, h in enumerate(headings)]
+    interp = HeadingInterpolator(max_gap_s=2.5)
+    times = [0.5, 1.0, 1.5, 2.5]
+    got = headings_at(interp, samples, times)
+    assert interp.glitches == glitches
+    if not glitches:  # as interpolated without the check
+        assert got == pytest.approx([deg(interpolate(samples[int(t)], samples[int(t) + 1], t % 1.0)) % 360.0
+                                     if t % 1.0 else headings[int(t)] for t in times])
+    # The window's own limit at a 10 Hz compass: 18 deg a sample, 180 deg/s, kept whatever its heading.
+    fast = [sample(0.1 * k, 18.0 * k) for k in range(30)]
+    interp = HeadingInterpolator()
+    assert headings_at(interp, fast, [0.05 + 0.1 * k for k in range(29)]) == pytest.approx(
+        [(9.0 + 18.0 * k) % 360.0 for k in range(29)])
+    assert interp.glitches == 0
+
+
+def test_a_zero_that_moved_passes_through_unchanged():
+    # A source whose zero moved (the heading stays at the new value): no sample is left out, and the
+    # frames get what they got without the check (the window's jump rule starts its windows again).
+    samples = [sample(float(k), 10.0 if k < 3 else 160.0) for k in range(6)]
+    interp = HeadingInterpolator(max_gap_s=1.5)
+    times = [0.1 * k for k in range(51)]
+    plain = [None if (r := interp.lookup(samples, t)).attitude is None else deg(r.attitude) % 360.0 for t in times]
+    assert interp.glitches == 0
+    assert plain[20:31:5] == pytest.approx([10.0, 85.0, 160.0]) and plain[45] == pytest.approx(160.0)
+    # Live as well: each frame waits for the sample after the jump's, then goes as before.
+    clock = Clock()
+    stats = PairingStats(HeadingInterpolator(max_gap_s=1.5, max_age_s=1.5))
+    out = list(with_heading(camera(clock, times[1:]), ArrivingHeadings(samples, clock), stats.interpolator,
+                            clock=clock, stats=stats))
+    assert [None if f.attitude is None else deg(f.attitude) % 360.0 for f in out] == pytest.approx(plain[1:])
+    assert stats.as_dict()["glitch"] == 0
+
+
+def test_two_glitches_in_a_row():
+    # Two different wild values: each is off both its neighbours (the first's after is the second),
+    # and both are left out.
+    samples = [sample(0.1 * k, h) for k, h in enumerate([10.0, 10.0, 190.0, 100.0, 10.0, 10.0])]
+    interp = HeadingInterpolator()
+    assert headings_at(interp, samples, [0.15, 0.25, 0.35, 0.45]) == pytest.approx([10.0] * 4)
+    assert interp.glitches == 2
+    # The same value twice: the heading held there for two samples, each agreeing with one neighbour,
+    # is what a zero that moved and moved back looks like. One sample cannot tell: both are kept (the
+    # window's jump rule sees a 10 Hz source's jumps; a 1 Hz source's two make ramps, as before).
+    held = [sample(0.1 * k, h) for k, h in enumerate([10.0, 10.0, 190.0, 190.0, 10.0, 10.0])]
+    interp = HeadingInterpolator()
+    assert headings_at(interp, held, [0.2, 0.25, 0.3]) == pytest.approx([190.0, 190.0, 190.0])
+    assert interp.glitches == 0
+
+
+def test_a_glitch_at_the_start_or_the_end_of_a_stream_is_kept():
+    # The first sample has none before it, the last none after it: each looks as a zero that moved
+    # there (or from there) does, and is taken as it is, as before.
+    first = [sample(float(k), 180.0 if k == 0 else 10.0) for k in range(4)]
+    interp = HeadingInterpolator()
+    assert headings_at(interp, first, [0.0, 0.5, 1.5]) == pytest.approx([180.0, 95.0, 10.0])
+    last = [sample(float(k), 180.0 if k == 3 else 10.0) for k in range(4)]
+    assert headings_at(interp, last, [1.5, 2.5, 3.0]) == pytest.approx([10.0, 95.0, 180.0])
+    assert interp.glitches == 0
+    # Live, the frames before the last sample waited for the one after it, which never came: when the
+    # source ends they go as they would have.
+    clock = Clock()
+    source = ArrivingHeadings(last, clock)
+    out = list(with_heading(camera(clock, [2.5, 3.2]), source, HeadingInterpolator(), clock=clock))
+    assert deg(out[0].attitude) == pytest.approx(95.0) and out[1].attitude is None
+
+
+@pytest.mark.parametrize(("headings", "glitches", "at_2s"), [
+    ([170.0, 175.0, -5.0, -175.0, -170.0], 1, 180.0),  # half a turn off just past +-180: left out
+    ([170.0, 175.0, -175.0, -165.0, -155.0], 0, 185.0),  # a turn across +-180: kept
+    ([-175.0, 175.0, 85.0, 175.0, -175.0], 1, 175.0),  # out 90 deg and back from 175, across -180 on both sides
+])
+def test_glitches_across_plus_minus_180(headings, glitches, at_2s):
+    samples = [sample(float(k), h) for k, h in enumerate(headings)]
+    interp = HeadingInterpolator(max_gap_s=2.5)
+    got = headings_at(interp, samples, [1.5, 2.0, 2.5])
+    assert interp.glitches == glitches
+    assert got[1] == pytest.approx(at_2s)  # left out: half-way from the sample before it to the one after
+    assert abs(got[0] - got[1]) < 10.0 and abs(got[2] - got[1]) < 10.0  # no frame goes the long way round
+
+
+def test_live_frames_wait_one_more_sample_to_tell_a_glitch():
+    # A 1 Hz compass glitched at 3 s, a 10 Hz camera: the frames whose heading comes from the sample
+    # at 3 s wait for the one at 4 s, which says it was a glitch. No frame waits longer than max_age_s.
+    clock = Clock()
+    samples = compass_1hz({3: 10.0 + 5.0 * 3 + 180.0})
+    stats = PairingStats(HeadingInterpolator(max_gap_s=2.5, max_age_s=2.5))
+    times = [0.1 * k for k in range(1, 61)]
+    out, waited = [], []
+    for f in with_heading(camera(clock, times), ArrivingHeadings(samples, clock), stats.interpolator,
+                          clock=clock, stats=stats):
+        out.append(f)
+        waited.append(clock.t - f.t_mono_s)
+    assert [f.seq for f in out] == list(range(60))
+    assert all(off_deg(f.attitude, 10.0 + 5.0 * f.t_mono_s) < 1e-6 for f in out[:-1]), \
+        [(f.t_mono_s, deg(f.attitude)) for f in out]
+    assert max(waited[:-1]) <= 2.0 + 1e-9  # the frame just after 2 s waited for 4 s's sample
+    assert stats.as_dict()["glitch"] == 1
+    # A steady compass: frames wait for the sample after them only, as before (one heading interval).
+    clock = Clock()
+    steady, waited = compass_1hz({}), []
+    for f in with_heading(camera(clock, times), ArrivingHeadings(steady, clock), HeadingInterpolator(), clock=clock):
+        waited.append(clock.t - f.t_mono_s)
+    assert max(waited[:-1]) <= 1.0 + 1e-9
+
+
+def test_a_frame_waits_for_a_glitchs_verdict_no_longer_than_max_age():
+    # At the default max_age_s (1.5 s) the first frames after the sample at 2 s cannot wait for the
+    # one at 4 s (each is let go when the frame after max_age_s comes): they go as they would
+    # without the check (the way to the glitch);
+    # those after it get no heading (the samples at 2 and 4 s are more than max_gap_s apart).
+    clock = Clock()
+    samples = compass_1hz({3: 10.0 + 5.0 * 3 + 180.0})
+    stats = PairingStats(HeadingInterpolator(max_gap_s=1.5, max_age_s=1.5))
+    times = [0.1 * k for k in range(1, 61)]
+    got = {}
+    for f in with_heading(camera(clock, times), ArrivingHeadings(samples, clock), stats.interpolator,
+                          clock=clock, stats=stats):
+        assert clock.t - f.t_mono_s <= 1.5 + 0.1 + 1e-9, f.seq
+        got[round(f.t_mono_s, 1)] = f.attitude
+    assert [off_deg(got[round(0.1 * k, 1)], 10.0 + 0.5 * k) for k in range(21, 24)] == pytest.approx(
+        [18.0 * (k - 20) for k in range(21, 24)])  # as before: 175 deg a second to the glitch, the vehicle 5 away
+    assert all(got[round(0.1 * k, 1)] is None for k in range(24, 40))
+    assert all(got[round(0.1 * k, 1)] is not None for k in range(1, 20))
+    assert stats.as_dict()["glitch"] == 1
+
+
+def test_glitches_are_said_once_then_summed_up_once_a_minute(caplog):
+    # A compass glitching every 5 s for 3 minutes: the first is said, then one line a minute.
+    glitched = {k: 10.0 + 170.0 for k in range(5, 180, 5)}
+    samples = [sample(float(k), glitched.get(k, 10.0)) for k in range(181)]
+    clock = Clock()
+    stats = PairingStats(HeadingInterpolator(max_gap_s=2.5, max_age_s=2.5))
+    with caplog.at_level("WARNING", logger="drivers.pairing"):
+        out = list(with_heading(camera(clock, [0.5 * k for k in range(1, 361)]), ArrivingHeadings(samples, clock),
+                                stats.interpolator, clock=clock, stats=stats))
+    assert len(out) == 360 and stats.as_dict()["glitch"] == len(glitched) == 35
+    lines = [r.getMessage() for r in caplog.records if r.name == "drivers.pairing"]
+    assert len(lines) == 3, lines  # at 5 s, then at 65 s and 125 s (12 glitches each)
+    assert lines[0].startswith("heading sample at 5.00 s left out: it turned +170 deg in 1.00 s")
+    assert lines[1].startswith("12 heading samples left out as glitches in 60 s, the last at 65.00 s")
