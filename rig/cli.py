@@ -811,6 +811,8 @@ def _source_summary(stats: dict) -> str:
     for key in ("gap", "before", "after", "stale", "mixed", "ahead", "overflow"):
         if pairing.get(key):
             parts.append(f"heading {key} {pairing[key]}")
+    if pairing.get("glitch"):  # samples, not frames (drivers/pairing.py): their frames count under gap
+        parts.append(f"heading samples left out as glitches {pairing['glitch']}")
     gnss = stats.get("gnss") or {}  # why a heading port gave no headings: its bytes, as the framer saw them
     for key in ("bad_checksum", "truncated", "overlong", "malformed", "garbage_bytes", "bad_fields", "no_data",
                 "read_errors", "reopens", "suspends", "stale_bytes"):

@@ -1110,6 +1110,9 @@ def test_the_source_summary_says_why_frames_had_no_heading():
     stats = {"camera": {"dropped": 0}, "pairing": {"before": 53, "gap": 0},
              "gnss": {"sentences": 0, "bad_checksum": 57, "garbage_bytes": 0, "reopens": 1, "port": "/dev/ttyUSB0"}}
     assert _source_summary(stats) == "heading before 53, heading port bad checksum 57, heading port reopens 1"
+    # A compass's glitched samples, left out by the pairing (drivers/pairing.py), were not said at all.
+    stats["pairing"]["glitch"] = 2
+    assert _source_summary(stats).startswith("heading before 53, heading samples left out as glitches 2, ")
     assert _source_summary({"log": {"frames_read": 40}}) == ""
 
 
