@@ -155,20 +155,21 @@ class DiskFull:
 
 
 class Recording:
-    """A recording's log, and how much of it is on the disk.
+    """A recording's log, and how much of it is on the disk (``writer.on_disk``).
 
     A full disk ends the recording. The write that did not fit left part of a chunk in the file,
     and a log cannot go on past that: what was written after it once space was freed replays as a
     damaged record (and filled the freed disk again with it). So from the first write the disk
     has no room for, nothing more is written: that item, those since the last complete chunk (held
     in memory until the chunk ends) and every later one are counted as lost, and :meth:`close`
-    cuts the file back to the end of that chunk, a log cut off there that replays whole, or
-    removes it when it holds no chunk (an empty log would only be refused by every replay).
+    abandons the log (``LogWriter.abandon``: the file cut back to the end of that chunk, a log
+    cut off there that replays whole), and removes the file when it holds no chunk (an empty log
+    would only be refused by every replay).
 
-    A chunk ends on the disk when the file grows: the log writes to its file only as a chunk ends
-    (and synced then), so its size is where the complete chunks end. ``chunk_every_s``: end the
-    chunk in progress, besides at the log's own size bound, once its oldest item waited this long
-    (``monotonic`` seconds); None: at the size bound only.
+    ``chunk_every_s``: end the chunk in progress, besides at the log's own size bound, once its
+    oldest item waited this long (``monotonic`` seconds); None: at the size bound only. The log
+    says when a chunk is on the disk (``on_disk`` moves), of a device or a stream too, whose size
+    says nothing.
     """
 
     def __init__(self, writer: LogWriter, *, chunk_every_s: float | None = None,
@@ -178,9 +179,8 @@ class Recording:
         self.path = writer.path
         self.chunk_every_s = chunk_every_s
         self._clock, self._monotonic = clock, monotonic
-        self._bytes_on_disk = 0  # the file's size when its last complete chunk ended
-        self._on_disk = (0, 0)  # frames, estimates in those chunks
         self._given = [0, 0]  # frames, estimates handed to the log, lost ones too
+        self._seen_on_disk = writer.on_disk  # as last seen: when it moves, a chunk has ended
         self._pending_since: datetime | None = None  # the first item not yet in a complete chunk
         self._pending_since_s = 0.0  # the same, in `monotonic` seconds
         self._full: tuple[int, datetime] | None = None  # (errno, since) once the disk is full
@@ -192,9 +192,9 @@ class Recording:
         if self._full is None:
             return None
         code, since = self._full
-        frames, estimates = self._on_disk
-        return DiskFull(code, since, frames, estimates, self._given[0] - frames, self._given[1] - estimates,
-                        self._removed)
+        kept = self.writer.on_disk  # (one read: the writer thread may move it)
+        return DiskFull(code, since, kept.frames, kept.estimates, self._given[0] - kept.frames,
+                        self._given[1] - kept.estimates, self._removed)
 
     def write_frame(self, frame: Frame, *, jpeg_quality: int = 90) -> bool:
         """False: not recorded, the disk is full (:attr:`disk_full`)."""
@@ -233,38 +233,31 @@ class Recording:
         return True
 
     def _note_chunk_end(self) -> None:
-        if self.path is None:
-            return
-        try:
-            size = os.stat(self.path).st_size
-        except OSError:  # moved away under the rig: what is on the disk stays as last seen
-            return
-        if size > self._bytes_on_disk:
-            self._bytes_on_disk = size
-            self._on_disk = (self.writer.frames_written, self.writer.estimates_written)
+        on_disk = self.writer.on_disk
+        if on_disk != self._seen_on_disk:  # a chunk ended: chunks end between items, so nothing waits
+            self._seen_on_disk = on_disk
             self._pending_since = None
 
     def _filled(self, exc: OSError) -> None:
         self._full = (exc.errno or errno.ENOSPC, self._pending_since or self._clock())
 
     def close(self) -> None:
-        """Finish the log: its summary and index. After a full disk (or when they do not fit), cut
-        it back to its last complete chunk instead, or remove it when it has none."""
-        try:
-            self.writer.close()
-        except OSError as exc:
-            if exc.errno not in DISK_FULL_ERRNOS:
-                raise
-            if self._full is None:
-                self._filled(exc)
-        if self._full is None:
+        """Finish the log: its summary and index. After a full disk, abandon it instead
+        (``LogWriter.abandon``: cut back to its last complete chunk); a close the disk has no room
+        for leaves it so too. Either way a file that holds no chunk is removed."""
+        if self._full is not None:
+            self.writer.abandon()
+        else:
+            try:
+                self.writer.close()
+            except OSError as exc:
+                if exc.errno not in DISK_FULL_ERRNOS:
+                    raise
+                self._filled(exc)  # the writer cut it back to its last complete chunk
+        if self._full is None or self.writer.on_disk.size_bytes:
             return
         # Only a file: a device (--out /dev/full with --overwrite, as root) is left as it is.
-        if self.path is None or not self.path.is_file():
-            return
-        if self._bytes_on_disk:
-            os.truncate(self.path, self._bytes_on_disk)  # the part of a chunk, and what came after it
-        else:
+        if self.path is not None and self.path.is_file():
             self.path.unlink(missing_ok=True)
             self._removed = True
 

@@ -578,3 +578,23 @@ def test_record_to_a_disk_that_fills_keeps_its_complete_chunks_and_says_what_it_
     kept, lost = int(m[1]), int(m[2])
     assert kept == len(list(read_frames(out))) and 0 < kept < kept + lost <= 40
     assert not [r for r in caplog.records if "corrupt" in r.getMessage() or "damaged" in r.getMessage()]
+
+
+def test_a_recording_to_a_device_or_stream_ends_its_chunks_every_chunk_every_s_not_at_every_item(tmp_path):
+    # Where the log's size says nothing (`record --out /dev/null --overwrite`, a device, or a
+    # stream), a chunk's end went unseen: its first item was taken to wait still, and from then on
+    # every item ended a chunk of its own, synced. A stream stands in for the device, whose size
+    # cannot be watched.
+    from rig.recorder import Recording
+
+    now = [0.0]
+    stream = io.BytesIO()
+    rec = Recording(LogWriter(stream), chunk_every_s=10.0, monotonic=lambda: now[0])
+    for seq, t in enumerate((100.0, 110.0)):
+        now[0] = t
+        assert rec.write_estimate(make_estimate(10.0, 20.0, seq=seq))
+    size = len(stream.getvalue())
+    assert size > 0  # the first chunk ended 10 s after its first item
+    now[0] = 111.0
+    assert rec.write_estimate(make_estimate(10.0, 20.0, seq=2))
+    assert len(stream.getvalue()) == size  # waits in the next chunk, 1 s old
