@@ -598,3 +598,26 @@ def test_a_recording_to_a_device_or_stream_ends_its_chunks_every_chunk_every_s_n
     now[0] = 111.0
     assert rec.write_estimate(make_estimate(10.0, 20.0, seq=2))
     assert len(stream.getvalue()) == size  # waits in the next chunk, 1 s old
+
+
+def test_a_recording_whose_close_finds_the_disk_full_keeps_its_complete_chunks(tmp_path, disk):
+    # Every write fit, and the disk filled before the chunk in progress (and the summary) could be
+    # written at the close: the log is its complete chunks, and the full disk is said from when
+    # the chunk that did not fit began.
+    from rig.recorder import Recording
+
+    now, utc = [0.0], [START]
+    disk.free = 10**9
+    path = tmp_path / "estimates.mcap"
+    rec = Recording(LogWriter(path), chunk_every_s=10.0, monotonic=lambda: now[0], clock=lambda: utc[0])
+    for seq, t in enumerate((100.0, 110.0, 111.0, 115.0)):
+        now[0], utc[0] = t, START.replace(second=int(t) - 100)
+        assert rec.write_estimate(make_estimate(10.0, 20.0, seq=seq))
+    first_chunk = path.stat().st_size  # estimates 0 and 1; 2 and 3 wait in the chunk in progress
+    disk.free = 40  # the start of the next chunk fits, not the rest
+    rec.close()
+    assert path.stat().st_size == first_chunk
+    assert [d["seq"] for d in read_estimates(path)] == [0, 1]
+    full = rec.disk_full
+    assert full is not None and full.since_utc == START.replace(second=11)
+    assert (full.estimates_recorded, full.estimates_lost, full.removed) == (2, 2, False)
