@@ -51,7 +51,10 @@ def window_frames(frames: list, newest: int, n_frames: int) -> list:
     from rig.window import SpreadWindowPolicy
 
     policy = SpreadWindowPolicy(n_frames=n_frames)  # the live policy's span, as bench_accuracy.py's
-    picked = policy.select([SimpleNamespace(frame=f) for f in frames[: newest + 1]])
+    # Each frame a view of its own at its own time, as every frame of a drive that never stands
+    # (rig/window.py's ViewClock stamps no synthetic frame a repeat: docs/architecture.md).
+    picked = policy.select([SimpleNamespace(frame=f, window_t_s=f.t_mono_s, view_key=f.seq)
+                            for f in frames[: newest + 1]])
     return [c.frame for c in picked]
 
 
