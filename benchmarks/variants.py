@@ -42,6 +42,7 @@ from estimator.estimator import SunEstimator, mirrored_joint_runs, window_tokens
 from rig.errors import ValidationError
 from rig.geometry import az_el_from_enu, enu_from_az_el
 from rig.types import Frame, FrameFeatures, Intrinsics, SunEstimate
+from rig.window import view_signature
 
 
 def clamp_elevation(sun_enu: np.ndarray, low_deg: float, high_deg: float) -> np.ndarray:
@@ -161,7 +162,8 @@ class SplitEstimator(SunEstimator):
             n = len(a)
             out.append(SplitFeatures(frame, a, crop_angles_rad(a, frame.intrinsics), emb[start : start + n],
                                      self.model.model_id, emb[n_plain + start : n_plain + start + n],
-                                     crop_angles_rad(b, frame.intrinsics)))
+                                     crop_angles_mirrored_rad=crop_angles_rad(b, frame.intrinsics),
+                                     view_signature=view_signature(frame.image_bgr)))
             start += n
         return out
 
