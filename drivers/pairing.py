@@ -207,10 +207,10 @@ class HeadingInterpolator:
         ``_GLITCH_LOOKBACK`` before it to two after it), and whether the newest sample may still
         turn out to be one (live: it jumped from the sample before, and the next may come back)."""
         start, end = max(0, i - _GLITCH_LOOKBACK), min(len(samples), i + 3)
-        kept = list(range(start))
+        kept: list[int] = []  # of those judged; the samples before start and from end on stay as they are
         doubtful = False
         for j in range(start, end):
-            if not kept or kept[-1] < start:
+            if not kept:
                 kept.append(j)  # nothing judged before it: taken as it is
                 continue
             p = kept[-1]
@@ -222,9 +222,9 @@ class HeadingInterpolator:
                     and (now_s - self.latency_s) - times[j] <= self.max_gap_s:
                 doubtful = True  # the next sample may come back, close enough to it to say so
             kept.append(j)
-        if len(kept) == end:
+        if len(kept) == end - start:
             return samples, times, doubtful  # none left out: as they were
-        kept.extend(range(end, len(samples)))
+        kept = [*range(start), *kept, *range(end, len(samples))]
         return [samples[k] for k in kept], [times[k] for k in kept], doubtful
 
     def _neighbours(self, samples: Sequence[HeadingSample], times: list[float], a: int, b: int) -> bool:
