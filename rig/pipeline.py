@@ -614,8 +614,8 @@ class RigPipeline:
             if candidates is None:
                 self.stats.windows_skipped += 1  # the ring let its frame go (a clock jump) before its turn
                 continue
-            window = self.policy.select(candidates)
-            same_zero = self.policy.same_zero(candidates)  # what select chose among
+            same_zero = self.policy.same_zero(candidates)  # what the window is chosen among
+            window = self.policy.select_same_zero(same_zero)
             self._log_heading_jump(candidates, same_zero)
             self._log_sparse(same_zero, window, feats)
             try:

@@ -172,7 +172,12 @@ class SpreadWindowPolicy:
         a source lost its zero, the window starts again from the frames after it), and no heading
         jump between them; and one frame a view, the newest (:func:`one_per_view`), the span
         measured in view time (``FrameFeatures.window_t_s``: time stood still left out)."""
-        usable = one_per_view(self.same_zero(candidates))
+        return self.select_same_zero(self.same_zero(candidates))
+
+    def select_same_zero(self, same_zero: Sequence[T]) -> list[T]:
+        """:meth:`select` of candidates already narrowed by :meth:`same_zero` (the live rig also
+        needs them, to say why a window is partial)."""
+        usable = one_per_view(same_zero)
         t_s = np.array([c.window_t_s for c in usable])
         # Every one has an attitude (same_zero); the test only tells the type checker so.
         heading_rad = np.array([c.frame.attitude.heading_rad for c in usable if c.frame.attitude is not None])
