@@ -604,7 +604,7 @@ def _report_disk_full(recorder: RecorderPublisher, full: DiskFull) -> int:
     (:func:`_report_output_losses`), and no file is left of it."""
     with_frames = recorder.record_frames
     lost = _counted(full.frames_lost, full.estimates_lost, with_frames)
-    again = f"{full.remedy(recorder.path.parent if recorder.path else 'its folder')}, and the next start records again"
+    again = f"{full.remedy(recorder.folder)}, and the next start records again"
     if full.removed:
         lost_too = f", and {lost} were not recorded" if full.frames_lost or full.estimates_lost else ""
         print(f"sunrig: error: nothing could be recorded to {recorder.path}: {full.cause}, so no file is "

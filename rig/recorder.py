@@ -106,20 +106,32 @@ def open_recording(template: str | Path, *, start_utc: datetime, overwrite: bool
     raise RecordingRefused(path, "taken" if START_FIELD in name else "exists")
 
 
+def written_file(path: Path | None) -> Path | None:
+    """The regular file a log at ``path`` was written into: through a link (``--overwrite`` of a
+    link, which writes where it points), the file it points to; None for a device or a stream.
+    That file is what an empty recording leaves behind, and its folder is on the disk that fills."""
+    if path is None:
+        return None
+    real = Path(os.path.realpath(path))
+    # Only a file: a device (--out /dev/null with --overwrite, as root) unlinked would remove the
+    # device node itself from the system.
+    return real if real.is_file() else None
+
+
 def discard_if_empty(writer: LogWriter) -> bool:
     """Remove a closed recording that holds no frame and no estimate; True when it was removed.
 
     Made by this run and holding nothing, it would only fail a replay of it and be warned about and
     left out by every later eval or train of its folder. (With ``overwrite``, the file it replaced
-    was already gone when it opened.)
+    was already gone when it opened. Made through a link, the file it points to is removed and the
+    link, the user's, is kept: removing the link left the emptied file behind.)
     """
-    if not writer.closed or writer.frames_written or writer.estimates_written or writer.path is None:
+    if not writer.closed or writer.frames_written or writer.estimates_written:
         return False
-    # Only a file: an --out that is a device (/dev/null with --overwrite, as root) was unlinked,
-    # removing the device node itself from the system.
-    if not writer.path.is_file():
+    made = written_file(writer.path)
+    if made is None:
         return False
-    writer.path.unlink(missing_ok=True)
+    made.unlink(missing_ok=True)
     return True
 
 
@@ -256,9 +268,10 @@ class Recording:
                 self._filled(exc)  # the writer cut it back to its last complete chunk
         if self._full is None or self.writer.on_disk.size_bytes:
             return
-        # Only a file: a device (--out /dev/full with --overwrite, as root) is left as it is.
-        if self.path is not None and self.path.is_file():
-            self.path.unlink(missing_ok=True)
+        # A device (--out /dev/full with --overwrite, as root) is left as it is; through a link,
+        # the file it points to goes (discard_if_empty).
+        if (made := written_file(self.path)) is not None:
+            made.unlink(missing_ok=True)
             self._removed = True
 
 
@@ -315,10 +328,15 @@ class RecorderPublisher:
         full = self._recording.disk_full
         if full is None:
             return
-        folder = self.path.parent if self.path is not None else "its folder"
         log.warning("recording %s: %s: the recording ends at %s; what comes later is not recorded (counted in the "
                     "status line's publish errors), and the other outputs go on; %s, and the next start records "
-                    "again", self.path, full.cause, f"{full.since_utc:%H:%M:%S} UTC", full.remedy(folder))
+                    "again", self.path, full.cause, f"{full.since_utc:%H:%M:%S} UTC", full.remedy(self.folder))
+
+    @property
+    def folder(self) -> Path | str:
+        """The folder the recording is written into, on the disk that may fill: through a link,
+        where it points (the link's own folder may be on another disk)."""
+        return Path(os.path.realpath(self.path)).parent if self.path is not None else "its folder"
 
     @property
     def disk_full(self) -> DiskFull | None:

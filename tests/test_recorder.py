@@ -431,6 +431,38 @@ def test_only_a_closed_recording_that_holds_nothing_is_discarded(tmp_path):
     assert not discard_if_empty(w) and w.path.exists()
 
 
+def test_an_empty_recording_made_through_a_link_removes_the_file_it_made_and_keeps_the_link(tmp_path):
+    # `record --out latest.mcap --overwrite`, latest.mcap a link into drives/: a run that recorded
+    # nothing unlinked the link and left the 0-byte file it had truncated behind it, which every
+    # later eval or train of drives/ warned about as a damaged log.
+    (tmp_path / "drives").mkdir()
+    target = tmp_path / "drives" / "drive.mcap"
+    target.write_bytes(b"yesterday's drive")
+    link = tmp_path / "latest.mcap"
+    os.symlink(target, link)
+    w = open_recording(link, start_utc=START, overwrite=True)
+    w.close()
+    assert discard_if_empty(w)
+    assert not target.exists() and link.is_symlink()  # the link is the user's; the file was this run's
+
+
+def test_a_recording_through_a_link_on_a_full_disk_removes_the_file_it_made_and_keeps_the_link(tmp_path, disk, caplog):
+    (tmp_path / "drives").mkdir()
+    target = tmp_path / "drives" / "drive.mcap"
+    link = tmp_path / "latest.mcap"
+    os.symlink(target, link)
+    rec = RecorderPublisher(open_recording(link, start_utc=START, overwrite=True))
+    with caplog.at_level(logging.WARNING, logger="rig.recorder"):
+        for seq in range(3):
+            rec.publish(make_estimate(10.0, 20.0, seq=seq))
+        rec.close()
+    assert rec.disk_full is not None and rec.disk_full.removed
+    assert not target.exists() and link.is_symlink()
+    (said,) = [r.getMessage() for r in caplog.records]
+    # The disk that filled is the one the link points into, which may not be the link's own.
+    assert f"free space in {tmp_path / 'drives'}," in said, said
+
+
 def test_an_empty_recording_to_a_device_leaves_the_device(tmp_path):
     # `record --out /dev/null --overwrite` with a camera that gave nothing unlinked the device node
     # itself (as root, /dev/null). A null device of our own, made where the test may make one.
