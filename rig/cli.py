@@ -619,9 +619,11 @@ def _report_disk_full(recorder: RecorderPublisher, full: DiskFull) -> int:
 
 def _discard_empty_recording(recorder: RecorderPublisher | None) -> bool:
     """Remove a finished recording that got nothing, saying so; True when it was removed."""
+    from rig.recorder import recording_name
+
     if recorder is None or not recorder.discard_if_empty():
         return False
-    print(f"sunrig: nothing was recorded, so {recorder.path} is not kept", file=sys.stderr)
+    print(f"sunrig: nothing was recorded, so {recording_name(recorder.path)} is not kept", file=sys.stderr)
     return True
 
 
@@ -684,7 +686,15 @@ def cmd_record(args: argparse.Namespace) -> int:
     one while a frame (or the summary) is being written lets that write finish first (rig.stopping).
     """
     from drivers.sources import is_recording
-    from rig.recorder import CHUNK_EVERY_S, Recording, check_recording_path, discard_if_empty, open_recording
+    from rig.recorder import (
+        CHUNK_EVERY_S,
+        Recording,
+        check_recording_path,
+        discard_if_empty,
+        open_recording,
+        recording_folder,
+        recording_name,
+    )
 
     cfg = _effective_config(args)
     _refuse_overwriting(_spec_files(cfg["source"]["camera"], cfg["source"]["heading"]), out=args.out)
@@ -749,7 +759,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         # that frame): its error says what to do, and an empty log left behind would refuse the
         # corrected command as a recording that exists.
         if writer is not None and discard_if_empty(writer):
-            print(f"sunrig: nothing was recorded, so {writer.path} is not kept", file=sys.stderr)
+            print(f"sunrig: nothing was recorded, so {recording_name(writer.path)} is not kept", file=sys.stderr)
         raise
     finally:
         if deadline is not None:
@@ -759,7 +769,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     if full is not None:
         status_row.end()  # below the progress line, not over it
         lost = _n(full.frames_lost, "frame")
-        folder = out.parent if out is not None else "its folder"  # (open_recording's writer has a path)
+        folder = recording_folder(out) if out is not None else "its folder"  # (open_recording's writer has a path)
         if full.removed:
             lost_too = f", and its {lost} were not recorded" if full.frames_lost else ""
             raise SunrigError(f"record: nothing could be recorded to {out}: {full.cause}, so no file is "
@@ -768,7 +778,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                           f"{_n(full.frames_recorded, 'frame')} before (sunrig replay {out}), and {lost} from then "
                           f"on were not recorded; {full.remedy(folder)} or pass another --out")
     if discard_if_empty(writer):
-        said = f"record: no frame came in {time.monotonic() - start:.1f} s, so {out} is not kept"
+        said = f"record: no frame came in {time.monotonic() - start:.1f} s, so {recording_name(out)} is not kept"
         if interrupted or stop.requested:  # stopped as a service is: not a failure of the command
             print(f"{said} (stopped by {stop.by or 'Ctrl-C'})", file=sys.stderr)
             return 0

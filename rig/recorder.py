@@ -118,6 +118,20 @@ def written_file(path: Path | None) -> Path | None:
     return real if real.is_file() else None
 
 
+def recording_folder(path: Path) -> Path:
+    """The folder a recording at ``path`` is written into, on the disk that may fill: through a
+    link, the folder it points into (the link's own may be on another disk)."""
+    return Path(os.path.realpath(path)).parent
+
+
+def recording_name(path: Path | None) -> str:
+    """``path`` as said to the user; through a link, the file it points to, which is the one kept
+    or removed (:func:`discard_if_empty`), named with the link the user gave."""
+    if path is None:
+        return "the recording"
+    return f"{os.path.realpath(path)} (where {path} points)" if path.is_symlink() else str(path)
+
+
 def discard_if_empty(writer: LogWriter) -> bool:
     """Remove a closed recording that holds no frame and no estimate; True when it was removed.
 
@@ -336,7 +350,7 @@ class RecorderPublisher:
     def folder(self) -> Path | str:
         """The folder the recording is written into, on the disk that may fill: through a link,
         where it points (the link's own folder may be on another disk)."""
-        return Path(os.path.realpath(self.path)).parent if self.path is not None else "its folder"
+        return recording_folder(self.path) if self.path is not None else "its folder"
 
     @property
     def disk_full(self) -> DiskFull | None:

@@ -1389,6 +1389,23 @@ def test_a_recording_that_got_no_frame_is_not_kept(tmp_path, capsys, monkeypatch
                                                                                 "(docs/drivers.md)")
 
 
+@pytest.mark.parametrize("command", ["record", "run"])
+def test_a_recording_through_a_link_that_got_nothing_names_the_file_it_removes(tmp_path, capsys, silent_camera,
+                                                                                command):
+    # With --overwrite a link is written through. The file it points to is the one removed, and the
+    # message named the link, which is kept.
+    (tmp_path / "drives").mkdir()
+    target = tmp_path / "drives" / "drive.mcap"
+    link = tmp_path / "latest.mcap"
+    os.symlink(target, link)
+    out = (["--out", str(link), "--overwrite"] if command == "record" else
+           ["--record", str(link), "--record-overwrite", "--quiet"])
+    rc, captured = _main_in_process([command, "--camera", "opencv:0", "--hfov-deg", "60", "--heading", "none", *out],
+                                    capsys)
+    assert not target.exists() and link.is_symlink(), captured.err
+    assert f"so {target} (where {link} points) is not kept" in captured.err, captured.err
+
+
 def test_a_recording_whose_camera_fails_on_its_first_frame_is_not_kept(tmp_path, capsys):
     # A calibration made at another resolution is found on the first frame: the log was kept empty,
     # and the corrected command was then refused because --out existed.
