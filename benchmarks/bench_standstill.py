@@ -26,9 +26,26 @@ drives are what is sampled: ``per_drive`` gives each drive's mean error standing
 moving past the same place (the control's windows ending within a span of the stop pose), and
 ``paired`` their differences.
 
+A real idling vehicle's camera shows more than fresh noise while it stands; each of these options
+adds one thing to the standing frames (none by default, so the default run is the plain stop):
+``--idle-shake-px A`` the engine's vibration, each standing frame moved by ``A sin(phase)`` px
+along each axis (a random phase per frame and axis); ``--mount-drift-px D`` the mount sagging D px
+down over the stop, evenly; ``--gain-drift G`` the gain swinging to 1 + G (G = -0.3: 30 % darker)
+and back every ``GAIN_PERIOD_S`` after auto-exposure metered (exposure hunting, a cloud faster than
+it follows); ``--crossing pedestrian|car|wiper`` a dark shape crossing part of the view from 1 s
+into the stop on (``CROSSINGS``). Two change the whole drive, its control too: ``--dusk`` (low
+light: 1.5 stops under what auto-exposure asks for, sensor noise ``DUSK_NOISE_SQRT``) and
+``--jpeg-quality``. ``views`` then says how the rig's view clock (rig/window.py) took the stop:
+each standing frame's signature distance from the stop's first frame (``view_rms``: p50, p99,
+max), the share of standing frames stamped as a repeat of a view before them (ideally all but the
+first), views per stop (ideally 1), and, driving, the nearest two consecutive frames and how many
+moving frames were taken for repeats (ideally none).
+
     python3 benchmarks/bench_standstill.py [--model DIR] [--drives 8] [--drive-seed 3000]
                                            [--frames 120] [--stop-at 50] [--stop-s 20] [--fps 10]
-                                           [--crop-seed 0]
+                                           [--crop-seed 0] [--idle-shake-px 0] [--mount-drift-px 0]
+                                           [--gain-drift 0] [--crossing pedestrian|car|wiper]
+                                           [--dusk] [--jpeg-quality 90]
 """
 
 from __future__ import annotations
@@ -47,7 +64,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import check_frames, float_in, int_in, machine, run  # noqa: E402
 from rig.protocol import FLAG_VALID  # noqa: E402
-from rig.window import SpreadWindowPolicy, T  # noqa: E402
+from rig.window import SAME_VIEW_MAX_RMS, SpreadWindowPolicy, T, view_rms  # noqa: E402
 
 # A set seed of its own: 1000 is the training set, 2000 the held-out one and 2500 the validation
 # one (docs/model.md); 3000 is the "fresh" set, never trained on nor chosen by.
@@ -63,6 +80,103 @@ AFTER_PHASE_S = 4.0
 PHASES = ("moving_before", "stop_0_4s", "stop_4_10s", "stop_10s_on", "moving_after_0_4s", "moving_after_4s_on")
 CONTROL_PHASES = ("moving_before", "at_stop_pose", "moving_after_0_4s", "moving_after_4s_on")
 MAX_STOP_S = 600.0
+# Seconds for --gain-drift's swing there and back: auto-exposure hunting, a cloud passing.
+GAIN_PERIOD_S = 10.0
+# --dusk: the light too low for auto-exposure to reach its key (1.5 stops under it) and the sensor's
+# gain up, its noise 4 times the most a synthetic drive's camera has (0.008, CameraEffects.random).
+DUSK_STOPS = -1.5
+DUSK_NOISE_SQRT = 0.032
+MAX_SHAKE_PX = 20.0
+# A shape crossing the view while the vehicle stands, in shares of the frame: its width and height,
+# its bottom (from the top), seconds to cross (a wiper sweeps there and back), seconds from one to the
+# next, and its radiance as a share of the frame's median (dark clothes, a car's side, a wiper blade).
+CROSSINGS = {
+    # A pedestrian 10 m ahead at 1.4 m/s crosses a KITTI camera's 17 m wide view in about 12 s.
+    "pedestrian": {"width": 0.04, "height": 0.35, "bottom": 0.8, "cross_s": 12.0, "every_s": 20.0, "light": 0.3},
+    # Cross traffic 15 m ahead at 10 m/s (36 km/h), a car 4.5 m long.
+    "car": {"width": 0.18, "height": 0.2, "bottom": 0.75, "cross_s": 3.0, "every_s": 8.0, "light": 0.6},
+    # An intermittent wiper, a blade across the lens: a sweep there and back in 1 s, every 3 s.
+    "wiper": {"width": 0.03, "height": 1.0, "bottom": 1.0, "cross_s": 1.0, "every_s": 3.0, "light": 0.05},
+}
+CROSSING_START_S = 1.0
+
+
+@dataclass(frozen=True)
+class Idle:
+    """What a real idling vehicle's camera adds to the standing frames (module docstring)."""
+
+    shake_px: float = 0.0
+    drift_px: float = 0.0
+    gain_drift: float = 0.0
+    crossing: str | None = None
+
+
+@dataclass(frozen=True)
+class FrameEffect:
+    """One frame's share of :class:`Idle`: the image moved by (dx, dy) px, the exposure's gain,
+    and a box (x0, y0, x1, y1, as shares of the frame) of ``light`` times the median radiance."""
+
+    dx_px: float = 0.0
+    dy_px: float = 0.0
+    gain: float = 1.0
+    box: tuple[float, float, float, float] | None = None
+    light: float = 0.0
+
+
+def crossing_box(name: str, standing_s: float) -> tuple[float, float, float, float] | None:
+    """Where the crossing ``name`` is ``standing_s`` seconds into the stop (None: out of view)."""
+    c = CROSSINGS[name]
+    since_s = standing_s - CROSSING_START_S
+    if since_s < 0:
+        return None
+    phase = (since_s % c["every_s"]) / c["cross_s"]
+    if phase >= 1.0:
+        return None
+    if name == "wiper":
+        phase = 1.0 - abs(2.0 * phase - 1.0)  # there and back
+    x0 = -c["width"] + (1.0 + c["width"]) * phase
+    return (x0, c["bottom"] - c["height"], x0 + c["width"], c["bottom"])
+
+
+def idle_effects(plan: StopPlan, idle: Idle, seed: int) -> list[FrameEffect | None]:
+    """Each frame's :class:`FrameEffect` (None: none), from ``default_rng([seed, 4, seq])``."""
+    import numpy as np
+
+    out: list[FrameEffect | None] = []
+    for seq in range(plan.n_frames):
+        standing = plan.stop_at <= seq < plan.stop_at + plan.n_stop
+        if not standing or idle == Idle():
+            out.append(None)
+            continue
+        standing_s = (seq - plan.stop_at) / plan.fps
+        phase = np.random.default_rng([seed, 4, seq]).uniform(0.0, math.tau, 2)
+        dx, dy = idle.shake_px * np.sin(phase)
+        dy += idle.drift_px * (seq - plan.stop_at) / max(plan.n_stop - 1, 1)
+        gain = 1.0 + idle.gain_drift * (1.0 - math.cos(math.tau * standing_s / GAIN_PERIOD_S)) / 2.0
+        box = crossing_box(idle.crossing, standing_s) if idle.crossing else None
+        light = CROSSINGS[idle.crossing]["light"] if idle.crossing else 0.0
+        out.append(FrameEffect(float(dx), float(dy), gain, box, light))
+    return out
+
+
+def apply_effect(radiance, effect: FrameEffect):
+    """``radiance`` (h, w, 3, of a frame ``width`` px wide) with ``effect``'s move and box: a new
+    array. The gain is the camera's (:func:`drive_frames`)."""
+    import cv2
+    import numpy as np
+
+    h, w = radiance.shape[:2]
+    out = radiance
+    if effect.dx_px or effect.dy_px:
+        shift = np.array([[1, 0, effect.dx_px], [0, 1, effect.dy_px]], np.float32)
+        out = cv2.warpAffine(radiance, shift, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    if effect.box is not None:
+        x0, y0, x1, y1 = effect.box
+        cols = slice(max(0, round(x0 * w)), max(0, round(x1 * w)))
+        rows = slice(max(0, round(y0 * h)), max(0, round(y1 * h)))
+        out = out.copy() if out is radiance else out
+        out[rows, cols] = effect.light * np.median(radiance.reshape(-1, 3), axis=0)
+    return out
 
 
 @dataclass(frozen=True)
@@ -115,34 +229,66 @@ def stop_plan(n_poses: int, stop_at: int, stop_s: float, fps: float) -> StopPlan
 @dataclass(frozen=True)
 class RecordingPolicy(SpreadWindowPolicy):
     """The rig's window policy, keeping the seqs of every window it chooses by its newest seq:
-    an estimate says how many frames it had, not which."""
+    an estimate says how many frames it had, not which; and each newest frame's view stamp and
+    signature, by seq."""
 
     chosen: dict[int, list[int]] = field(default_factory=dict, compare=False, repr=False)
+    views: dict[int, tuple[int, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def select(self, candidates: Sequence[T]) -> list[T]:
+        if candidates:
+            newest = candidates[-1]
+            self.views[newest.frame.seq] = (newest.view_key, newest.view_signature)
         window = super().select(candidates)
         if window:
             self.chosen[window[-1].frame.seq] = [c.frame.seq for c in window]
         return window
 
 
-def drive_frames(drive, poses: Sequence[int], noise_keys: Sequence[tuple[int, ...]], radiance: dict) -> Iterator:
+def drive_frames(drive, poses: Sequence[int], noise_keys: Sequence[tuple[int, ...]], radiance: dict,
+                 effects: Sequence[FrameEffect | None] | None = None, *, dusk: bool = False,
+                 jpeg_quality: int = JPEG_QUALITY) -> Iterator:
     """The Frames of ``drive`` at ``poses`` (indices into its poses), one after another 1 / fps s
     apart, frame i's sensor noise from ``default_rng([drive seed, 3, *noise_keys[i]])``, through one
-    camera (its exposure carried over) and JPEG. ``radiance`` caches each pose's render."""
+    camera (its exposure carried over) and JPEG. ``radiance`` caches each pose's render.
+    ``effects`` (one a frame, None: none) moves the image, changes the gain after auto-exposure and
+    draws a box; ``dusk`` darkens and adds noise to every frame (:data:`DUSK_STOPS`)."""
+    import dataclasses
+
     import cv2
     import numpy as np
 
     from replay.synthetic.camera import Camera
+
+    class GainCamera(Camera):
+        """A camera whose exposure is ``gain`` times what its auto-exposure chose."""
+
+        gain = 1.0
+
+        def exposure_for(self, radiance) -> float:
+            return super().exposure_for(radiance) * self.gain
+
     from rig.types import Attitude, Frame, HeadingRef
 
-    camera = Camera(drive.params.effects, drive.intrinsics.width, drive.intrinsics.height, seed=drive.seed)
-    for seq, (k, key) in enumerate(zip(poses, noise_keys, strict=True)):
+    camera_effects = drive.params.effects
+    if dusk:
+        camera_effects = dataclasses.replace(camera_effects, noise_sqrt=DUSK_NOISE_SQRT)
+    camera = GainCamera(camera_effects, drive.intrinsics.width, drive.intrinsics.height, seed=drive.seed)
+    effects = effects if effects is not None else [None] * len(poses)
+    for seq, (k, key, effect) in enumerate(zip(poses, noise_keys, effects, strict=True)):
         if k not in radiance:
             # A copy: the renderer draws every pose into the same buffers.
             radiance[k] = drive.renderer.render(drive.poses[k]).radiance.copy()
-        image = camera.capture(radiance[k], np.random.default_rng([drive.seed, 3, *key]))
-        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        light = radiance[k]
+        camera.gain = 2.0 ** DUSK_STOPS if dusk else 1.0
+        if effect is not None:
+            # The move in the render's pixels (it may be smaller than the frame).
+            scale = light.shape[1] / drive.intrinsics.width
+            light = apply_effect(light, dataclasses.replace(effect, dx_px=effect.dx_px * scale,
+                                                            dy_px=effect.dy_px * scale))
+            camera.gain *= effect.gain
+        image = camera.capture(light, np.random.default_rng([drive.seed, 3, *key]))
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
         decoded = cv2.imdecode(jpeg, cv2.IMREAD_COLOR) if ok else None
         assert decoded is not None, "OpenCV could not JPEG-encode and decode a rendered frame"
         pose = drive.poses[k]
@@ -204,12 +350,15 @@ class Windows:
         return out
 
 
-def run_stream(frames: Iterator, estimator, rule, span_s: float, phase_of, pose_of, out: Windows) -> dict:
+def run_stream(frames: Iterator, estimator, rule, span_s: float, phase_of, pose_of, out: Windows,
+               views: dict | None = None) -> dict:
     """Every window of ``frames`` through the rig's offline loop, into ``out`` by phase; the
-    loop's counts (frames, those the exposure gate refused, windows failed)."""
+    loop's counts (frames, those the exposure gate refused, windows failed). ``views`` gets each
+    windowed frame's view stamp and signature by seq (:class:`RecordingPolicy`)."""
     from rig.offline import OfflineStats, estimate_stream
 
-    policy = RecordingPolicy(n_frames=estimator.frames_per_window, span_s=span_s)
+    policy = RecordingPolicy(n_frames=estimator.frames_per_window, span_s=span_s,
+                             views=views if views is not None else {})
     stats = OfflineStats()
     for results in estimate_stream(frames, estimator, policy, stats=stats):
         est = results[estimator.aggregator]
@@ -223,6 +372,65 @@ def run_stream(frames: Iterator, estimator, rule, span_s: float, phase_of, pose_
         out.n_poses.append(len({pose_of(s) for s in policy.chosen[est.seq]}))
     return {"frames": stats.frames, "frames_bad_exposure": stats.frames_bad_exposure,
             "windows_failed": stats.windows_failed}
+
+
+@dataclass
+class Views:
+    """How the view clock took the stop runs: each standing frame's signature distance from its
+    stop's first frame, standing frames (the first of each stop left out) and those stamped as a
+    repeat, views per stop, and the distances of consecutive moving frames, with the moving frames
+    stamped as a repeat."""
+
+    standing_rms: list[float] = field(default_factory=list)
+    standing: int = 0
+    standing_repeats: int = 0
+    stop_views: list[int] = field(default_factory=list)
+    moving_rms: list[float] = field(default_factory=list)
+    moving: int = 0
+    moving_repeats: int = 0
+
+    def add(self, plan: StopPlan, views: dict[int, tuple[int, Any]]) -> None:
+        """One stop run's ``views`` (:class:`RecordingPolicy`), by ``plan``."""
+        stop = range(plan.stop_at, plan.stop_at + plan.n_stop)
+        first = views.get(plan.stop_at, (None, None))[1]
+        standing = [seq for seq in stop if seq in views]
+        for seq in standing:
+            key, signature = views[seq]
+            if seq == plan.stop_at:
+                continue
+            self.standing += 1
+            self.standing_repeats += key != seq
+            if first is not None and signature is not None:
+                self.standing_rms.append(view_rms(first, signature))
+        self.stop_views.append(len({views[seq][0] for seq in standing}))
+        for seq in range(plan.n_frames):
+            if seq in stop or seq not in views:
+                continue
+            self.moving += 1
+            self.moving_repeats += views[seq][0] != seq
+            before = views.get(seq - 1, (None, None))[1]
+            if before is not None and views[seq][1] is not None:
+                self.moving_rms.append(view_rms(before, views[seq][1]))
+
+    def summary(self) -> dict:
+        import numpy as np
+
+        rms = np.asarray(self.standing_rms, dtype=np.float64)
+        moving = np.asarray(self.moving_rms, dtype=np.float64)
+        return {
+            "same_view_max_rms": SAME_VIEW_MAX_RMS,
+            "standing_rms": {"frames": len(rms), "p50": float(np.median(rms)) if len(rms) else None,
+                             "p99": float(np.percentile(rms, 99)) if len(rms) else None,
+                             "max": float(rms.max()) if len(rms) else None},
+            "standing_frames": self.standing,
+            "standing_repeat_share": self.standing_repeats / self.standing if self.standing else None,
+            "views_per_stop_mean": _mean([float(v) for v in self.stop_views]),
+            "views_per_stop_max": max(self.stop_views, default=None),
+            "moving_frames": self.moving,
+            "moving_repeats": self.moving_repeats,
+            "moving_nearest_rms": float(moving.min()) if len(moving) else None,
+            "moving_rms_p1": float(np.percentile(moving, 1)) if len(moving) else None,
+        }
 
 
 def _errors_deg(w: Windows, start: int, keep) -> list[float]:
@@ -266,6 +474,18 @@ def main() -> None:
                     help="seconds standing (default 20)")
     ap.add_argument("--fps", type=float_in(0.0, MAX_FPS), default=10.0, help="frames a second (default 10)")
     ap.add_argument("--crop-seed", type=int, default=0, help="the estimator's crop seed (default 0, the rig's)")
+    ap.add_argument("--idle-shake-px", type=float_in(0.0, MAX_SHAKE_PX, lo_included=True), default=0.0,
+                    help="standing, each frame moved by up to this many px along each axis (default 0)")
+    ap.add_argument("--mount-drift-px", type=float_in(-MAX_SHAKE_PX, MAX_SHAKE_PX, lo_included=True), default=0.0,
+                    help="standing, the image drifting this many px down over the stop (default 0)")
+    ap.add_argument("--gain-drift", type=float_in(-0.9, 0.9, lo_included=True), default=0.0,
+                    help=f"standing, the gain swinging to 1 + this and back every {GAIN_PERIOD_S:g} s "
+                         "(default 0; -0.3: 30%% darker)")
+    ap.add_argument("--crossing", choices=sorted(CROSSINGS), help="standing, a shape crossing the view")
+    ap.add_argument("--dusk", action="store_true",
+                    help=f"every frame {-DUSK_STOPS:g} stops darker, with sensor noise {DUSK_NOISE_SQRT}")
+    ap.add_argument("--jpeg-quality", type=int_in(1, 100), default=JPEG_QUALITY,
+                    help=f"every frame's JPEG quality (default {JPEG_QUALITY}, the synthetic logs')")
     args = ap.parse_args()
     if args.drive_seed == TRAINING_DRIVE_SEED:
         ap.error(f"--drive-seed {TRAINING_DRIVE_SEED}: the training drives say nothing of a model's error; "
@@ -287,7 +507,9 @@ def main() -> None:
     rule = estimator.status_rule()
     span_s = float(DEFAULTS["window"]["span_s"])
     plan = stop_plan(args.frames, args.stop_at, args.stop_s, args.fps)
-    stopped, control = Windows(), Windows()
+    stopped, control, views = Windows(), Windows(), Views()
+    idle = Idle(args.idle_shake_px, args.mount_drift_px, args.gain_drift, args.crossing)
+    camera = {"dusk": args.dusk, "jpeg_quality": args.jpeg_quality}
     counts = {"stop": {"frames": 0, "frames_bad_exposure": 0, "windows_failed": 0},
               "control": {"frames": 0, "frames_bad_exposure": 0, "windows_failed": 0}}
     rows = []
@@ -297,12 +519,14 @@ def main() -> None:
         radiance: dict = {}
         first_stop, first_control = len(stopped.phase), len(control.phase)
         poses, keys = stop_poses(plan)
-        got = run_stream(drive_frames(drive, poses, keys, radiance), estimator, rule, span_s,
-                         plan.phase, plan.pose, stopped)
+        seen: dict[int, tuple[int, Any]] = {}
+        got = run_stream(drive_frames(drive, poses, keys, radiance, idle_effects(plan, idle, seed), **camera),
+                         estimator, rule, span_s, plan.phase, plan.pose, stopped, seen)
         counts["stop"] = {k: counts["stop"][k] + v for k, v in got.items()}
+        views.add(plan, seen)
         plain = list(range(args.frames))
-        got = run_stream(drive_frames(drive, plain, [(k,) for k in plain], radiance), estimator, rule, span_s,
-                         lambda seq: plan.control_phase(seq), lambda seq: seq, control)
+        got = run_stream(drive_frames(drive, plain, [(k,) for k in plain], radiance, **camera), estimator, rule,
+                         span_s, lambda seq: plan.control_phase(seq), lambda seq: seq, control)
         counts["control"] = {k: counts["control"][k] + v for k, v in got.items()}
         at_stop = _errors_deg(control, first_control, lambda seq, p: p == "at_stop_pose")
         # The control's windows ending within a span of the stop pose, before or after it: moving
@@ -317,16 +541,19 @@ def main() -> None:
             "control_around_stop_mean_deg": _mean(around),
             "stop_4s_on_mean_deg": _mean(standing),
             "stop_4s_on_max_deg": max(standing, default=None),
+            "stop_views": views.stop_views[-1],
         }
         rows.append(row)
         print(f"{row['drive']}: moving around the stop pose {_fmt(row['control_around_stop_mean_deg'])}, "
-              f"standing 4 s on {_fmt(row['stop_4s_on_mean_deg'])} (max {_fmt(row['stop_4s_on_max_deg'])}) deg",
-              file=sys.stderr)
+              f"standing 4 s on {_fmt(row['stop_4s_on_mean_deg'])} (max {_fmt(row['stop_4s_on_max_deg'])}) deg, "
+              f"{row['stop_views']} views standing", file=sys.stderr)
     print(json.dumps({
         "benchmark": "standstill",
         "drives": {"drive_seed": args.drive_seed, "count": args.drives, "poses": args.frames, "fps": args.fps,
                    "stop_at_pose": args.stop_at, "stop_s": args.stop_s, "stop_frames": plan.n_stop,
-                   "jpeg_quality": JPEG_QUALITY},
+                   "jpeg_quality": args.jpeg_quality, "dusk": args.dusk},
+        "idle": {"shake_px": idle.shake_px, "mount_drift_px": idle.drift_px, "gain_drift": idle.gain_drift,
+                 "gain_period_s": GAIN_PERIOD_S, "crossing": idle.crossing},
         "window": {"n_frames": estimator.frames_per_window, "span_s": span_s},
         "crop_seed": args.crop_seed,
         "model": {"dir": str(model.model_dir), "id": model.model_id},
@@ -335,6 +562,7 @@ def main() -> None:
         "phases": stopped.summary(PHASES),
         "control": control.summary(CONTROL_PHASES),
         "paired": paired(rows),
+        "views": views.summary(),
         "per_drive": rows,
         "counts": counts,
         "runtime_s": round(time.perf_counter() - started, 1),

@@ -104,7 +104,12 @@ def same_view(first: FrameFeatures, other: FrameFeatures) -> bool:
         return False
     if abs(math.remainder(att_b.heading_rad - att_a.heading_rad, math.tau)) > SAME_VIEW_MAX_TURN_RAD:
         return False
-    return float(np.sqrt(np.mean(np.square(a - b)))) <= SAME_VIEW_MAX_RMS
+    return view_rms(a, b) <= SAME_VIEW_MAX_RMS
+
+
+def view_rms(first: np.ndarray, other: np.ndarray) -> float:
+    """How far apart two view signatures of one camera are: the RMS of their difference."""
+    return float(np.sqrt(np.mean(np.square(first - other))))
 
 
 class ViewClock:

@@ -109,3 +109,66 @@ def test_the_stop_streams_frames_are_the_drives_own_and_standing_ones_differ_by_
     again = list(drive_frames(drive, range(6), [(k,) for k in range(6)], radiance))
     for seq in range(6):
         assert np.array_equal(again[seq].image_bgr, jpeg(plain[seq].image_bgr))
+
+
+@pytest.mark.parametrize("bad, said", [
+    (["--idle-shake-px", "-1"], "--idle-shake-px"),
+    (["--gain-drift", "1"], "--gain-drift"),  # a gain of 0 or 2: no view to compare
+    (["--crossing", "bus"], "--crossing"),
+    (["--jpeg-quality", "0"], "--jpeg-quality"),
+])
+def test_bad_idle_options_are_usage_errors_naming_the_option(bad, said, monkeypatch, capsys):
+    with pytest.raises(SystemExit) as end:
+        _main(monkeypatch, *bad)
+    assert end.value.code == 2 and said in capsys.readouterr().err
+
+
+def test_only_standing_frames_idle_and_each_option_shows():
+    import math
+
+    from benchmarks.bench_standstill import GAIN_PERIOD_S, Idle, idle_effects
+
+    plan = stop_plan(10, 4, 12.0, 10.0)  # 120 frames at pose 4
+    standing = range(4, 4 + 120)
+    assert idle_effects(plan, Idle(), 1) == [None] * plan.n_frames  # the default run: the plain stop
+    shaken = idle_effects(plan, Idle(shake_px=2.0), 1)
+    assert all((e is None) == (seq not in standing) for seq, e in enumerate(shaken))
+    moves = [(e.dx_px, e.dy_px) for e in shaken if e is not None]
+    assert max(abs(m) for xy in moves for m in xy) <= 2.0 and len(set(moves)) == len(moves)
+    drift = [e.dy_px for e in idle_effects(plan, Idle(drift_px=1.0), 1) if e is not None]
+    assert drift[0] == 0.0 and drift[-1] == pytest.approx(1.0) and drift == sorted(drift)
+    gains = [e.gain for e in idle_effects(plan, Idle(gain_drift=-0.3), 1) if e is not None]
+    assert gains[0] == 1.0 and gains[round(GAIN_PERIOD_S / 2 * 10)] == pytest.approx(0.7) and min(gains) >= 0.7
+    boxes = [e.box for e in idle_effects(plan, Idle(crossing="car"), 1) if e is not None]
+    assert boxes[:10] == [None] * 10  # from 1 s into the stop on
+    crossing = [b for b in boxes if b is not None]
+    assert crossing and all(b[2] - b[0] == pytest.approx(0.18) for b in crossing)
+    assert not math.isclose(crossing[0][0], crossing[1][0])  # it moves
+
+
+def test_an_idle_standing_frame_is_the_plain_one_moved_and_darkened():
+    import numpy as np
+
+    from benchmarks.bench_standstill import FrameEffect, apply_effect
+
+    rng = np.random.default_rng(0)
+    light = rng.uniform(0.1, 1.0, (20, 40, 3)).astype(np.float32)
+    moved = apply_effect(light, FrameEffect(dx_px=2.0))
+    assert np.allclose(moved[:, 2:], light[:, :-2]) and moved is not light
+    boxed = apply_effect(light, FrameEffect(box=(0.5, 0.5, 0.75, 1.0), light=0.1))
+    assert np.allclose(boxed[10:, 20:30], 0.1 * np.median(light.reshape(-1, 3), axis=0))
+    assert np.array_equal(boxed[:10], light[:10]) and np.array_equal(light, apply_effect(light, FrameEffect()))
+
+
+def test_a_tiny_idle_run_says_how_the_view_clock_took_the_stop(tiny_model_dir, monkeypatch, capsys):
+    _main(monkeypatch, "--model", str(tiny_model_dir), "--drives", "1", "--frames", "20", "--stop-at", "5",
+          "--stop-s", "12", "--fps", "2", "--idle-shake-px", "1", "--gain-drift", "-0.2")
+    out = json.loads(capsys.readouterr().out)
+    assert out["idle"]["shake_px"] == 1.0 and out["idle"]["gain_drift"] == -0.2
+    views = out["views"]
+    assert views["standing_frames"] == 23 and views["standing_rms"]["frames"] == 23
+    assert 0 < views["standing_rms"]["p50"] <= views["standing_rms"]["p99"] <= views["standing_rms"]["max"]
+    assert 0 <= views["standing_repeat_share"] <= 1 and views["views_per_stop_max"] >= 1
+    # Driving, no frame is a repeat, and the nearest two are far apart.
+    assert views["moving_frames"] == 19 and views["moving_repeats"] == 0
+    assert views["moving_nearest_rms"] > views["same_view_max_rms"]
