@@ -17,7 +17,9 @@ used: a frame gets no attitude (``None``, counted) when
   reference's own samples give it a heading. A source that interleaves references (HDT beside an
   HDG without variation) gives each frame the best one that brackets it: true, then magnetic;
 - ``ahead``: live, it is stamped after it arrived, so its stamp is not the host's clock (a device
-  clock that stepped, a replayed file): the samples at its stamp were measured after it was taken.
+  clock that stepped, a replayed file): the samples at its stamp were measured after it was taken;
+- ``unconfirmed``: live, its heading would come from the newest sample, which jumped, and the
+  sample that tells whether that one is a glitch (below) did not come within ``max_age_s``.
 
 A heading sample that is impossible given its neighbours (a glitch: a dual-antenna compass's
 multipath puts one sentence half a turn off, or any wild value) is left out, counted in
@@ -27,9 +29,10 @@ between them than they are from each other (the heading went out and came back).
 a 1 Hz compass's glitch was a 2 s ramp out and back whose every frame step passed the window's
 jump rule for a turn.
 Whether a sample is one needs the sample after it, so live, a frame whose heading depends on the
-newest sample, when that one jumped, waits for the next (still at most ``max_age_s``). A sample
-with no sample kept before it or none after it (a stream's first and last) cannot be told from a
-heading whose zero moved, and is kept, as is a jump that stays (a zero that moved).
+newest sample, when that one jumped, waits for the next (still at most ``max_age_s``; then it goes
+without heading, ``unconfirmed``). A sample with no sample kept before it or none after it (a
+stream's first and last) cannot be told from a heading whose zero moved, and is kept, as is a
+jump that stays (a zero that moved).
 
 Live, the sample after a frame arrives after the frame, so the stream wrapper holds each frame
 until its heading is known (in a bounded buffer): this delays frames by up to one heading
@@ -69,7 +72,7 @@ log = logging.getLogger(__name__)
 DEFAULT_MAX_GAP_S = 1.5
 DEFAULT_MAX_AGE_S = 1.5
 
-FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed", "ahead")
+FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed", "ahead", "unconfirmed")
 # How many samples before a frame's are judged again for glitches at each lookup: a glitch's
 # verdict depends on the sample kept before it, so on the verdicts before; a few suffice (a run of
 # samples that each jump is no glitch of one sample), and the history (512) is not judged each frame.
@@ -175,11 +178,15 @@ class HeadingInterpolator:
         i = bisect.bisect_left(times, t)
         samples, times, doubtful = self._without_glitches(samples, times, i, now_s)
         i = bisect.bisect_left(times, t)
-        if doubtful and i >= len(times) - 1 and now_s is not None and (now_s - self.latency_s) - t <= self.max_age_s:
+        if doubtful and i == len(times) - 1 and now_s is not None:
             # Its heading comes from the newest sample, which jumped: a glitch if the next comes back.
-            # Waited for up to max_age_s as for any sample after a frame; after that it goes as it
-            # would without the check, that sample taken as it is.
-            return Lookup(None, "pending")
+            # Waited for up to max_age_s as for any sample after a frame. After that it goes without
+            # heading: taken as it is, a 1 Hz compass's glitch gave the first frames after the
+            # sample before it 18-54 deg of the way out to it, each frame step a turn to the window.
+            # A real turn of more than 45 deg between samples (45 deg/s at 1 Hz) costs the same.
+            if (now_s - self.latency_s) - t <= self.max_age_s:
+                return Lookup(None, "pending")
+            return Lookup(None, "unconfirmed")
         if i < len(times) and times[i] == t:
             return Lookup(samples[i].attitude(), "exact")
         if i == len(times):

@@ -818,7 +818,7 @@ def _source_summary(stats: dict) -> str:
         if key.startswith("no_heading_") and n:
             parts.append(f"camera frames without heading ({key.removeprefix('no_heading_').replace('_', ' ')}) {n}")
     pairing = stats.get("pairing") or {}
-    for key in ("gap", "before", "after", "stale", "mixed", "ahead", "overflow"):
+    for key in ("gap", "before", "after", "stale", "mixed", "ahead", "unconfirmed", "overflow"):
         if pairing.get(key):
             parts.append(f"heading {key} {pairing[key]}")
     if pairing.get("glitch"):  # samples, not frames (drivers/pairing.py): their frames count under gap
