@@ -27,12 +27,14 @@ and crop seed ``--crop-seed``) and the model's status rule: one estimate per fra
 included, as the live rig sends. Per impairment, once with the exposure gate as shipped
 (``gate_on``) and once without (``gate_off``: what the model makes of every frame): windows, angular
 error (mean, median, p90, max), the share flagged valid (FLAG_VALID), the valid windows' mean error
-and how many of them are over 30 deg; and the frames the gate rejects, by reason.
+and how many of them are over 30 deg; the frames the gate rejects, by reason, and the share of the
+frames the gate's cover measure finds covered (rig/exposure.covered_share; of the frames the
+impairment changed, or of every frame of a control).
 
 ``gate_us`` is what the gate costs a frame (median over the control frames, microseconds).
 ``--count-gate DIR`` instead counts the gate's verdicts on every frame of the logs in DIR (e.g. the
 held-out drives, data/heldout), as shipped and with only the mean and standard deviation checks:
-how many frames a measure added to the gate newly rejects there.
+how many frames a measure added to the gate newly rejects there, and their covered shares.
 
     python3 benchmarks/bench_exposure.py [--model DIR] [--drives 16] [--sun-drives 6] [--drive-seed 3000]
                                          [--frames 24] [--metered-mean 10] [--crop-seed 0]
@@ -199,6 +201,7 @@ class Counts:
     frames_impaired: int = 0
     gate: Counter = field(default_factory=Counter)
     impaired_luma_mean: list[float] = field(default_factory=list)
+    covered_share: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -264,12 +267,17 @@ def sun_drives(set_seed: int, n_frames: int, fps: float, want: int, skip: set[in
             yield index, r
 
 
+def _spread(values: list[float]) -> dict | None:
+    return ({"min": float(np.min(values)), "median": float(np.median(values)), "max": float(np.max(values))}
+            if values else None)
+
+
 def count_gate(folder: str) -> dict:
     """The gate's verdicts on every frame of the logs in ``folder``: as shipped, and with only its
     mean and standard deviation checks (the gate before any other measure)."""
     from replay.sources import open_frames
     from rig.errors import SunrigError
-    from rig.exposure import DEFAULT_EXPOSURE_GATE, luminance_stats
+    from rig.exposure import DEFAULT_EXPOSURE_GATE, covered_share, luminance_stats
 
     paths = sorted(Path(folder).glob("*.mcap"))
     if not paths:
@@ -278,12 +286,14 @@ def count_gate(folder: str) -> dict:
     shipped: Counter = Counter()
     plain: Counter = Counter()
     newly: list[str] = []
+    shares: list[float] = []
     frames = 0
     for path in paths:
         for frame in open_frames(path):
             frames += 1
             reason = g.rejects(frame.image_bgr)
             mean, std = luminance_stats(frame.image_bgr)
+            shares.append(covered_share(frame.image_bgr))
             before = ("dark" if mean < g.min_mean else "bright" if mean > g.max_mean
                       else "flat" if std < g.min_std else None)
             shipped[reason or "passed"] += 1
@@ -291,7 +301,8 @@ def count_gate(folder: str) -> dict:
             if reason and not before:
                 newly.append(f"{path.stem} seq {frame.seq} ({reason})")
     return {"folder": folder, "logs": len(paths), "frames": frames, "shipped_gate": dict(shipped),
-            "mean_std_only": dict(plain), "newly_rejected": len(newly), "newly_rejected_frames": newly[:20]}
+            "mean_std_only": dict(plain), "newly_rejected": len(newly), "newly_rejected_frames": newly[:20],
+            "covered_share": _spread(shares)}
 
 
 def main() -> None:
@@ -330,7 +341,7 @@ def main() -> None:
     from replay.synthetic import drive_seed
     from replay.synthetic.drive import Drive
     from rig.config import DEFAULTS
-    from rig.exposure import DEFAULT_EXPOSURE_GATE
+    from rig.exposure import DEFAULT_EXPOSURE_GATE, covered_share
 
     started = time.perf_counter()
     model = OnnxModel.load(resolve_model_dir(args.model))
@@ -355,6 +366,7 @@ def main() -> None:
         for f in frames:
             c.gate[gate.rejects(f.image_bgr) or "passed"] += 1
         c.impaired_luma_mean += [luma_mean(frames[k].image_bgr) for k in impaired]
+        c.covered_share += [covered_share(frames[k].image_bgr) for k in (impaired or range(len(frames)))]
         if kind == "none" and not gate_cost:
             image = frames[0].image_bgr
             gate_cost.append(lambda: gate.rejects(image))
@@ -380,11 +392,10 @@ def main() -> None:
         c = counts[kind]
         if not c.frames:
             continue
-        lumas = np.asarray(c.impaired_luma_mean)
         results[kind] = {
             "frames": c.frames, "frames_impaired": c.frames_impaired,
-            "impaired_luma_mean": ({"min": float(lumas.min()), "median": float(np.median(lumas)),
-                                    "max": float(lumas.max())} if lumas.size else None),
+            "impaired_luma_mean": _spread(c.impaired_luma_mean),
+            "covered_share": _spread(c.covered_share),
             "gate": dict(c.gate),
             "gate_on": on.summary(), "gate_off": off.summary()}
     cost = time_ms(gate_cost[0], repeats=200, warmup=20) if gate_cost else None

@@ -110,6 +110,7 @@ def test_counting_the_gate_on_a_folder_of_logs(tmp_path):
     out = count_gate(str(tmp_path))
     assert out["logs"] == 1 and out["frames"] == out["shipped_gate"]["passed"] == out["mean_std_only"]["passed"]
     assert out["newly_rejected"] == 0 and out["newly_rejected_frames"] == []
+    assert 0.0 <= out["covered_share"]["min"] <= out["covered_share"]["max"] <= 0.25
 
 
 def test_a_tiny_run_reports_every_impairment_with_and_without_the_gate(tiny_model_dir, monkeypatch, capsys):
@@ -121,6 +122,7 @@ def test_a_tiny_run_reports_every_impairment_with_and_without_the_gate(tiny_mode
         assert got["frames"] == 8
         passed = got["gate"].get("passed", 0)
         assert sum(got["gate"].values()) == 8
+        assert 0.0 <= got["covered_share"]["min"] <= got["covered_share"]["max"] <= 1.0
         # One window a frame: every frame without the gate, those it let through with it.
         assert got["gate_off"]["windows"] == 8 and got["gate_on"]["windows"] == passed
         assert got["frames_impaired"] == (0 if kind in ("none", "sun_none") else

@@ -10,7 +10,7 @@ import pytest
 from estimator.estimator import SunEstimator
 from replay.sources import DEMO_LOG, open_frames
 from rig.errors import ValidationError
-from rig.exposure import DEFAULT_EXPOSURE_GATE, SAMPLE_PIXELS, ExposureGate, luminance_stats
+from rig.exposure import DEFAULT_EXPOSURE_GATE, SAMPLE_PIXELS, ExposureGate, covered_share, luminance_stats
 from rig.offline import OfflineStats, estimate_stream
 from rig.pipeline import RigConfig, RigPipeline
 from rig.types import Attitude, Frame, HeadingRef, Intrinsics
@@ -84,20 +84,89 @@ def test_stripes_of_any_period_and_frames_of_any_width_are_seen_as_they_are(shap
         assert DEFAULT_EXPOSURE_GATE.rejects(image) is None
     # The verdict on a frame does not change from one look to the next (a fixed sample).
     assert luminance_stats(TEXTURED) == luminance_stats(TEXTURED.copy())
+    # Nor whether the frame is a view of a larger one (its pixels gathered by row and column) or
+    # an array of its own (by flat index).
+    view = RNG.integers(0, 256, size=(400, 1300, 3), dtype=np.uint8)[:375, :1242]
+    assert not view.flags.c_contiguous
+    assert luminance_stats(view) == luminance_stats(view.copy()) and covered_share(view) == covered_share(view.copy())
 
 
 def test_the_widest_gate_is_valid_and_passes_every_frame():
-    # The limits 0 <= min_mean, max_mean <= 255 and min_std >= 0 are inclusive: this gate is open.
-    gate = ExposureGate(min_mean=0.0, max_mean=255.0, min_std=0.0)
+    # The limits 0 <= min_mean, max_mean <= 255, min_std >= 0 and max_covered_share <= 1 are
+    # inclusive: this gate is open.
+    gate = ExposureGate(min_mean=0.0, max_mean=255.0, min_std=0.0, max_covered_share=1.0)
     for level in (0, 128, 255):
         assert gate.rejects(np.full((80, 128, 3), level, np.uint8)) is None
+    assert gate.rejects(_covered(72)) is None
 
 
 def test_gate_thresholds_are_checked():
     for bad in ({"min_mean": 200.0, "max_mean": 100.0}, {"min_mean": 100.0, "max_mean": 100.0}, {"max_mean": 300.0},
-                {"min_std": -1.0}):
+                {"min_std": -1.0}, {"max_covered_share": -0.1}, {"max_covered_share": 1.5},
+                {"max_covered_share": math.nan}):
         with pytest.raises(ValidationError, match="ExposureGate"):
             ExposureGate(**bad)
+
+
+def _covered(blocks, level=0, noise=0.0):
+    """A 48 x 96 frame (every pixel looked at) in the gate's 12 x 6 blocks of 8 x 8 px: the first
+    ``blocks`` of them (row by row) at luma ``level`` give or take ``noise``, the rest TEXTURED."""
+    image = TEXTURED[:48, :96].copy()
+    assert image.shape[0] * image.shape[1] <= SAMPLE_PIXELS
+    for b in range(blocks):
+        r, c = divmod(b, 12)
+        image[8 * r:8 * r + 8, 8 * c:8 * c + 8] = np.clip(level + RNG.normal(0.0, noise, (8, 8, 1)), 0, 255)
+    return image
+
+
+@pytest.mark.parametrize(("cover", "share"), [
+    (lambda im: im[im.shape[0] // 2:], 0.5),  # a cap slid over the lower half
+    (lambda im: im[:, : im.shape[1] // 2], 0.5),  # over the left half
+    (lambda im: im[: im.shape[0] // 2], 0.5),  # the upper half: over the sky, as dark
+])
+def test_a_lens_partly_capped_is_left_out_as_covered(cover, share):
+    # Its mean and standard deviation pass (auto exposure brightens what the cap leaves), so the
+    # gate let it through, and the model read it 23-45 deg off on average, calling most of it valid
+    # (benchmarks/bench_exposure.py).
+    for shape in ((375, 1242), (80, 128)):
+        image = RNG.integers(0, 256, size=(*shape, 3), dtype=np.uint8)
+        cover(image)[:] = 0
+        mean, std = luminance_stats(image)
+        assert 16.0 < mean < 240.0 and std > 3.0
+        # All of it but the blocks its edge cuts: up to a row of the 6 (or a column of the 12).
+        assert share - 1 / 6 <= covered_share(image) <= share + 0.03
+        assert DEFAULT_EXPOSURE_GATE.rejects(image) == "covered"
+
+
+def test_a_dark_flat_blob_over_more_than_a_quarter_is_covered_and_up_to_a_quarter_passes():
+    # 18 of the 72 blocks are a quarter of the frame: not more than max_covered_share 0.25.
+    assert covered_share(_covered(18)) == 0.25 and DEFAULT_EXPOSURE_GATE.rejects(_covered(18)) is None
+    assert covered_share(_covered(19)) == 19 / 72 and DEFAULT_EXPOSURE_GATE.rejects(_covered(19)) == "covered"
+    # A hand or a visor is not black: out of focus it is flat (sensor noise only) and darker than
+    # 0.6 of the frame's mean (about 95 here).
+    assert DEFAULT_EXPOSURE_GATE.rejects(_covered(30, level=50, noise=1.0)) == "covered"
+
+
+@pytest.mark.parametrize(("level", "noise", "why"), [
+    (200, 1.0, "a flat sky: brighter than 0.6 of the frame's mean"),
+    (60, 1.0, "the frame's mean falls with it: 60 is not below 0.6 of it (about 93)"),
+    (30, 8.0, "shade that shows its texture: a standard deviation of 8, not under 3"),
+])
+def test_a_large_flat_bright_or_dark_textured_region_is_no_cover(level, noise, why):
+    image = _covered(40, level=level, noise=noise)  # 56 % of the frame
+    assert covered_share(image) == 0.0, why
+    assert DEFAULT_EXPOSURE_GATE.rejects(image) is None, why
+
+
+def test_a_frame_too_small_for_the_grid_has_fewer_blocks_none_thinner_than_8_px():
+    # 6 px wide: one column of blocks (one per column judged the dark of stripes 4 px wide as flat,
+    # test_stripes_...), 40 px high: five rows of them, so a cap over its lower half is seen.
+    image = RNG.integers(0, 256, size=(40, 6, 3), dtype=np.uint8)
+    image[:, :3] = 0  # its left half: no block is all of it
+    assert covered_share(image) == 0.0 and DEFAULT_EXPOSURE_GATE.rejects(image) is None
+    image = RNG.integers(0, 256, size=(40, 6, 3), dtype=np.uint8)
+    image[16:] = 0
+    assert covered_share(image) == pytest.approx(24 / 40) and DEFAULT_EXPOSURE_GATE.rejects(image) == "covered"
 
 
 def test_the_bundled_drive_passes_the_gate():
@@ -111,7 +180,7 @@ def drive(n, dark_from=None, dark_to=None):
         dark = dark_from is not None and dark_from <= i < dark_to
         yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=np.zeros_like(TEXTURED) if dark else TEXTURED,
                     intrinsics=INTR, attitude=Attitude(math.radians(3.0 * i), HeadingRef.TRUE),
-                    sun_enu_truth=[0.0, 0.8, 0.6])
+                    sun_enu_truth=np.array([0.0, 0.8, 0.6]))
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +214,7 @@ def test_replay_leaves_dark_frames_out_of_every_window(estimator):
 
 @pytest.mark.torch
 def test_live_rig_counts_dark_frames_and_never_estimates_them(estimator, caplog):
-    seen = []
+    seen: list[Frame] = []
     stats = run_live(drive(40, 0, 40), estimator, on_frame=seen.append)
     # Night all the way: every frame is still handed to the recorder, none reaches the backbone.
     assert len(seen) == stats.frames_captured == stats.frames_bad_exposure == 40
@@ -174,7 +243,7 @@ def flickering(n, dark_every=2):
         dark = i % dark_every == 0
         yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=np.zeros_like(TEXTURED) if dark else TEXTURED,
                     intrinsics=INTR, attitude=Attitude(math.radians(3.0 * i), HeadingRef.TRUE),
-                    sun_enu_truth=[0.0, 0.8, 0.6])
+                    sun_enu_truth=np.array([0.0, 0.8, 0.6]))
 
 
 @pytest.mark.torch
