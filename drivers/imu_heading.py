@@ -416,6 +416,122 @@ class OrientationBuffer:
 # Gyro integration (IMUs without fusion)
 # ---------------------------------------------------------------------------------------------
 
+# The gyro bias, learned while the IMU is certainly still (docs/oak.md, "Gyro bias"). A BMI270's
+# zero-rate offset is +-0.5 deg/s typical (datasheet, 1 sigma): 30 deg of heading a minute.
+GYRO_BIAS_STILL_S = 2.0  # how long the IMU must be quiet before its mean rate is taken for the bias
+_BIAS_BLOCK_S = 0.25  # the quiet test's time step; the newest block is never learned from (below)
+# The quiet test low-passes rates and accelerations (two first-order stages at 1 Hz): an idling
+# engine's 20-40 Hz vibration (a few deg/s, zero mean) is cut 400-1600 fold, the body's pitching
+# and heaving on a road (1-3 Hz) hardly at all.
+_STILL_LOWPASS_HZ = 1.0
+# Quiet: over GYRO_BIAS_STILL_S the low-passed rate moves by at most this on every axis (standing
+# with the engine idling, simulated: at most 0.07 deg/s) and the low-passed acceleration by at most
+# STILL_ACCEL_SPREAD_M_S2 (at most 0.011); its mean is within STILL_GRAVITY_TOL of g.
+STILL_RATE_SPREAD_RAD_S = math.radians(0.1)
+STILL_ACCEL_SPREAD_M_S2 = 0.02
+STILL_GRAVITY_TOL = 0.03
+# A quiet stretch whose mean rate is larger is not a bias (the datasheet's offset is 0.5 deg/s at
+# 1 sigma, this is 3 sigma) but, most likely, a long smooth curve: refused, and counted.
+MAX_GYRO_BIAS_RAD_S = math.radians(1.5)
+
+
+class GyroBiasEstimator:
+    """The gyro's bias (rad/s, IMU axes): its mean rate over a stretch in which the IMU is still.
+
+    Still means quiet for at least ``still_s``: the rates and accelerations, low-passed, each stay
+    within a narrow band (an idling engine's fast vibration passes, a body pitching on its springs
+    or a speed change does not), and the acceleration is g. Each quiet stretch's mean rate (all
+    but its newest ``_BIAS_BLOCK_S``, where a start may hide behind the low-pass' delay) becomes
+    the bias, unless it exceeds ``max_bias_rad_s``. A constant turn on a road so smooth that
+    nothing else moves is as quiet as standing: it is learned as a bias when below that limit.
+
+    Pure and cheap: a few vector operations a report; the times are the reports'.
+    """
+
+    def __init__(self, *, still_s: float = GYRO_BIAS_STILL_S, max_bias_rad_s: float = MAX_GYRO_BIAS_RAD_S,
+                 rate_spread_rad_s: float = STILL_RATE_SPREAD_RAD_S,
+                 accel_spread_m_s2: float = STILL_ACCEL_SPREAD_M_S2) -> None:
+        self.n_blocks = max(2, int(round(still_s / _BIAS_BLOCK_S)))
+        self.max_bias_rad_s = float(max_bias_rad_s)
+        self._spread = np.array([rate_spread_rad_s] * 3 + [accel_spread_m_s2] * 3)
+        self.bias_rad_s = np.zeros(3)
+        self.learned = False  # a bias has been learned (bias_rad_s is no longer zero by default)
+        self.counts = {"gyro_bias_learned": 0, "gyro_bias_refused": 0}
+        self.restart()
+
+    def restart(self) -> None:
+        """Forget the stretch in progress (a gap in the reports, one without an accelerometer):
+        quiet must be seen again from here. The learned bias stays."""
+        self._t: float | None = None
+        self._lp1: np.ndarray | None = None
+        self._lp2: np.ndarray | None = None
+        self._block: list | None = None  # [t0, n, sum_w, sum_a, low, high]
+        self._blocks: deque[list] = deque(maxlen=self.n_blocks)
+        self._stretch: list | None = None  # [n, sum_w, learned, refused]
+
+    def add(self, t_s: float, gyro_imu_rad_s: np.ndarray, accel_imu_m_s2) -> bool:
+        """One report (in time order); True when it changed the bias."""
+        if accel_imu_m_s2 is None:
+            self.restart()  # stillness cannot be checked without the accelerometer
+            return False
+        a = np.asarray(accel_imu_m_s2, dtype=np.float64)
+        x = np.concatenate([gyro_imu_rad_s, a])
+        if not np.all(np.isfinite(x)):
+            self.restart()
+            return False
+        if self._lp1 is None or self._lp2 is None or self._t is None:
+            self._lp1, self._lp2 = x.copy(), x.copy()
+        else:
+            k = 1.0 - math.exp(-2.0 * math.pi * _STILL_LOWPASS_HZ * (t_s - self._t))
+            self._lp1 += k * (x - self._lp1)
+            self._lp2 += k * (self._lp1 - self._lp2)
+        self._t = t_s
+        b = self._block
+        if b is None:
+            self._block = [t_s, 1, x[:3].copy(), a.copy(), self._lp2.copy(), self._lp2.copy()]
+            return False
+        b[1] += 1
+        b[2] += x[:3]
+        b[3] += a
+        np.minimum(b[4], self._lp2, out=b[4])
+        np.maximum(b[5], self._lp2, out=b[5])
+        if t_s - b[0] < _BIAS_BLOCK_S:
+            return False
+        self._blocks.append(b)
+        self._block = None
+        return self._judge()
+
+    def _judge(self) -> bool:
+        blocks = self._blocks
+        if len(blocks) < self.n_blocks:
+            return False
+        low = np.min([b[4] for b in blocks], axis=0)
+        high = np.max([b[5] for b in blocks], axis=0)
+        n = sum(b[1] for b in blocks)
+        g = float(np.linalg.norm(sum(b[3] for b in blocks) / n))
+        if np.any(high - low > self._spread) or abs(g / GRAVITY_M_S2 - 1.0) > STILL_GRAVITY_TOL:
+            self._stretch = None  # moving (or shaken): the stretch, if any, ends here
+            return False
+        st = self._stretch
+        if st is None:  # a new quiet stretch: every block but the newest
+            older = list(blocks)[:-1]
+            st = self._stretch = [sum(b[1] for b in older), sum(b[2] for b in older), False, False]
+        else:
+            st[0] += blocks[-2][1]
+            st[1] += blocks[-2][2]
+        mean = st[1] / st[0]
+        if float(np.linalg.norm(mean)) > self.max_bias_rad_s:
+            if not st[3]:
+                st[3] = True
+                self.counts["gyro_bias_refused"] += 1
+            return False
+        if not st[2]:
+            st[2] = True
+            self.counts["gyro_bias_learned"] += 1
+        self.bias_rad_s = mean
+        self.learned = True
+        return True
+
 
 class GyroIntegrator:
     """Orientation (world from IMU) from gyro rates, with the tilt held by the accelerometer.
@@ -429,9 +545,15 @@ class GyroIntegrator:
     It starts (and starts again after a gap) only at a report that comes with an accelerometer
     reading: without one there is no up to start from, and a guessed one can be half a turn off
     (a camera mounted upside down), where the tilt term is zero and never pulls it back.
+
+    With ``gyro_bias`` (the default) a :class:`GyroBiasEstimator` learns the gyro's bias whenever
+    the IMU stands still and it is subtracted from every rate after; ``counts`` say how often
+    (``gyro_bias_learned``, ``gyro_bias_refused``), and the bias (``gyro_bias_deg_s``, its size)
+    and the heading drift it caused (``gyro_bias_heading_deg_s``, clockwise positive), in deg/s.
     """
 
-    def __init__(self, cam_from_imu, *, tilt_gain: float = 0.5, max_step_s: float = 0.1) -> None:
+    def __init__(self, cam_from_imu, *, tilt_gain: float = 0.5, max_step_s: float = 0.1,
+                 gyro_bias: bool = True) -> None:
         c = validate_rotation("cam_from_imu", cam_from_imu)
         self._forward_imu = c.T @ np.array([0.0, 0.0, 1.0])  # optical axis in IMU axes
         self.tilt_gain = float(tilt_gain)
@@ -439,7 +561,11 @@ class GyroIntegrator:
         self._q: np.ndarray | None = None
         self._t: float | None = None
         self._w: np.ndarray | None = None
-        self.counts = {"gyro_steps": 0, "gyro_gaps": 0, "gyro_out_of_order": 0, "gyro_no_gravity": 0}
+        self.bias = GyroBiasEstimator() if gyro_bias else None
+        self.counts: dict[str, float] = {"gyro_steps": 0, "gyro_gaps": 0, "gyro_out_of_order": 0,
+                                         "gyro_no_gravity": 0}
+        if self.bias is not None:
+            self.counts.update(self.bias.counts, gyro_bias_deg_s=0.0, gyro_bias_heading_deg_s=0.0)
 
     @property
     def initialized(self) -> bool:
@@ -467,18 +593,38 @@ class GyroIntegrator:
                 self.counts["gyro_out_of_order"] += 1
                 return None
             if dt <= self.max_step_s:
-                return self._step(float(t_s), dt, w, accel_imu)
+                return self._step(float(t_s), dt, self._unbiased(float(t_s), w, accel_imu), accel_imu)
             # Reports lost: the rotation meanwhile is unknown, and integrating across the gap would
             # invent one (the mean of the rates at its ends times its length). Start again from the
             # accelerometer, with a new zero; the tracker gives its headings a new epoch.
             self.counts["gyro_gaps"] += 1
             self._q = self._t = self._w = None
+            if self.bias is not None:
+                self.bias.restart()  # the same chip: its bias is kept, but quiet is seen anew
         up = None if accel_imu is None else np.asarray(accel_imu, dtype=np.float64)
         if up is None or not np.all(np.isfinite(up)) or float(np.linalg.norm(up)) < 1e-3:
             self.counts["gyro_no_gravity"] += 1  # no up to start from: wait for the accelerometer
             return None
-        self._q, self._t, self._w = self._initial(up), float(t_s), w
+        self._q, self._t = self._initial(up), float(t_s)
+        self._w = self._unbiased(float(t_s), w, up)
         return self._q.copy()
+
+    def _unbiased(self, t_s: float, w: np.ndarray, accel_imu) -> np.ndarray:
+        """The rate less the bias learned so far (this report included)."""
+        est = self.bias
+        if est is None:
+            return w
+        if est.add(t_s, w, accel_imu):
+            self.counts.update(est.counts)
+            b = est.bias_rad_s
+            self.counts["gyro_bias_deg_s"] = round(math.degrees(float(np.linalg.norm(b))), 4)
+            if self._q is not None:
+                # The part about up turned the heading: anticlockwise about up is a falling heading.
+                up_imu = rotation_from_quat(self._q).T @ np.array([0.0, 0.0, 1.0])
+                self.counts["gyro_bias_heading_deg_s"] = round(-math.degrees(float(b @ up_imu)), 4)
+        elif est.counts["gyro_bias_refused"] != self.counts["gyro_bias_refused"]:
+            self.counts.update(est.counts)
+        return w - est.bias_rad_s
 
     def _step(self, t_s: float, dt: float, w: np.ndarray, accel_imu) -> np.ndarray:
         assert self._q is not None and self._w is not None
@@ -526,6 +672,7 @@ class AttitudeTracker:
         max_gap_s: float = 0.1,
         max_accuracy_rad: float = math.radians(45.0),
         tilt_gain: float = 0.5,
+        gyro_bias: bool = True,
         epoch: int = 0,
     ) -> None:
         self.mode = ImuMode(mode)
@@ -548,7 +695,8 @@ class AttitudeTracker:
         self.buffer = OrientationBuffer(history_s=history_s, capacity=capacity, max_gap_s=max_gap_s)
         # The same gap for both: a gap the buffer would interpolate across is no reason to restart
         # the integration (with a new zero and epoch), nor the reverse.
-        self.gyro = (GyroIntegrator(self.cam_from_imu, tilt_gain=tilt_gain, max_step_s=max_gap_s)
+        self.gyro = (GyroIntegrator(self.cam_from_imu, tilt_gain=tilt_gain, max_step_s=max_gap_s,
+                                    gyro_bias=gyro_bias)
                      if self.mode is ImuMode.GYRO else None)
         self._accel: tuple[float, np.ndarray] | None = None
         self._zero_rad: float | None = None
@@ -654,7 +802,8 @@ class AttitudeTracker:
         self._new_zero()
         if self.gyro is not None:
             g = self.gyro
-            self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=g.tilt_gain, max_step_s=g.max_step_s)
+            self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=g.tilt_gain, max_step_s=g.max_step_s,
+                                       gyro_bias=g.bias is not None)
 
     def _new_zero(self) -> None:
         """Orientations from here on have another zero: none before is kept to interpolate with,
