@@ -17,6 +17,7 @@ import numpy as np
 
 from estimator.estimator import AGGREGATORS, SunEstimator
 from replay.sources import corrupt_skipped
+from rig.exposure import DEFAULT_EXPOSURE_GATE, ExposureGate
 from rig.geometry import az_el_from_enu
 from rig.offline import OfflineStats, estimate_stream
 from rig.protocol import FLAG_ABOVE_TRAINED, FLAG_SPREAD_HIGH, FLAG_VALID, StatusRule
@@ -143,7 +144,7 @@ class EvalResult:
     window_logs: list[str] = field(default_factory=list)
     frames: int = 0
     frames_without_heading: int = 0  # left out of windows, as in a replay
-    frames_bad_exposure: int = 0  # too dark, bright or flat to show the sun (rig/exposure.py)
+    frames_bad_exposure: int = 0  # too dark, bright, flat or covered to show the sun (rig/exposure.py)
     # Frames older than the one before (left out, as live: windows assume time order) and clock
     # jumps (windows start again): a figure over a log whose clock misbehaved says so.
     frames_out_of_order: int = 0
@@ -243,12 +244,14 @@ class EvalResult:
 def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstimator, policy: SpreadWindowPolicy,
              aggregators: Sequence[str] = AGGREGATORS, n_samples: int = 6,
              progress: Callable[[int, int], None] | None = None,
-             status_rule: StatusRule | None = None) -> EvalResult:
+             status_rule: StatusRule | None = None,
+             exposure_gate: ExposureGate | None = DEFAULT_EXPOSURE_GATE) -> EvalResult:
     """Every full window of every source, estimated by each aggregator on the same crops.
 
     ``progress(windows_done, logs_done)`` is called after each window and each log.
     ``status_rule``: what decides each window's status flags (default: the estimator's model's,
-    as the rig's outputs use). A Ctrl-C ends the evaluation early, not the result: it comes back
+    as the rig's outputs use). ``exposure_gate``: which frames are left out as unable to show the
+    sun (``rig/exposure.py``; None keeps every frame). A Ctrl-C ends the evaluation early, not the result: it comes back
     with ``interrupted`` set and the windows evaluated until then, so minutes of work are kept."""
     rule = status_rule or estimator.status_rule()
     result = EvalResult(errors_deg={a: [] for a in aggregators}, flags={a: [] for a in aggregators},
@@ -261,7 +264,7 @@ def evaluate(sources: Iterable[tuple[str, Iterable[Frame]]], estimator: SunEstim
             tally = TruthTally()
             try:
                 _evaluate_log(result, name, tally.counted(frames), estimator, policy, aggregators, n_samples, rule,
-                              stats, progress, n_logs - 1)
+                              stats, progress, n_logs - 1, exposure_gate)
                 if len(result.window_logs) == graded_before:
                     result.logs_not_graded[name] = _why_not_graded(
                         stats, result.windows_without_truth - without_truth_before, policy, tally)
@@ -295,7 +298,7 @@ def _why_not_graded(stats: OfflineStats, windows_without_truth: int, policy: Spr
     if stats.frames_without_heading:
         return f"{stats.frames_without_heading} of its {m} frames have no heading"
     if stats.frames_bad_exposure:
-        return f"{stats.frames_bad_exposure} of its {m} frames are too dark, bright or flat to use"
+        return f"{stats.frames_bad_exposure} of its {m} frames are too dark, bright, flat or covered to use"
     if m < n:
         return f"it has {m} frames, fewer than a window's {n}"
     return f"no {n} of its {m} frames are within {policy.span_s:g} s of each other"
@@ -303,9 +306,11 @@ def _why_not_graded(stats: OfflineStats, windows_without_truth: int, policy: Spr
 
 def _evaluate_log(result: EvalResult, name: str, frames: Iterable[Frame], estimator: SunEstimator,
                   policy: SpreadWindowPolicy, aggregators: Sequence[str], n_samples: int, rule: StatusRule,
-                  stats: OfflineStats, progress: Callable[[int, int], None] | None, logs_done: int) -> None:
+                  stats: OfflineStats, progress: Callable[[int, int], None] | None, logs_done: int,
+                  exposure_gate: ExposureGate | None) -> None:
     sampled = False
-    for estimates in estimate_stream(frames, estimator, policy, aggregators=aggregators, stats=stats):
+    for estimates in estimate_stream(frames, estimator, policy, aggregators=aggregators, stats=stats,
+                                     exposure_gate=exposure_gate):
         first = next(iter(estimates.values()))
         if first.n_frames < policy.n_frames:
             result.windows_skipped_filling += 1

@@ -162,6 +162,7 @@ def _source_spec(text: str) -> str:
 _positive_int = _int_in(1)
 _nonneg_int = _int_in(0)
 _positive_float = _float_in(0.0)
+_share = _float_in(0.0, 1.0, lo_included=True)
 
 
 def _synth_frames(text: str) -> int:
@@ -301,6 +302,7 @@ def paced(frames, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep, ma
 def cmd_replay(args: argparse.Namespace) -> int:
     from estimator.estimator import SunEstimator
     from replay.sources import demo_log, open_frames
+    from rig.exposure import ExposureGate
     from rig.offline import OfflineStats, estimate_stream
     from rig.window import SpreadWindowPolicy
 
@@ -322,7 +324,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     try:
         # Paced, each frame is estimated as it arrives; unpaced, frames are encoded in batches.
         batch = 1 if args.realtime else 8
-        for n, results in enumerate(estimate_stream(frames, estimator, policy, stats=stats, encode_batch=batch), 1):
+        gate = ExposureGate(max_covered_share=args.max_covered_share)
+        for n, results in enumerate(estimate_stream(frames, estimator, policy, stats=stats, encode_batch=batch,
+                                                    exposure_gate=gate), 1):
             est = results[args.aggregator]
             if est.error_rad is not None:
                 errors.append(est.error_rad)
@@ -339,7 +343,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if stats.frames_without_heading:
         summary += f", {stats.frames_without_heading} frames without heading skipped"
     if stats.frames_bad_exposure:
-        summary += f", {stats.frames_bad_exposure} frames too dark, bright or flat to show the sun skipped"
+        summary += f", {stats.frames_bad_exposure} frames too dark, bright, flat or covered to show the sun skipped"
     if stats.frames_out_of_order:
         summary += f", {stats.frames_out_of_order} frames older than the one before skipped"
     if stats.clock_jumps:
@@ -368,8 +372,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if not stats.windows:  # frames, yet none fit for a window: say which kind of frame it lacks
         why = (f"{stats.frames_without_heading} of its {stats.frames} frames have no heading; record with "
                "a heading source (--heading)" if stats.frames_without_heading else
-               f"{stats.frames_bad_exposure} of its {stats.frames} frames are too dark, bright or flat to show "
-               "the sun" if stats.frames_bad_exposure else f"none of its {stats.frames} frames made a window")
+               f"{stats.frames_bad_exposure} of its {stats.frames} frames are too dark, bright, flat or covered "
+               "to show the sun" if stats.frames_bad_exposure else f"none of its {stats.frames} frames made a window")
         print(f"sunrig: error: {log_path}: no estimate: {why}", file=sys.stderr)
         return EXIT_USER_ERROR
     return lost
@@ -495,12 +499,13 @@ def _rig_config(r: dict, *, live_camera: bool):
     paces a recording: a camera's frame that came late once made the pace start again from it,
     and hold every later frame as late, for the rest of the run), and its frames are as old as
     their stamps on the rig's clock say (``live_clock``)."""
+    from rig.exposure import ExposureGate
     from rig.pipeline import RigConfig
 
     return RigConfig(queue_size=r["queue_size"], ring_capacity=r["ring_capacity"],
                      ring_max_age_s=r["ring_max_age_s"], status_every_s=r["status_every_s"],
                      max_latency_s=r["max_latency_s"], realtime=r["realtime"] and not live_camera,
-                     live_clock=live_camera)
+                     live_clock=live_camera, exposure_gate=ExposureGate(max_covered_share=r["max_covered_share"]))
 
 
 def _live(cfg: dict, source, *, stop: StopSignals, nmea_stdout: bool, quiet: bool, live_camera: bool,
@@ -978,6 +983,7 @@ def _aggregator_list(text: str) -> list[str]:
 def cmd_eval(args: argparse.Namespace) -> int:
     from estimator.estimator import AGGREGATORS, SunEstimator
     from estimator.evaluate import TAIL_DEG, TAIL_KEY, evaluate, plot_eval
+    from rig.exposure import ExposureGate
     from rig.files import write_replacing
     from rig.window import SpreadWindowPolicy
 
@@ -998,7 +1004,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     # Logs are the unit with a known total (windows per log are known only once read): rate and time left.
     progress = Progress("eval", total=len(sources), unit="logs", enabled=None if not args.quiet else False)
     result = evaluate(sources, estimator, policy, aggregators=aggregators,
-                      progress=lambda windows, logs: progress.update(logs, f"{windows} windows"))
+                      progress=lambda windows, logs: progress.update(logs, f"{windows} windows"),
+                      exposure_gate=ExposureGate(max_covered_share=args.max_covered_share))
     summary = result.summary()
     summary["model"] = {"dir": str(model.model_dir), "id": model.model_id}
     summary["logs_left_out"] = left_out  # they hold no frames (warned about above)
@@ -1048,7 +1055,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         elif result.windows_without_truth:
             why = f"{result.windows_without_truth} windows had no true sun"
         elif result.frames_bad_exposure:
-            why = f"{result.frames_bad_exposure} of the {result.frames} frames too dark, bright or flat to use"
+            why = f"{result.frames_bad_exposure} of the {result.frames} frames too dark, bright, flat or covered to use"
         else:  # short logs, or frames too far apart (a slow camera) for the span: not a log without truth
             print(f"sunrig: error: eval graded nothing: no log has {policy.n_frames} frames within "
                   f"--window-span-s {policy.span_s:g} s ({result.frames} frames in all); give longer logs, or "
@@ -1452,6 +1459,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from rig.config import DEFAULTS
+
     parser = _Parser(
         prog="sunrig", description="Estimate the sun direction from a camera rig's images and heading."
     )
@@ -1473,6 +1482,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=_positive_float, default=4.0, metavar="S",
                    help="choose each window's frames from the last S seconds (default 4)")
+    p.add_argument("--max-covered-share", type=_share, default=DEFAULTS["rig"]["max_covered_share"], metavar="SHARE",
+                   help="leave out frames more than this share of which is dark and flat, as behind a cap or a "
+                        "visor (default %(default)s; 1: never; raise it for a camera that sees its own hood)")
     _output_flags(p)
     p.add_argument("--realtime", action="store_true", help="pace by the log's timestamps instead of full speed")
     p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",
@@ -1546,6 +1558,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_nonneg_int, default=0, help="crop sampling seed (default 0)")
     p.add_argument("--window-span-s", type=_positive_float, default=4.0, metavar="S",
                    help="choose each window's frames from the last S seconds (default 4)")
+    p.add_argument("--max-covered-share", type=_share, default=DEFAULTS["rig"]["max_covered_share"], metavar="SHARE",
+                   help="leave out frames more than this share of which is dark and flat, as behind a cap or a "
+                        "visor (default %(default)s; 1: never; raise it for a camera that sees its own hood)")
     p.add_argument("--utc-offset", type=_utc_offset_type, metavar="HOURS",
                    help="KITTI drives: hours their timestamps are ahead of UTC (default +2, CEST, with a warning); "
                         "native logs carry UTC and ignore it")

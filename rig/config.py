@@ -59,6 +59,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "status_every_s": 5.0,
         "max_latency_s": 2.0,  # an estimate later than this after its frame is not sent (rig.pipeline)
         "realtime": True,  # pace a recorded source by its timestamps
+        # a frame more than this share of which is dark and flat (a cover) is left out (rig.exposure);
+        # raise it for a camera that always sees its own hood or dashboard, 1: never
+        "max_covered_share": 0.25,
     },
     "output": {
         "serial": "",  # port or pyserial URL; empty: no serial output
@@ -101,6 +104,7 @@ RANGES: dict[tuple[str, str], tuple[float, float, bool]] = {
     ("rig", "ring_max_age_s"): POSITIVE,
     ("rig", "status_every_s"): POSITIVE,
     ("rig", "max_latency_s"): POSITIVE,
+    ("rig", "max_covered_share"): (0.0, 1.0, True),
     ("output", "baud"): POSITIVE,
 }
 

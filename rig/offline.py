@@ -43,8 +43,8 @@ def estimate_stream(frames: Iterable[Frame], estimator: SunEstimator, policy: Sp
     """One window per frame with a heading, estimated with each aggregator.
 
     Yields ``{aggregator: SunEstimate}`` per window. Frames without heading are counted and left
-    out of windows (a frame's heading is never guessed), and so are frames too dark, bright or
-    flat to show the sun (``rig/exposure.py``; ``exposure_gate=None`` keeps them). A window that
+    out of windows (a frame's heading is never guessed), and so are frames too dark, bright, flat
+    or covered to show the sun (``rig/exposure.py``; ``exposure_gate=None`` keeps them). A window that
     cannot be estimated is counted, logged and skipped: one bad window does not end a replay.
     """
     aggregators = list(aggregators or [estimator.aggregator])

@@ -415,7 +415,7 @@ class RigPipeline:
             reason = gate.rejects(frame.image_bgr) if gate is not None else None
             self._log_exposure(frame, reason)
             if reason:
-                # Too dark, bright or flat to show the sun (rig/exposure.py): recorded, never estimated.
+                # Too dark, bright, flat or covered to show the sun (rig/exposure.py): recorded, never estimated.
                 self.stats.frames_bad_exposure += 1
                 continue
             if not self._frames.put((frame, arrived)):
@@ -558,7 +558,15 @@ class RigPipeline:
         if said is None:
             return
         if said.kind == "change" and said.changes == 1:
-            if reason:
+            if reason == "covered":
+                # Said with its remedy: a camera that always sees its own hood or dashboard would
+                # otherwise send nothing all day.
+                log.warning("from seq %d frames are partly covered (dark and flat over more than %.0f%% of the frame: "
+                            "a cap, a visor or a hand over the lens?): left out of windows until that changes; if "
+                            "it is the vehicle's own hood or dashboard, always in view, raise [rig] "
+                            "max_covered_share (docs/deploy.md)", frame.seq,
+                            100.0 * self._gate_share())
+            elif reason:
                 log.warning("from seq %d frames are too %s to show the sun: left out of windows until that changes",
                             frame.seq, reason)
             else:
@@ -568,7 +576,11 @@ class RigPipeline:
         log.warning("frames pass and fail the exposure gate in turn: %d changes in %.0f s, %d of %d frames left out "
                     "of windows; from seq %d %s (said once a minute while it goes on)", said.changes,
                     frame.t_mono_s - said.since_s, left_out, sum(said.counts.values()), frame.seq,
-                    f"too {reason}" if reason else "showing the scene")
+                    ("partly covered" if reason == "covered" else f"too {reason}") if reason else "showing the scene")
+
+    def _gate_share(self) -> float:
+        gate = self.config.exposure_gate
+        return gate.max_covered_share if gate is not None else 1.0
 
     def _encode(self) -> None:
         while not self._stop.is_set():

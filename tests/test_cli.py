@@ -1523,9 +1523,37 @@ def test_replay_says_which_frames_it_skipped_and_why(tmp_path, capsys):
     rc, captured = _main_in_process(["replay", str(log), "--jsonl", str(tmp_path / "out.jsonl")], capsys)
     assert rc == 0, captured.err
     summary = captured.err.strip().splitlines()[-1]
-    for said in ("2 frames without heading skipped", "2 frames too dark, bright or flat to show the sun skipped",
+    for said in ("2 frames without heading skipped",
+                 "2 frames too dark, bright, flat or covered to show the sun skipped",
                  "1 frames older than the one before skipped", "1 clock jumps (windows started again)"):
         assert said in summary, summary
+
+
+@pytest.mark.parametrize("command", ["replay", "eval"])
+def test_replay_and_eval_let_a_camera_that_sees_its_own_hood_through_with_max_covered_share(tmp_path, capsys,
+                                                                                           command):
+    # The bottom third of every frame dark and flat, as a dashcam's view of its dashboard: left out
+    # as covered by default, so nothing was estimated, with no way to say it is the vehicle's own.
+    from replay.native import LogWriter
+
+    log = tmp_path / "drive.mcap"
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=64.0, cy=40.0, width=128, height=80)
+    rng = np.random.default_rng(9)
+    with LogWriter(log) as w:
+        for i in range(12):
+            pixels = rng.integers(0, 256, (80, 128, 3), np.uint8)
+            pixels[50:] = 5
+            w.write_frame(Frame(t_mono_s=0.2 * i, seq=i, image_bgr=pixels, intrinsics=intr,
+                                attitude=Attitude(math.radians(5.0 * i), HeadingRef.TRUE),
+                                sun_enu_truth=[0.6, 0.0, 0.8]))
+    out = ["--jsonl", str(tmp_path / "out.jsonl")] if command == "replay" else ["--json", str(tmp_path / "e.json")]
+    rc, captured = _main_in_process([command, str(log), *out], capsys)
+    assert "12 frames too dark, bright, flat or covered" in captured.err, (rc, captured.err)
+    rc, captured = _main_in_process([command, str(log), *out, "--max-covered-share", "1"], capsys)
+    assert rc == 0 and "covered" not in captured.err, captured.err
+    rc, captured = _main_in_process([command, str(log), *out, "--max-covered-share", "1.5"], capsys)
+    assert rc == 2, captured.err
+    assert "--max-covered-share: expected a finite number in [0, 1], got '1.5'" in captured.err, captured.err
 
 
 # Every device a command opens, absent. No real device is here, so these are real failures to open.

@@ -158,8 +158,9 @@ def test_defaults_are_those_of_what_they_configure():
 
     rig, lib = DEFAULTS["rig"], RigConfig()
     assert (rig["queue_size"], rig["ring_capacity"], rig["ring_max_age_s"], rig["status_every_s"],
-            rig["max_latency_s"]) == (
-        lib.queue_size, lib.ring_capacity, lib.ring_max_age_s, lib.status_every_s, lib.max_latency_s)
+            rig["max_latency_s"], rig["max_covered_share"]) == (
+        lib.queue_size, lib.ring_capacity, lib.ring_max_age_s, lib.status_every_s, lib.max_latency_s,
+        lib.exposure_gate.max_covered_share)
     assert DEFAULTS["source"]["max_gap_s"] == DEFAULT_MAX_GAP_S
     assert DEFAULTS["source"]["max_age_s"] == DEFAULT_MAX_AGE_S
     window = SpreadWindowPolicy()
@@ -518,13 +519,15 @@ def test_every_rig_option_of_the_file_reaches_the_pipeline(tmp_path, monkeypatch
     monkeypatch.setattr(rig.pipeline, "RigPipeline", Spy)
     values = {"queue_size": 3, "ring_capacity": 64, "ring_max_age_s": 9.0, "status_every_s": 7.0,
               "max_latency_s": 2.5, "realtime": False}
-    assert set(values) == set(DEFAULTS["rig"])
+    gate = {"max_covered_share": 0.5}  # the exposure gate's, which the pipeline is given whole
+    assert set(values) | set(gate) == set(DEFAULTS["rig"])
     conf = tmp_path / "rig.toml"
-    conf.write_text("[rig]\n" + "".join(f"{k} = {str(v).lower()}\n" for k, v in values.items()))
+    conf.write_text("[rig]\n" + "".join(f"{k} = {str(v).lower()}\n" for k, v in (values | gate).items()))
     assert main(["run", "--camera", f"file:{DEMO_LOG}", "--heading", "log", "--config", str(conf), "--quiet",
                  "--jsonl", str(tmp_path / "o.jsonl")]) == 0
     (cfg,) = seen
     assert {k: getattr(cfg, k) for k in values} == values
+    assert {k: getattr(cfg.exposure_gate, k) for k in gate} == gate
 
 
 def test_a_latency_bound_shorter_than_the_pairings_wait_is_refused_for_a_compass():

@@ -190,8 +190,8 @@ def estimator(tiny_model_dir):
     return SunEstimator(OnnxModel.load(tiny_model_dir))
 
 
-def run_live(frames, estimator, **kw):
-    pipe = RigPipeline(frames, estimator, SpreadWindowPolicy(8, 4.0), config=RigConfig(queue_size=100), **kw)
+def run_live(frames, estimator, config=None, **kw):
+    pipe = RigPipeline(frames, estimator, SpreadWindowPolicy(8, 4.0), config=config or RigConfig(queue_size=100), **kw)
     return pipe.run(timeout_s=30.0)
 
 
@@ -234,6 +234,30 @@ def test_live_rig_recovers_when_the_light_returns(estimator, caplog):
     said = [r.getMessage() for r in caplog.records if r.name == "rig.pipeline"]
     assert said == ["from seq 0 frames are too dark to show the sun: left out of windows until that changes",
                     "from seq 10 frames show the scene again: windows refill"]
+
+
+def capped(n):
+    """Frames whose left half is a cap over the lens (black, flat), the rest the textured scene."""
+    image = TEXTURED.copy()
+    image[:, : image.shape[1] // 2] = 0
+    for i in range(n):
+        yield Frame(t_mono_s=0.1 * i, seq=i, image_bgr=image, intrinsics=INTR,
+                    attitude=Attitude(math.radians(3.0 * i), HeadingRef.TRUE), sun_enu_truth=np.array([0.0, 0.8, 0.6]))
+
+
+@pytest.mark.torch
+def test_live_rig_says_a_covered_lens_with_what_to_do_if_it_is_the_vehicles_own(estimator, caplog):
+    # A camera that always sees its own hood or dashboard would send nothing all day: the line says
+    # what the check saw and which setting lets such frames through.
+    stats = run_live(capped(20), estimator)
+    assert stats.frames_bad_exposure == 20 and stats.estimates == 0
+    (warned,) = [r.getMessage() for r in caplog.records if r.name == "rig.pipeline" and "covered" in r.getMessage()]
+    assert warned.startswith("from seq 0 frames are partly covered (dark and flat over more than 25% of the frame")
+    assert warned.endswith("raise [rig] max_covered_share (docs/deploy.md)")
+    # Raised to 1, they are used as they are.
+    kept = run_live(capped(20), estimator, config=RigConfig(queue_size=100,
+                                                            exposure_gate=ExposureGate(max_covered_share=1.0)))
+    assert kept.frames_bad_exposure == 0 and kept.frames_encoded == 20
 
 
 def flickering(n, dark_every=2):
