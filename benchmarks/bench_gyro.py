@@ -22,7 +22,8 @@ looking forward, pitched 2 deg down and rolled 1 deg on its mount:
   sequence of straight stretches, gentle curves (1-5 deg/s for 10-30 s) and 90 deg turns at
   intersections (slowed to 5 m/s, 20 deg/s); cruising 10-15 m/s.
 - ``curve``: the case a stillness test can mistake for a bias: cruising at 20 m/s around one long
-  curve at a constant 1-3 deg/s (drawn per drive) from the first report to the last, no stop.
+  curve at a constant 1-3 deg/s (drawn per drive, or ``--curve-deg-s``) from the first report to
+  the last, no stop.
 
 The engine runs throughout: vibration of ``--idle-gyro-deg-s`` (rate amplitude about each axis,
 at 20-40 Hz, zero mean) and ``--idle-accel-m-s2``. While moving, the road moves the body
@@ -38,13 +39,14 @@ nearest), its largest magnitude, the largest change of the error across ``--span
 window sees: the window compares frames up to a span apart), the largest pitch and roll errors,
 and the integrator's counts. The summary gives the median and max over drives. ``cost`` is the
 wall time of one drive's first 20 s of reports through the tracker (``time_ms``, warm-up, repeats)
-per gyro report.
+per gyro report. ``--gyro-bias off`` runs the integrator without learning the bias (as it was
+before it learned it); the summary counts the still stretches learned from and refused.
 
     python3 benchmarks/bench_gyro.py [--scenario drive|curve] [--drives 5] [--seed 0] [--minutes 10]
                                      [--rate-hz 100] [--bias-deg-s 0.5] [--bias-walk 0.002]
                                      [--idle-gyro-deg-s 3] [--idle-accel-m-s2 0.3] [--road-scale 1]
                                      [--boot-still-s 30] [--stop-every-s 120] [--stop-s 20]
-                                     [--span-s 4] [--repeats 3]
+                                     [--curve-deg-s R] [--span-s 4] [--repeats 3] [--gyro-bias on|off]
 """
 
 from __future__ import annotations
@@ -90,6 +92,7 @@ class SimConfig:
     boot_still_s: float = 30.0
     stop_every_s: float = 120.0
     stop_s: float = 20.0
+    curve_deg_s: float | None = None  # the curve's rate; None: drawn from 1-3 deg/s per drive
 
 
 class PiecewiseLinear:
@@ -170,7 +173,8 @@ def plan_drive(cfg: SimConfig, rng: np.random.Generator) -> Plan:
 def plan_curve(cfg: SimConfig, rng: np.random.Generator) -> Plan:
     """Cruising one long curve at a constant rate from the start: what a bias looks like."""
     end = cfg.minutes * 60.0
-    r = float(rng.uniform(1.0, 3.0)) * DEG * rng.choice([-1.0, 1.0])
+    rate = float(rng.uniform(1.0, 3.0)) if cfg.curve_deg_s is None else cfg.curve_deg_s
+    r = rate * DEG * rng.choice([-1.0, 1.0])
     return Plan(PiecewiseLinear([0.0, end], [20.0, 20.0]), PiecewiseLinear([0.0, end], [r, r]), end)
 
 
@@ -382,6 +386,8 @@ def summarize(drives: list[dict]) -> dict:
                 "max_abs_roll_error_deg"):
         vals = [d[key] for d in drives]
         out[key] = {"median": round(statistics.median(vals), 3), "max": round(max(vals), 3)}
+    for key in ("gyro_bias_learned", "gyro_bias_refused"):
+        out[key] = sum(int(d["counts"].get(key, 0)) for d in drives)
     return out
 
 
@@ -403,7 +409,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--boot-still-s", type=float_in(0.0, 600.0, lo_included=True), default=30.0)
     ap.add_argument("--stop-every-s", type=float_in(40.0, 3600.0, lo_included=True), default=120.0)
     ap.add_argument("--stop-s", type=float_in(0.0, 600.0, lo_included=True), default=20.0)
+    ap.add_argument("--curve-deg-s", type=float_in(0.0, 30.0), default=None,
+                    help="the curve scenario's rate (default: drawn from 1-3 deg/s per drive)")
     ap.add_argument("--span-s", type=float_in(0.0, 60.0), default=4.0, help="the window's span")
+    ap.add_argument("--gyro-bias", choices=("on", "off"), default="on",
+                    help="learn the gyro bias while still (on, the driver's default) or not (off: as before)")
     ap.add_argument("--repeats", type=int_in(1), default=3, help="timed runs for the cost (after one warm-up)")
     return ap.parse_args(argv)
 
@@ -413,10 +423,12 @@ def main() -> None:
     cfg = SimConfig(scenario=args.scenario, minutes=args.minutes, rate_hz=args.rate_hz, bias_deg_s=args.bias_deg_s,
                     bias_walk=args.bias_walk, idle_gyro_deg_s=args.idle_gyro_deg_s,
                     idle_accel_m_s2=args.idle_accel_m_s2, road_scale=args.road_scale,
-                    boot_still_s=args.boot_still_s, stop_every_s=args.stop_every_s, stop_s=args.stop_s)
+                    boot_still_s=args.boot_still_s, stop_every_s=args.stop_every_s, stop_s=args.stop_s,
+                    curve_deg_s=args.curve_deg_s)
+    tracker_kw = {"gyro_bias": args.gyro_bias == "on"}
     drives = []
     for i in range(args.drives):
-        d = run_drive(cfg, args.seed + i, args.span_s)
+        d = run_drive(cfg, args.seed + i, args.span_s, tracker_kw)
         drives.append(d)
         print(f"drive {i + 1}/{args.drives}: seed {d['seed']}, error {d['heading_error_deg']}, "
               f"max {d['max_abs_heading_error_deg']} deg", file=sys.stderr)
@@ -427,11 +439,12 @@ def main() -> None:
     vehicle = Vehicle(plan, cfg, rng)
     rep = simulate(vehicle, cfg, rng, CAM_FROM_IMU_OAK_D)
     upto = min(len(rep.t), int(20.0 * cfg.rate_hz))
-    timing = time_ms(lambda: feed(make_tracker(), rep, upto=upto), repeats=args.repeats, warmup=1)
+    timing = time_ms(lambda: feed(make_tracker(**tracker_kw), rep, upto=upto), repeats=args.repeats, warmup=1)
     result = {
         "benchmark": "gyro_heading",
         "simulated": "a simulated BMI270 and vehicle, no device: see the module doc for every assumption",
         "config": {**cfg.__dict__, "drives": args.drives, "seed": args.seed, "span_s": args.span_s,
+                   "gyro_bias": args.gyro_bias,
                    "mount": "OAK-D", "frame_hz": FRAME_HZ},
         "summary": summarize(drives),
         "cost_us_per_report": {"median": round(timing["median_ms"] * 1e3 / upto, 1),

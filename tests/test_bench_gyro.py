@@ -34,7 +34,7 @@ def test_an_ideal_gyro_integrates_to_the_true_heading():
     the integrator's."""
     cfg = SimConfig(minutes=2.0, bias_deg_s=0.0, bias_walk=0.0, gyro_noise=0.0, gyro_lsb_deg_s=0.0,
                     idle_accel_m_s2=0.0)
-    d = run_drive(cfg, 3, 4.0, {"tilt_gain": 0.0})
+    d = run_drive(cfg, 3, 4.0, {"tilt_gain": 0.0, "gyro_bias": False})
     # Not exact: the integrator's steps of 10 ms sample the engine's 20-40 Hz vibration coarsely.
     assert d["max_abs_heading_error_deg"] < 0.1 and d["max_abs_pitch_error_deg"] < 0.2
 
@@ -60,7 +60,8 @@ def test_span_error_is_the_largest_change_within_the_span():
 
 
 @pytest.mark.parametrize("bad", [["--drives", "0"], ["--minutes", "0"], ["--rate-hz", "10"],
-                                 ["--scenario", "park"], ["--span-s", "0"], ["--repeats", "0"]])
+                                 ["--scenario", "park"], ["--span-s", "0"], ["--repeats", "0"],
+                                 ["--gyro-bias", "maybe"]])
 def test_options_that_measure_nothing_are_usage_errors(bad, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["bench_gyro.py", *bad])
     with pytest.raises(SystemExit) as end:
@@ -79,3 +80,5 @@ def test_a_short_run_prints_its_json_marked_as_a_simulation(monkeypatch, capsys)
     assert abs(drive["heading_drift_deg_s_true"]) == pytest.approx(0.5, abs=0.03)
     assert math.isfinite(out["summary"]["abs_heading_error_1min_deg"]["median"])
     assert out["cost_us_per_report"]["median"] > 0
+    # The driver's default learns the bias at the 30 s standstill at boot.
+    assert out["config"]["gyro_bias"] == "on" and out["summary"]["gyro_bias_learned"] >= 1
