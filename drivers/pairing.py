@@ -25,12 +25,14 @@ A heading sample that is impossible given its neighbours (a glitch: a dual-anten
 multipath puts one sentence half a turn off, or any wild value) is left out, counted in
 ``glitches`` (samples, not frames): one that is more than ``rig.window.MIN_JUMP_RAD`` from the
 sample kept before it and from the sample after it, and by more than that farther from the line
-between them than they are from each other (the heading went out and came back). Interpolated,
-a 1 Hz compass's glitch was a 2 s ramp out and back whose every frame step passed the window's
-jump rule for a turn.
-Whether a sample is one needs the sample after it, so live, a frame whose heading depends on the
-newest sample, when that one jumped, waits for the next (still at most ``max_age_s``; then it goes
-without heading, ``unconfirmed``). A sample with no sample kept before it or none after it (a
+between them than they are from each other (the heading went out and came back). Up to
+``MAX_GLITCH_RUN`` samples in a row that each are so against the sample before them and the
+first after them are one glitch, when those two are at most ``MAX_GLITCH_RUN_S`` apart.
+Interpolated, a 1 Hz compass's glitch was a 2 s ramp out and back whose every frame step passed
+the window's jump rule for a turn.
+Whether samples are one needs the sample after them, so live, a frame whose heading depends on
+the newest samples, when they jumped, waits for the next (still at most ``max_age_s``; then it
+goes without heading, ``unconfirmed``). A sample with no sample kept before it or none after it (a
 stream's first and last) cannot be told from a heading whose zero moved, and is kept, as is a
 jump that stays (a zero that moved).
 
@@ -77,6 +79,12 @@ FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed", "a
 # verdict depends on the sample kept before it, so on the verdicts before; a few suffice (a run of
 # samples that each jump is no glitch of one sample), and the history (512) is not judged each frame.
 _GLITCH_LOOKBACK = 4
+# A glitch may last several samples (multipath over two sentences of a 1 Hz compass): up to this
+# many in a row that went out and came back together are one, when the sample after them comes
+# within MAX_GLITCH_RUN_S of the sample before them. Longer, or slower, an excursion may be a
+# vehicle's (out 45 deg and back in 3 s is 30 deg/s each way, a hard swerve), and is kept.
+MAX_GLITCH_RUN = 3
+MAX_GLITCH_RUN_S = 3.0
 # Which heading a frame takes where a source gives several references (HeadingRef.RELATIVE last:
 # its zero is the source's start, not north).
 _PREFERENCE = (HeadingRef.TRUE, HeadingRef.MAGNETIC, HeadingRef.RELATIVE)
@@ -176,10 +184,10 @@ class HeadingInterpolator:
         if not times or t < times[0]:
             return Lookup(None, "before")
         i = bisect.bisect_left(times, t)
-        samples, times, doubtful = self._without_glitches(samples, times, i, now_s)
+        samples, times, doubtful_after_s = self._without_glitches(samples, times, i, now_s)
         i = bisect.bisect_left(times, t)
-        if doubtful and i == len(times) - 1 and now_s is not None:
-            # Its heading comes from the newest sample, which jumped: a glitch if the next comes back.
+        if doubtful_after_s is not None and t > doubtful_after_s and i < len(times) and now_s is not None:
+            # Its heading comes from the newest samples, which jumped: a glitch if the next comes back.
             # Waited for up to max_age_s as for any sample after a frame. After that it goes without
             # heading: taken as it is, a 1 Hz compass's glitch gave the first frames after the
             # sample before it 18-54 deg of the way out to it, each frame step a turn to the window.
@@ -209,30 +217,64 @@ class HeadingInterpolator:
         return Lookup(interpolate(s0, s1, (t - t0) / (t1 - t0)), "interpolated")
 
     def _without_glitches(self, samples: Sequence[HeadingSample], times: list[float], i: int,
-                          now_s: float | None) -> tuple[Sequence[HeadingSample], list[float], bool]:
+                          now_s: float | None) -> tuple[Sequence[HeadingSample], list[float], float | None]:
         """``samples`` (with their ``times``) less the glitches among those around index ``i`` (from
-        ``_GLITCH_LOOKBACK`` before it to two after it), and whether the newest sample may still
-        turn out to be one (live: it jumped from the sample before, and the next may come back)."""
-        start, end = max(0, i - _GLITCH_LOOKBACK), min(len(samples), i + 3)
+        ``_GLITCH_LOOKBACK`` before it to a run's length after it), and, live, the time of the
+        sample after which the newest samples may still turn out to be one (they jumped from it,
+        and the next may come back), or None."""
+        start, end = max(0, i - _GLITCH_LOOKBACK), min(len(samples), i + MAX_GLITCH_RUN + 2)
         kept: list[int] = []  # of those judged; the samples before start and from end on stay as they are
-        doubtful = False
-        for j in range(start, end):
+        doubtful_after_s = None
+        j = start
+        while j < end:
             if not kept:
                 kept.append(j)  # nothing judged before it: taken as it is
+                j += 1
                 continue
             p = kept[-1]
-            if j + 1 < len(samples):
-                if self._is_glitch(samples, times, p, j, j + 1):
-                    self._count_glitch(samples[j], samples[p], times[j] - times[p])
-                    continue
-            elif now_s is not None and self._jumped(samples, times, p, j) \
-                    and (now_s - self.latency_s) - times[j] <= self.max_gap_s:
-                doubtful = True  # the next sample may come back, close enough to it to say so
+            if run := self._glitch_run(samples, times, p, j):
+                for g in range(j, j + run):
+                    self._count_glitch(samples[g], samples[p], times[g] - times[p])
+                j += run
+                continue
+            if doubtful_after_s is None and now_s is not None and self._may_be_open_run(samples, times, p, j, now_s):
+                doubtful_after_s = times[p]
             kept.append(j)
-        if len(kept) == end - start:
-            return samples, times, doubtful  # none left out: as they were
-        kept = [*range(start), *kept, *range(end, len(samples))]
-        return [samples[k] for k in kept], [times[k] for k in kept], doubtful
+            j += 1
+        if len(kept) == j - start:
+            return samples, times, doubtful_after_s  # none left out: as they were
+        kept = [*range(start), *kept, *range(j, len(samples))]
+        return [samples[k] for k in kept], [times[k] for k in kept], doubtful_after_s
+
+    def _glitch_run(self, samples: Sequence[HeadingSample], times: list[float], p: int, j: int) -> int:
+        """How many samples from ``j`` on are a glitch (:meth:`_out_and_back` each, judged against the
+        sample ``p`` kept before them and the first after them that came back), 0 if none."""
+        if not self._neighbours(samples, times, p, j):
+            return 0
+        for k in range(1, MAX_GLITCH_RUN + 1):
+            n = j + k
+            if n >= len(samples) or not self._neighbours(samples, times, n - 1, n):
+                return 0
+            if k > 1 and times[n] - times[p] > MAX_GLITCH_RUN_S:
+                return 0
+            if all(self._out_and_back(samples, times, p, g, n) for g in range(j, n)):
+                return k
+            if not self._jumped(samples, times, p, n, chained=True):
+                return 0  # it came back, but not every sample before it went out
+        return 0
+
+    def _may_be_open_run(self, samples: Sequence[HeadingSample], times: list[float], p: int, j: int,
+                         now_s: float) -> bool:
+        """Live: whether the samples from ``j`` to the newest may still be a glitch. Each jumped
+        from ``p``, they are no more than a run, and the sample that would end them can still
+        come: within ``max_gap_s`` of the newest and, for a run, ``MAX_GLITCH_RUN_S`` of ``p``."""
+        last = len(samples) - 1
+        if last - j + 1 > MAX_GLITCH_RUN or not self._jumped(samples, times, p, j):
+            return False
+        if not all(self._jumped(samples, times, p, g, chained=True) for g in range(j + 1, last + 1)):
+            return False
+        now = now_s - self.latency_s
+        return now - times[last] <= self.max_gap_s and (last == j or now - times[p] <= MAX_GLITCH_RUN_S)
 
     def _neighbours(self, samples: Sequence[HeadingSample], times: list[float], a: int, b: int) -> bool:
         """Whether samples ``a`` and ``b`` (a before b) are neighbours the interpolation would pair:
@@ -241,16 +283,21 @@ class HeadingInterpolator:
         return (sa.reference is sb.reference and times[b] - times[a] <= self.max_gap_s
                 and not suspended_between(sa.boot_offset_s, sb.boot_offset_s))
 
-    def _jumped(self, samples: Sequence[HeadingSample], times: list[float], p: int, g: int) -> bool:
-        """Whether sample ``g`` turned more than ``MIN_JUMP_RAD`` from its neighbour ``p`` before it:
-        it may be a glitch, told by the sample after it."""
+    def _jumped(self, samples: Sequence[HeadingSample], times: list[float], p: int, g: int, *,
+                chained: bool = False) -> bool:
+        """Whether sample ``g`` turned more than ``MIN_JUMP_RAD`` from the sample ``p`` kept before
+        it, its neighbour (``chained``: or through the samples between, each the next's): it may be
+        a glitch, told by the samples after it."""
         turn_rad = abs(math.remainder(samples[g].heading_rad - samples[p].heading_rad, math.tau))
-        return self._neighbours(samples, times, p, g) and turn_rad > MIN_JUMP_RAD
+        near = (all(self._neighbours(samples, times, a, a + 1) for a in range(p, g)) if chained
+                else self._neighbours(samples, times, p, g))
+        return near and turn_rad > MIN_JUMP_RAD
 
-    def _is_glitch(self, samples: Sequence[HeadingSample], times: list[float], p: int, g: int, n: int) -> bool:
+    def _out_and_back(self, samples: Sequence[HeadingSample], times: list[float], p: int, g: int, n: int) -> bool:
         """Whether sample ``g`` is impossible given the sample ``p`` kept before it and the sample
-        ``n`` after it: more than ``MIN_JUMP_RAD`` from each, and more than that farther from the line
-        between them (their headings interpolated to its time) than they are from each other.
+        ``n`` after it (the caller checks they are neighbours, through the samples between): more
+        than ``MIN_JUMP_RAD`` from each, and more than that farther from the line between them (their
+        headings interpolated to its time) than they are from each other.
 
         The window's rate (``rig.window.DEFAULT_MAX_YAW_RATE_RAD_S``, 180 deg/s) cannot tell here:
         between samples a second apart it allows half a turn, more than two headings can differ, so
@@ -260,8 +307,6 @@ class HeadingInterpolator:
         23332 samples is one (a swerve 68 deg out and 54 back in 2 s, which no car turns; the next
         closest 29 deg by this rule); a sample half a turn off is one while the vehicle turns under
         67 deg/s."""
-        if not (self._neighbours(samples, times, p, g) and self._neighbours(samples, times, g, n)):
-            return False
         h_p, h_g, h_n = samples[p].heading_rad, samples[g].heading_rad, samples[n].heading_rad
         apart_rad = math.remainder(h_n - h_p, math.tau)
         span_s = times[n] - times[p]
@@ -387,9 +432,9 @@ def with_heading(frames: Iterable[Frame], heading_source: Any, interpolator: Hea
         n, before_s = said
         turn = f"{math.degrees(glitch.turn_rad):+.0f} deg in {glitch.dt_s:.2f} s"
         if before_s is None:
-            log.warning("heading sample at %.2f s left out: it turned %s from the one before and the next came "
-                        "back, which no vehicle turns (a compass glitch: multipath at its antennas?); the frames "
-                        "around it take the samples on either side (counted in the pairing's glitch)",
+            log.warning("heading sample at %.2f s left out: it turned %s from the sample kept before it, and a "
+                        "later one came back, which no vehicle turns (a compass glitch: multipath at its antennas?); "
+                        "the frames around it take the samples on either side (counted in the pairing's glitch)",
                         glitch.t_mono_s, turn)
         else:
             log.warning("%d heading samples left out as glitches in %.0f s, the last at %.2f s (%s): frequent ones "

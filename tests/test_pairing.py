@@ -452,16 +452,17 @@ def test_a_zero_that_moved_passes_through_unchanged():
     plain = [None if (r := interp.lookup(samples, t)).attitude is None else deg(r.attitude) % 360.0 for t in times]
     assert interp.glitches == 0
     assert plain[20:31:5] == pytest.approx([10.0, 85.0, 160.0]) and plain[45] == pytest.approx(160.0)
-    # Live as well: each frame waits for the sample after the jump's, then goes as before; the
-    # first three after 2 s cannot wait that long within max_age_s, and go without heading.
+    # Live as well: each frame waits for the samples after the jump's, then goes as before. Until
+    # the third sample after 2 s (at 5 s) the jump may be a glitch of two samples, and the frames
+    # after 2 s that cannot wait for it within max_age_s go without heading (1.4 s of them).
     clock = Clock()
     stats = PairingStats(HeadingInterpolator(max_gap_s=1.5, max_age_s=1.5))
     out = list(with_heading(camera(clock, times[1:]), ArrivingHeadings(samples, clock), stats.interpolator,
                             clock=clock, stats=stats))
-    unconfirmed = {21, 22, 23}
+    unconfirmed = set(range(21, 35))
     assert [None if f.attitude is None else deg(f.attitude) % 360.0 for f in out] == pytest.approx(
         [None if k in unconfirmed else plain[k] for k in range(1, 51)])
-    assert (stats.as_dict()["glitch"], stats.as_dict()["unconfirmed"]) == (0, 3)
+    assert (stats.as_dict()["glitch"], stats.as_dict()["unconfirmed"]) == (0, 14)
 
 
 def test_two_glitches_in_a_row():
@@ -471,13 +472,70 @@ def test_two_glitches_in_a_row():
     interp = HeadingInterpolator()
     assert headings_at(interp, samples, [0.15, 0.25, 0.35, 0.45]) == pytest.approx([10.0] * 4)
     assert interp.glitches == 2
-    # The same value twice: the heading held there for two samples, each agreeing with one neighbour,
-    # is what a zero that moved and moved back looks like. One sample cannot tell: both are kept (the
-    # window's jump rule sees a 10 Hz source's jumps; a 1 Hz source's two make ramps, as before).
+    # The same value twice: each agrees with one neighbour, so neither is a glitch alone; the two
+    # went out and came back together, as no vehicle turns, and are left out as one glitch of two
+    # samples. (They were kept: a 1 Hz compass's multipath over two sentences gave 3 s of ramps and
+    # headings half a turn off, each frame step a turn to the window.)
     held = [sample(0.1 * k, h) for k, h in enumerate([10.0, 10.0, 190.0, 190.0, 10.0, 10.0])]
     interp = HeadingInterpolator()
-    assert headings_at(interp, held, [0.2, 0.25, 0.3]) == pytest.approx([190.0, 190.0, 190.0])
+    assert headings_at(interp, held, [0.15, 0.2, 0.25, 0.3, 0.35]) == pytest.approx([10.0] * 5)
+    assert interp.glitches == 2
+
+
+def test_a_run_of_glitched_samples_is_left_out_when_it_comes_back_within_3_s():
+    # Two sentences of a 1 Hz compass half a turn off: out and back within 3 s (2 to 5 s).
+    samples = compass_1hz({3: 195.0, 4: 200.0}, n=9)
+    interp = HeadingInterpolator(max_gap_s=3.5)
+    assert headings_at(interp, samples, [k / 10 for k in range(21, 50)]) == pytest.approx(
+        [10.0 + 0.5 * k for k in range(21, 50)])
+    assert interp.glitches == 2
+    # Three of a 2 Hz compass, 85-100 deg off: out and back within 2 s.
+    fast = [sample(0.5 * k, {6: 110.0, 7: 130.0, 8: 120.0}.get(k, 10.0 + 2.5 * k)) for k in range(14)]
+    interp = HeadingInterpolator(max_gap_s=2.5)
+    assert headings_at(interp, fast, [k / 10 for k in range(26, 45)]) == pytest.approx(
+        [10.0 + 0.5 * k for k in range(26, 45)])
+    assert interp.glitches == 3
+    # Three of a 1 Hz compass span 4 s from the sample before to the one after: that long out and
+    # back may be a vehicle's, and is kept as it is.
+    slow = compass_1hz({3: 110.0, 4: 130.0, 5: 120.0}, n=9)
+    interp = HeadingInterpolator(max_gap_s=4.5)
+    assert headings_at(interp, slow, [3.0, 4.0, 5.0]) == pytest.approx([110.0, 130.0, 120.0])
     assert interp.glitches == 0
+
+
+def test_a_real_turn_out_and_back_over_two_samples_is_kept():
+    # Out 40 deg over two samples and back (a swerve): no sample is more than 45 deg off the line.
+    samples = [sample(float(k), h) for k, h in enumerate([10.0, 10.0, 40.0, 50.0, 10.0, 10.0])]
+    interp = HeadingInterpolator(max_gap_s=2.5)
+    assert headings_at(interp, samples, [2.0, 3.0]) == pytest.approx([40.0, 50.0])
+    assert interp.glitches == 0
+    # A zero that moved for good over three samples, at a 10 Hz compass: kept, as one of one sample.
+    moved = [sample(0.1 * k, 10.0 if k < 3 else 160.0) for k in range(8)]
+    interp = HeadingInterpolator()
+    assert headings_at(interp, moved, [0.3, 0.5, 0.7]) == pytest.approx([160.0] * 3)
+    assert interp.glitches == 0
+
+
+def test_live_frames_wait_for_a_run_of_glitched_samples_to_end():
+    # A 1 Hz compass glitched at 3 and 4 s, a 10 Hz camera, max_age_s long enough to wait for 5 s's
+    # sample: no frame gets a glitched heading or a ramp to one.
+    clock = Clock()
+    samples = compass_1hz({3: 195.0, 4: 200.0}, n=8)
+    stats = PairingStats(HeadingInterpolator(max_gap_s=3.5, max_age_s=3.5))
+    times = [0.1 * k for k in range(1, 71)]
+    out = list(with_heading(camera(clock, times), ArrivingHeadings(samples, clock), stats.interpolator,
+                            clock=clock, stats=stats))
+    assert all(off_deg(f.attitude, 10.0 + 5.0 * f.t_mono_s) < 1e-6 for f in out[:-1]), \
+        [(f.t_mono_s, None if f.attitude is None else deg(f.attitude)) for f in out]
+    assert stats.as_dict()["glitch"] == 2
+    # At the default max_age_s the frames that cannot wait for the verdict go without heading.
+    clock = Clock()
+    stats = PairingStats(HeadingInterpolator())
+    out = list(with_heading(camera(clock, times), ArrivingHeadings(samples, clock), stats.interpolator,
+                            clock=clock, stats=stats))
+    wrong = [(f.t_mono_s, deg(f.attitude)) for f in out[:-1]
+             if f.attitude is not None and off_deg(f.attitude, 10.0 + 5.0 * f.t_mono_s) > 1e-6]
+    assert not wrong, wrong
 
 
 def test_a_glitch_at_the_start_or_the_end_of_a_stream_is_kept():
