@@ -822,6 +822,14 @@ def _source_summary(stats: dict) -> str:
     for key, n in camera.items():
         if key.startswith("no_heading_") and n:
             parts.append(f"camera frames without heading ({key.removeprefix('no_heading_').replace('_', ' ')}) {n}")
+    # imu_mode gyro: the bias learned while standing still holds the heading (docs/oak.md); none
+    # learned, it drifts by the gyro's whole bias.
+    imu = camera.get("imu_counts") or {}
+    if imu.get("gyro_bias_learned"):
+        parts.append(f"gyro bias learned {_n(imu['gyro_bias_learned'], 'time')} "
+                     f"({imu.get('gyro_bias_heading_deg_s', 0.0):+.2f} deg/s of heading)")
+    if imu.get("gyro_bias_refused"):
+        parts.append(f"gyro still stretches refused as too fast a bias {imu['gyro_bias_refused']}")
     pairing = stats.get("pairing") or {}
     for key in ("gap", "before", "after", "stale", "mixed", "ahead", "unconfirmed", "overflow"):
         if pairing.get(key):

@@ -2036,6 +2036,18 @@ def test_the_exit_report_says_how_often_visual_odometry_started_a_new_zero():
     assert _source_summary({"visual_odometry": {"frames": 240, "lost": 0, "gaps": 0}}) == ""
 
 
+def test_the_exit_report_says_what_an_oaks_gyro_learned_of_its_bias():
+    # imu_mode gyro learns the gyro's bias while the IMU stands still (drivers/imu_heading.py); the
+    # report read none of the IMU's counts, so a user could not tell a heading held from one drifting.
+    from rig.cli import _source_summary
+
+    imu = {"gyro_bias_learned": 3, "gyro_bias_refused": 1, "gyro_bias_deg_s": 0.52, "gyro_bias_heading_deg_s": -0.48}
+    assert _source_summary({"camera": {"imu_counts": imu}}) == (
+        "gyro bias learned 3 times (-0.48 deg/s of heading), gyro still stretches refused as too fast a bias 1")
+    quiet = {"gyro_bias_learned": 0, "gyro_bias_refused": 0, "gyro_bias_deg_s": 0.0, "gyro_bias_heading_deg_s": 0.0}
+    assert _source_summary({"camera": {"imu_counts": quiet}}) == ""
+
+
 def test_the_exit_report_says_what_an_opencv_camera_lost():
     # The OpenCV camera counts stalled reads, frames it could not use, failed reopens and a frozen
     # driver's repeated frames (dropped): the report left all four out, so a run that lost minutes
