@@ -24,7 +24,8 @@ was, a newest frame that jumped is a window of its own.
 A vehicle that stands still (a red light, a jam) shows one view frame after frame: its span would
 soon hold that view only, 8 times, and the estimate fall to what one view gives, with a small
 spread that looks sure. So a frame showing the same view as the frame that began it (its image
-shrunk to a signature, ``SAME_VIEW_MAX_RMS``, and its heading) is a repeat of that view
+shrunk to a signature, ``SAME_VIEW_MAX_RMS`` apart once an idling engine's shake of the camera and
+a change of its gain are taken out, and its heading) is a repeat of that view
 (:class:`ViewClock`): a window takes one frame a view, the newest, and the time stood still does
 not count towards the span (``FrameFeatures.t_view_s``), so that the views before the stop stay in
 the windows for as long as the vehicle stands, up to ``rig.ring.MAX_HOLD_S``.
@@ -59,25 +60,34 @@ MIN_JUMP_RAD = math.radians(45.0)
 # KITTI frame's 3.3:1), to zero mean and unit spread (an exposure change is no new view). Each
 # number averages about 1200 pixels of a KITTI frame, so sensor noise all but leaves it.
 SIGNATURE_SIZE = (32, 12)
-# The RMS difference of two signatures up to which they show the same view. On synthetic drives
-# (seeds 3000-3011, stops as benchmarks/bench_standstill.py makes them), one pose captured again
-# with fresh noise and JPEG differed by at most 0.014, two frames 0.1 s apart while driving by at
-# least 0.16 (median 0.64). Between, with room for a real sensor's noise: a frame wrongly taken
-# for a new view only makes the windows as they were before views were told apart.
+# The difference of two signatures (view_rms: RMS, a shake and a gain taken out) up to which they
+# show the same view. Standing (benchmarks/bench_standstill.py, 8 drives of seed 3000 each), a pose
+# captured again with fresh noise differs by at most 0.008 (0.017 with 8-bit cells), with an idle
+# shake of 2 px each way by 0.029 (0.118 compared where they stood: each frame a view of its own),
+# at dusk's noise (--dusk) by 0.042. Driving, the held-out drives' nearest two frames 0.1 s apart differ by
+# 0.059 (0.079 before: the camera swayed 4x3 px between them, in a slow corner), the next by 0.074,
+# the validation and fresh drives' (300 each) by 0.109. A frame wrongly taken for a new view only
+# makes the windows as they were before views were told apart.
 SAME_VIEW_MAX_RMS = 0.05
+# How far the camera may move along each axis, in signature cells (a KITTI frame's cell is 39x31 px),
+# between two frames of one view: an engine idling shakes it by 0.5-2 px each way, so two frames
+# are up to 4 px apart; 0.125 cells is 4.9x3.9 px. A larger move counts, less this much.
+SAME_VIEW_MAX_SHAKE_CELLS = 0.125
 # A heading this far from the view's first frame's is a new view, whatever the image (a turn on the
 # spot, which a blank scene would not show).
 SAME_VIEW_MAX_TURN_RAD = math.radians(2.0)
 # How long a view must have lasted before the time it goes on being shown is time stood still.
 # Driving, even slowly or with a fast camera, the view has changed past SAME_VIEW_MAX_RMS well before
-# (the held-out drives' nearest frames 0.1 s apart differ by 0.079), so the frames of a fast
+# (the held-out drives' nearest frames 0.1 s apart differ by 0.059), so the frames of a fast
 # camera that show one view for a moment keep their own times.
 MIN_STAND_S = 0.5
 
 
 def view_signature(image_bgr: np.ndarray) -> np.ndarray | None:
-    """The image shrunk to ``SIGNATURE_SIZE``, gray, zero mean, unit spread (float32); None for an
-    image without contrast to compare (a black or flat frame), which is then a view of its own."""
+    """The image shrunk to ``SIGNATURE_SIZE``, gray, zero mean, unit spread, with how each of its
+    numbers changes as the image moves right and down by one of its cells: float32, (3, height,
+    width). None for an image without contrast to compare (a black or flat frame), which is then a
+    view of its own."""
     import cv2
 
     gray = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
@@ -85,10 +95,22 @@ def view_signature(image_bgr: np.ndarray) -> np.ndarray | None:
     # KITTI frame to 32x12 took 0.84 ms a frame on the rig's per-frame path, this 0.11 ms.
     while min(gray.shape[:2]) >= 4 * max(SIGNATURE_SIZE):
         gray = cv2.pyrDown(gray)
-    small = cv2.resize(gray, SIGNATURE_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
-    small -= small.mean()
-    spread = float(small.std())
-    return small / spread if spread > 1e-3 else None
+    # The image's slope, averaged over each cell below, is how the cell changes as the image moves
+    # (to first order). Shrunk together in floats, as one image of three channels (one resize costs
+    # little more than one channel's); 8-bit cells were rounded to a level, 0.013 RMS of a still
+    # camera's 0.014.
+    planes = cv2.merge([gray.astype(np.float32), cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3),
+                        cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)])
+    small = cv2.resize(planes, SIGNATURE_SIZE, interpolation=cv2.INTER_AREA).transpose(2, 0, 1)
+    small[0] -= small[0].mean()
+    spread = float(small[0].std())
+    if spread <= 1e-3:
+        return None
+    small[0] /= spread
+    # Sobel's 3x3 is 8 times the slope per pixel; in spreads per cell moved.
+    small[1] *= np.float32(gray.shape[1] / SIGNATURE_SIZE[0] / (8.0 * spread))
+    small[2] *= np.float32(gray.shape[0] / SIGNATURE_SIZE[1] / (8.0 * spread))
+    return np.ascontiguousarray(small)
 
 
 def same_view(first: FrameFeatures, other: FrameFeatures) -> bool:
@@ -108,8 +130,31 @@ def same_view(first: FrameFeatures, other: FrameFeatures) -> bool:
 
 
 def view_rms(first: np.ndarray, other: np.ndarray) -> float:
-    """How far apart two view signatures of one camera are: the RMS of their difference."""
-    return float(np.sqrt(np.mean(np.square(first - other))))
+    """How far apart two view signatures of one camera are (:func:`view_signature`): the RMS of
+    their difference, less what a move of the camera by up to ``SAME_VIEW_MAX_SHAKE_CELLS`` along
+    each axis and a bend of its tone curve explain (a least-squares fit of the two slopes, the
+    first signature and its square, the move then held to the bound)."""
+    a = first[0].ravel()
+    diff = (other[0] - first[0]).ravel()
+    # Both frames' slopes: the move's change to first order, whichever frame is off the mount.
+    slopes = ((first[1:] + other[1:]) / 2).reshape(2, -1)
+    tone = np.stack([a, a * a - np.mean(a * a)])
+    terms = np.concatenate([slopes, tone])
+    fit = _least_squares(terms, diff)
+    if np.any(np.abs(fit[:2]) > SAME_VIEW_MAX_SHAKE_CELLS):
+        # Moved further than a shake: that much is taken out, the rest counts.
+        fit[:2] = np.clip(fit[:2], -SAME_VIEW_MAX_SHAKE_CELLS, SAME_VIEW_MAX_SHAKE_CELLS)
+        fit[2:] = _least_squares(tone, diff - fit[:2] @ slopes)
+    return float(np.sqrt(np.mean(np.square(diff - fit @ terms))))
+
+
+def _least_squares(terms: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The weights of ``terms`` (one a row) that best make ``target``: by the normal equations,
+    a quarter of lstsq's time; lstsq where they are singular (terms that say the same)."""
+    try:
+        return np.linalg.solve(terms @ terms.T, terms @ target)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(terms.T, target, rcond=None)[0]
 
 
 class ViewClock:

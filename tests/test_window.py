@@ -288,3 +288,63 @@ def test_a_rig_that_has_not_moved_has_one_view_whatever_the_cameras_rate():
         for seq in range(int(3 * fps)):
             ring.push(clock.stamp(_seen(seq, seq / fps, _scene(7, rng, 3.0))))
         assert len(SpreadWindowPolicy(8, 4.0).select(ring.snapshot())) == 1, fps
+
+
+def _street(view: int, rng, shift_px=(0.0, 0.0), gain=1.0, noise=2.0):
+    """A KITTI-sized frame of place ``view``: sharp-edged boxes (walls, cars, poles) over a sky and
+    road, as a street's edges are, seen through a camera ``shift_px`` (x, y) px off its mount, with
+    ``gain`` times the light through a tone curve with a shoulder (highlights roll off), and noise."""
+    import cv2
+    layout = np.random.default_rng(view)
+    light = np.empty((375, 1242), np.float32)
+    light[:150], light[150:] = 0.9, 0.25  # sky, road
+    for _ in range(80):
+        x, y = layout.integers(0, 1242), layout.integers(60, 330)
+        w, h = layout.integers(8, 160), layout.integers(10, 120)
+        light[y:y + h, x:x + w] = layout.uniform(0.05, 0.8)
+    moved = cv2.warpAffine(light, np.array([[1, 0, shift_px[0]], [0, 1, shift_px[1]]], np.float32), (1242, 375),
+                           flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    tone = 1.0 - np.exp(-2.0 * gain * moved)
+    image = 255.0 * tone / (1.0 - np.exp(-2.0)) + rng.normal(0.0, noise, moved.shape)
+    return cv2.cvtColor(np.clip(image, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+
+
+def _kitti_seen(seq, t, image, yaw=0.0):
+    from rig.window import view_signature
+    intr = Intrinsics(fx=721.5, fy=721.5, cx=609.6, cy=172.9, width=1242, height=375)
+    frame = Frame(t_mono_s=t, seq=seq, image_bgr=image, intrinsics=intr, attitude=Attitude(yaw, HeadingRef.TRUE))
+    return FrameFeatures(frame, np.zeros((1, 4)), np.zeros((1, 2)), np.zeros((1, 2), np.float32), "m",
+                         view_signature=view_signature(image))
+
+
+@pytest.mark.parametrize("shift_px", [(2.0, 1.5), (-2.0, -2.0), (3.0, 3.0)])
+def test_an_idling_vehicles_shaking_camera_still_shows_its_view(shift_px):
+    # An engine idling shakes the camera by 0.5-2 px each way, so two frames of one stop are up to
+    # about 4 px apart. The signature's cells were compared where they stood: a shake of 1 px put a
+    # synthetic stop's frames up to 0.060 RMS apart, past SAME_VIEW_MAX_RMS, and 2 px up to 0.118,
+    # each such frame a view of its own (benchmarks/bench_standstill.py --idle-shake-px).
+    from rig.window import same_view
+    rng = np.random.default_rng(4)
+    first = _kitti_seen(0, 0.0, _street(7, rng))
+    assert same_view(first, _kitti_seen(1, 0.1, _street(7, rng, shift_px)))
+
+
+def test_a_view_moved_by_more_than_a_shake_or_another_place_is_a_new_view():
+    # Taking a small move of the camera out of the comparison must not take out a real one: the
+    # frames of a slow drive differ by little more than a sway of a few px (rig/window.py).
+    from rig.window import same_view
+    rng = np.random.default_rng(5)
+    first = _kitti_seen(0, 0.0, _street(7, rng))
+    assert not same_view(first, _kitti_seen(1, 0.1, _street(7, rng, (12.0, 0.0))))
+    assert not same_view(first, _kitti_seen(1, 0.1, _street(7, rng, (0.0, 10.0))))
+    assert not same_view(first, _kitti_seen(1, 0.1, _street(8, rng)))
+
+
+@pytest.mark.parametrize("gain", [0.7, 1.2])
+def test_a_gain_through_the_tone_curve_is_the_same_view(gain):
+    # Exposure hunting or a cloud: the light's gain changes, and the tone curve's shoulder bends it,
+    # which a signature's zero mean and unit spread do not take out.
+    from rig.window import same_view
+    rng = np.random.default_rng(6)
+    first = _kitti_seen(0, 0.0, _street(7, rng))
+    assert same_view(first, _kitti_seen(1, 0.1, _street(7, rng, gain=gain)))
