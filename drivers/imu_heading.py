@@ -469,6 +469,12 @@ class GyroBiasEstimator:
         self._blocks: deque[list] = deque(maxlen=self.n_blocks)
         self._stretch: list | None = None  # [n, sum_w, learned, refused]
 
+    def take_over(self, other: GyroBiasEstimator) -> None:
+        """The bias ``other`` learned, if any, with its counts: the same chip in a new session."""
+        if other.learned:
+            self.bias_rad_s, self.learned = other.bias_rad_s.copy(), True
+            self.counts.update(other.counts)
+
     def add(self, t_s: float, gyro_imu_rad_s: np.ndarray, accel_imu_m_s2) -> bool:
         """One report (in time order); True when it changed the bias."""
         if accel_imu_m_s2 is None:
@@ -608,6 +614,14 @@ class GyroIntegrator:
         self._q, self._t = self._initial(up), float(t_s)
         self._w = self._unbiased(float(t_s), w, up)
         return self._q.copy()
+
+    def keep_bias(self, other: GyroIntegrator) -> None:
+        """Go on subtracting the bias ``other`` learned (the same chip, a new session), until a
+        stop learns it again."""
+        if self.bias is None or other.bias is None or not other.bias.learned:
+            return
+        self.bias.take_over(other.bias)
+        self.counts.update({k: v for k, v in other.counts.items() if k.startswith("gyro_bias_")})
 
     def _unbiased(self, t_s: float, w: np.ndarray, accel_imu) -> np.ndarray:
         """The rate less the bias learned so far (this report included)."""
@@ -804,6 +818,13 @@ class AttitudeTracker:
             g = self.gyro
             self.gyro = GyroIntegrator(self.cam_from_imu, tilt_gain=g.tilt_gain, max_step_s=g.max_step_s,
                                        gyro_bias=g.bias is not None)
+            self.gyro.keep_bias(g)  # a new session of the same chip: its bias is as it was
+
+    def keep_gyro_bias(self, previous: AttitudeTracker) -> None:
+        """Take the gyro bias ``previous`` (the last session's tracker of the same device) learned:
+        a reconnect starts a new zero, but the chip's bias is what it was."""
+        if self.gyro is not None and previous.gyro is not None:
+            self.gyro.keep_bias(previous.gyro)
 
     def _new_zero(self) -> None:
         """Orientations from here on have another zero: none before is kept to interpolate with,

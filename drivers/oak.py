@@ -630,6 +630,7 @@ class OakCamera:
         self._seen_inaccurate = self._seen_with_heading = 0
         self._got_frame = False  # the current session has delivered a frame (resets the backoff)
         self._last_tracker: AttitudeTracker | None = None  # the last session's: its epoch is taken
+        self._last_description: str | None = None  # and its device (product and id), whose gyro bias is kept
         first = None if wait_for_device else self._open(self.config)
         self._thread = threading.Thread(target=self._run, args=(first,), name="sunrig-oak", daemon=True)
         self._thread.start()
@@ -765,7 +766,9 @@ class OakCamera:
                                   sensor_world=cfg.sensor_world, history_s=cfg.imu_history_s,
                                   max_gap_s=cfg.max_imu_gap_s, max_accuracy_rad=math.radians(cfg.max_rv_accuracy_deg),
                                   epoch=epoch)
-        self._last_tracker = tracker
+        if self._last_tracker is not None and session.description == self._last_description:
+            tracker.keep_gyro_bias(self._last_tracker)  # the same device again: its gyro's bias is as learned
+        self._last_tracker, self._last_description = tracker, session.description
         return tracker
 
     def _serve(self, session: OakSession) -> None:

@@ -966,3 +966,24 @@ def test_without_bias_learning_the_heading_drifts_at_the_bias():
     assert tr.gyro is not None and tr.gyro.bias is None and "gyro_bias_learned" not in tr.gyro.counts
     tr.reset()
     assert tr.gyro is not None and tr.gyro.bias is None  # a new session keeps the choice
+
+
+def test_a_new_session_of_the_same_chip_keeps_the_bias_learned():
+    """A reconnect (a new tracker, or reset()) starts a new zero, but the chip is the same: its
+    bias stays subtracted until the next stop learns it again. Dropped, the heading drifted at the
+    whole bias from every reconnect until the vehicle next stood for 2 s."""
+    tr = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D)
+    _vehicle_reports(tr, 0.0, 3.0, bias_deg_s=(0.5, 0.0, 0.0))
+    again = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D, epoch=1)
+    again.keep_gyro_bias(tr)
+    tr.reset()
+    for new in (again, tr):
+        assert new.gyro is not None and new.gyro.bias is not None and new.gyro.bias.learned
+        assert new.gyro.counts["gyro_bias_learned"] == 1  # counted once, as the status line reads it
+        assert new.gyro.counts["gyro_bias_heading_deg_s"] == pytest.approx(0.5, abs=BIAS_DEG_S)
+        _vehicle_reports(new, 10.0, 10.0, bias_deg_s=(0.5, 0.0, 0.0), yaw_deg_s=10.0, speed_m_s=5.0, road=1.0)
+        assert _heading_deg(new, 19.99) == pytest.approx(99.9, abs=1.0)  # not 5 deg more: the bias over 10 s
+    # None learned: nothing is taken.
+    fresh = AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D)
+    fresh.keep_gyro_bias(AttitudeTracker(ImuMode.GYRO, CAM_FROM_IMU_OAK_D))
+    assert fresh.gyro is not None and fresh.gyro.bias is not None and not fresh.gyro.bias.learned

@@ -456,6 +456,31 @@ def test_a_reconnect_starts_a_new_heading_epoch_only_for_relative_headings():
             assert frames[0].attitude.reference is HeadingRef.RELATIVE
 
 
+def test_a_reconnect_to_the_same_oak_keeps_its_gyro_bias_and_another_oak_does_not():
+    """imu_mode gyro learns the gyro's bias standing still (docs/oak.md). A reconnect made a new
+    tracker, and the heading drifted at the whole bias until the next 2 s stop; the same device
+    (product and id) keeps it, another device's bias is its own."""
+    import dataclasses
+
+    def nothing_plugged(config):
+        raise OakError(NO_DEVICE_MESSAGE)
+
+    session = host_sessions(script(1), imu_mode=ImuMode.GYRO)(OakConfig(**FAST))
+    try:
+        with OakCamera(OakConfig(**FAST), open_session=nothing_plugged, wait_for_device=True) as cam:
+            first = cam._tracker(session)
+            assert first is not None and first.gyro is not None and first.gyro.bias is not None
+            first.gyro.bias.bias_rad_s, first.gyro.bias.learned = np.radians([0.5, 0.0, 0.0]), True
+            same = cam._tracker(session)
+            assert same is not None and same.gyro is not None and same.gyro.bias is not None
+            assert same.gyro.bias.learned and same.gyro.bias.bias_rad_s == pytest.approx(np.radians([0.5, 0, 0]))
+            other = cam._tracker(dataclasses.replace(session, description="OAK-D 19443010A1B2C3D4"))
+            assert other is not None and other.gyro is not None and other.gyro.bias is not None
+            assert not other.gyro.bias.learned
+    finally:
+        session.close()
+
+
 @pytest.mark.parametrize(
     ("mode", "declination_deg", "warned"),
     [
