@@ -299,7 +299,8 @@ class FrameFeatures:
     ``embeddings_mirrored``, for a model run mirrored (its contract's ``mirror_windows``), are the
     same crops' embeddings flipped left to right, row for row; None otherwise.
 
-    ``view_signature`` is the frame's image shrunk to a few hundred numbers, to tell a new view
+    ``view_signature`` is the frame's image shrunk to 12 x 32 cells, with its slopes along x and
+    y in two more planes (``rig.window.view_signature``), to tell a new view
     from the same one again (a vehicle standing: ``rig.window.ViewClock``), which then stamps
     ``t_view_s`` (the frame's time with the time stood still before it taken out) and
     ``view_seq`` (the seq of the first frame of its view). None where nothing measured or stamped
