@@ -1,7 +1,8 @@
-"""What the exposure gate (rig/exposure.py) lets through, and what the model makes of it, on the
-things a road camera shows that a luma mean and standard deviation do not: a lens partly covered
-(a cap slid over, a hand, a sun visor close to the lens) and the sun in view with the rest of the
-frame metered dark.
+"""What the exposure gate lets through of a lens partly covered or metered dark, and how the model reads it.
+
+The gate is rig/exposure.py. These are the things a road camera shows that a luma mean and
+standard deviation do not: a lens partly covered (a cap slid over, a hand, a sun visor close to
+the lens) and the sun in view with the rest of the frame metered dark.
 
 Fresh synthetic drives (``drive_seed(--drive-seed, i)``, named ``drive_SEED_IIII`` as elsewhere)
 are rendered once per pose. Each impairment acts on the light that reaches the sensor (the
