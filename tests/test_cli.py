@@ -1464,8 +1464,8 @@ def test_train_asked_for_what_it_cannot_do_says_what_to_pass_and_writes_nothing(
 
 
 @pytest.mark.parametrize(("n", "image", "dt", "why"), [
-    (12, "black", 0.2, "no full window with ground truth in these logs (12 of the 12 frames too dark, bright or "
-                       "flat to use); "),
+    (12, "black", 0.2, "no full window with ground truth in these logs (12 of the 12 frames too dark, bright, "
+                       "flat or covered to use); "),
     (5, "noise", 0.2, "no log has 8 frames within --window-span-s 4 s (5 frames in all); give longer logs"),
     # Frames enough, too far apart: it once said "too few" and to evaluate logs from synth.
     (20, "noise", 1.0, "no log has 8 frames within --window-span-s 4 s (20 frames in all); give longer logs, or "
