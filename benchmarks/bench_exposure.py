@@ -1,8 +1,9 @@
-"""What the exposure gate lets through of a lens partly covered or metered dark, and how the model reads it.
+"""What the exposure gate lets through of a covered lens, a night or a sun metered dark, and how the model reads it.
 
 The gate is rig/exposure.py. These are the things a road camera shows that a luma mean and
 standard deviation do not: a lens partly covered (a cap slid over, a hand, a sun visor close to
-the lens) and the sun in view with the rest of the frame metered dark.
+the lens), dusk or night brightened by auto exposure into noise, and the sun in view with the
+rest of the frame metered dark.
 
 Fresh synthetic drives (``drive_seed(--drive-seed, i)``, named ``drive_SEED_IIII`` as elsewhere)
 are rendered once per pose. Each impairment acts on the light that reaches the sensor (the
@@ -13,7 +14,13 @@ would: it brightens what the cover leaves. On ``--drives`` drives:
 - ``none``: the drive as rendered (the control);
 - ``cap_lower_half`` / ``cap_left_half``: that half of the frame black (a lens cap slid over);
 - ``blob_30`` / ``blob_60``: a dark, flat, soft-edged blob over 30 % / 60 % of the frame (a hand
-  from the lower right, a sun visor from the top), out of focus as anything at the lens is.
+  from the lower right, a sun visor from the top), out of focus as anything at the lens is;
+- ``night_4`` / ``night_6`` / ``night_8``: dusk or night, the light 4 / 6 / 8 stops down, which
+  the camera's auto exposure makes up in gain, and the sensor's noise grown with that gain as
+  photon noise does (2^(stops/2) in the camera's sqrt-exposure units; the synthetic camera keeps
+  its noise fixed whatever the exposure, so the benchmark applies it: ``night_camera``). Only the
+  photon noise: a real sensor's read noise, which the camera does not model, adds to it in the
+  shadows.
 
 On ``--sun-drives`` drives of the same set whose sun is in view and not hidden (half its disk
 showing or more) in at least half the frames (found in order by their plan, then by their render):
@@ -70,6 +77,8 @@ DEFAULT_DRIVE_SEED = 3000
 TRAINING_DRIVE_SEED = 1000
 JPEG_QUALITY = 90  # the synthetic logs' (replay.native.LogWriter.write_frame)
 IMPAIRMENTS = ("none", "cap_lower_half", "cap_left_half", "blob_30", "blob_60")
+# Dusk and night: the light cut by that many stops, which the drive's auto exposure makes up in gain.
+NIGHT_IMPAIRMENTS = ("night_4", "night_6", "night_8")
 SUN_IMPAIRMENTS = ("sun_none", "sun_metered")
 # A blob's centre (x, y as shares of the width and height) and its edge's softness (a share of the
 # width): a hand comes up from the lower right, a visor down from the top; both out of focus.
@@ -112,6 +121,27 @@ def impaired_radiance(radiance: np.ndarray, kind: str) -> np.ndarray:
     mask = cover_mask(height, width, kind)[..., None]
     level = BLOB_LEVEL * float(np.median(radiance)) if kind in BLOBS else 0.0
     return (radiance * (1.0 - mask) + level * mask).astype(np.float32)
+
+
+def night_stops(kind: str) -> int:
+    """How many stops of light the night impairment ``kind`` ("night_N") takes."""
+    if kind not in NIGHT_IMPAIRMENTS:
+        raise ValueError(f"night_stops: unknown impairment {kind!r}; expected one of {NIGHT_IMPAIRMENTS}")
+    return int(kind.removeprefix("night_"))
+
+
+def night_camera(effects, width: int, height: int, seed: int, stops: int):
+    """The drive's camera (``effects``) for a scene ``stops`` darker, with the noise of the gain
+    its auto exposure then applies. The synthetic camera adds a fixed noise in sqrt-exposure units
+    whatever the exposure, so light cut by 2^stops and made up by the exposure came out as clean as
+    by day; a real sensor's photon (shot) noise at 2^stops the gain is 2^(stops/2) as large in
+    those units (sqrt(g * N) electrons' spread against g * N, read through a square root)."""
+    from dataclasses import replace
+
+    from replay.synthetic.camera import Camera
+
+    noisy = replace(effects, noise_sqrt=effects.noise_sqrt * 2.0 ** (stops / 2.0))
+    return Camera(noisy, width, height, seed=seed)
 
 
 def luma_mean(image_bgr: np.ndarray) -> float:
@@ -174,13 +204,19 @@ def frames_of(r: Rendered, kind: str, metered_mean: float, impaired: list[int]) 
     from rig.types import Attitude, Frame, HeadingRef
 
     drive = r.drive
-    camera = Camera(drive.params.effects, drive.intrinsics.width, drive.intrinsics.height, seed=drive.seed)
+    width, height = drive.intrinsics.width, drive.intrinsics.height
+    night = night_stops(kind) if kind in NIGHT_IMPAIRMENTS else 0
+    camera = (night_camera(drive.params.effects, width, height, drive.seed, night) if night
+              else Camera(drive.params.effects, width, height, seed=drive.seed))
     # The same sensor (noise bank, gain), exposed by the benchmark: its auto-exposure left as it was.
     metered = Camera(drive.params.effects, drive.intrinsics.width, drive.intrinsics.height, seed=drive.seed)
     for k, pose in enumerate(drive.poses):
         key = [drive.seed, 3, k]
         if kind == "sun_metered" and r.sun_visible[k] >= SUN_VISIBLE:
             image = capture_metered(metered, r.radiance[k], key, metered_mean)
+            impaired.append(k)
+        elif night:
+            image = camera.capture(r.radiance[k] * np.float32(2.0 ** -night), np.random.default_rng(key))
             impaired.append(k)
         else:
             light = impaired_radiance(r.radiance[k], "none" if kind.startswith("sun_") else kind)
@@ -354,7 +390,7 @@ def main() -> None:
     gate = DEFAULT_EXPOSURE_GATE
 
     results: dict[str, dict] = {}
-    windows = {kind: (Windows(), Windows()) for kind in (*IMPAIRMENTS, *SUN_IMPAIRMENTS)}
+    windows = {kind: (Windows(), Windows()) for kind in (*IMPAIRMENTS, *NIGHT_IMPAIRMENTS, *SUN_IMPAIRMENTS)}
     counts = {kind: Counts() for kind in windows}
     gate_cost: list[Callable[[], object]] = []
 
@@ -379,9 +415,9 @@ def main() -> None:
     for index in range(args.drives):
         r = render(Drive(drive_seed(args.drive_seed, index), args.frames, fps=fps))
         covers.append(index)
-        for kind in IMPAIRMENTS:
+        for kind in (*IMPAIRMENTS, *NIGHT_IMPAIRMENTS):
             measure(r, kind)
-        print(f"drive_{args.drive_seed}_{index:04d}: covers done", file=sys.stderr)
+        print(f"drive_{args.drive_seed}_{index:04d}: covers and night done", file=sys.stderr)
     sunny = []
     for index, r in sun_drives(args.drive_seed, args.frames, fps, args.sun_drives, skip=set(covers)):
         sunny.append(f"drive_{args.drive_seed}_{index:04d}")

@@ -12,6 +12,7 @@ import pytest
 from benchmarks import bench_exposure
 from benchmarks.bench_exposure import (
     IMPAIRMENTS,
+    NIGHT_IMPAIRMENTS,
     SUN_IMPAIRMENTS,
     Windows,
     capture_metered,
@@ -19,6 +20,8 @@ from benchmarks.bench_exposure import (
     cover_mask,
     impaired_radiance,
     luma_mean,
+    night_camera,
+    night_stops,
 )
 from rig.errors import SunrigError
 
@@ -74,6 +77,31 @@ def test_a_cap_takes_the_light_and_a_blob_puts_its_own_flat_dark_light_in_its_pl
     assert core.any() and np.allclose(blob[core], level, rtol=0.0, atol=0.002)
 
 
+def test_a_night_cuts_the_stops_it_names():
+    assert [night_stops(kind) for kind in NIGHT_IMPAIRMENTS] == [4, 6, 8]
+    with pytest.raises(ValueError, match="unknown impairment"):
+        night_stops("night_3")
+
+
+def test_a_night_camera_adds_the_noise_of_the_gain_its_auto_exposure_applies():
+    from replay.synthetic.camera import Camera, CameraEffects
+
+    effects = CameraEffects(ae_smoothing=0.0, noise_sqrt=0.005)
+    radiance = np.full((60, 80, 3), 5.0, np.float32)  # flat grey: any spread is the sensor's noise
+
+    def spread(camera, light):
+        return float(camera.capture(light, np.random.default_rng(0)).astype(np.float64).std())
+
+    day = spread(Camera(effects, 80, 60, seed=1), radiance)
+    # The synthetic camera alone: 8 stops less light, made up by its auto exposure, is the same frame.
+    dark = Camera(effects, 80, 60, seed=1).capture(radiance / 256, np.random.default_rng(0))
+    assert (dark == Camera(effects, 80, 60, seed=1).capture(radiance, np.random.default_rng(0))).all()
+    # A sensor's photon noise at 2^8 the gain: 2^4 as large in sqrt-exposure units; the tone curve
+    # near mid grey turns that into about as much more spread in levels.
+    night = spread(night_camera(effects, 80, 60, 1, 8), radiance / 256)
+    assert day > 0.5 and 12 < night / day < 20
+
+
 def test_metering_for_the_sun_darkens_the_frame_to_the_mean_asked_and_the_sun_stays_saturated():
     from replay.synthetic import drive_seed
     from replay.synthetic.camera import _LUT, Camera
@@ -116,7 +144,7 @@ def test_counting_the_gate_on_a_folder_of_logs(tmp_path):
 def test_a_tiny_run_reports_every_impairment_with_and_without_the_gate(tiny_model_dir, monkeypatch, capsys):
     _main(monkeypatch, "--model", str(tiny_model_dir), "--drives", "1", "--sun-drives", "1", "--frames", "8")
     out = json.loads(capsys.readouterr().out)
-    assert list(out["impairments"]) == [*IMPAIRMENTS, *SUN_IMPAIRMENTS]
+    assert list(out["impairments"]) == [*IMPAIRMENTS, *NIGHT_IMPAIRMENTS, *SUN_IMPAIRMENTS]
     assert len(out["drives"]["sun_in_view"]) == 1 and out["gate_us"]["median"] > 0
     for kind, got in out["impairments"].items():
         assert got["frames"] == 8
@@ -126,6 +154,6 @@ def test_a_tiny_run_reports_every_impairment_with_and_without_the_gate(tiny_mode
         # One window a frame: every frame without the gate, those it let through with it.
         assert got["gate_off"]["windows"] == 8 and got["gate_on"]["windows"] == passed
         assert got["frames_impaired"] == (0 if kind in ("none", "sun_none") else
-                                          8 if kind in IMPAIRMENTS else got["frames_impaired"])
+                                          8 if kind in (*IMPAIRMENTS, *NIGHT_IMPAIRMENTS) else got["frames_impaired"])
     metered = out["impairments"]["sun_metered"]
     assert metered["frames_impaired"] >= 4 and math.isclose(metered["impaired_luma_mean"]["median"], 10.0, abs_tol=0.3)
