@@ -37,12 +37,13 @@ included, as the live rig sends. Per impairment, once with the exposure gate as 
 error (mean, median, p90, max), the share flagged valid (FLAG_VALID), the valid windows' mean error
 and how many of them are over 30 deg; the frames the gate rejects, by reason, and the share of the
 frames the gate's cover measure finds covered (rig/exposure.covered_share; of the frames the
-impairment changed, or of every frame of a control).
+impairment changed, or of every frame of a control), and their ``fine_share``, a noise measure the
+gate does not use (neighbouring pixels' luma differences against the frame's spread).
 
 ``gate_us`` is what the gate costs a frame (median over the control frames, microseconds).
 ``--count-gate DIR`` instead counts the gate's verdicts on every frame of the logs in DIR (e.g. the
 held-out drives, data/heldout), as shipped and with only the mean and standard deviation checks:
-how many frames a measure added to the gate newly rejects there, and their covered shares.
+how many frames a measure added to the gate newly rejects there, their covered and fine shares.
 
     python3 benchmarks/bench_exposure.py [--model DIR] [--drives 16] [--sun-drives 6] [--drive-seed 3000]
                                          [--frames 24] [--metered-mean 10] [--crop-seed 0]
@@ -144,6 +145,22 @@ def night_camera(effects, width: int, height: int, seed: int, stops: int):
     return Camera(noisy, width, height, seed=seed)
 
 
+def fine_share(image_bgr: np.ndarray) -> float:
+    """A noise measure the gate does not use: the mean square luma difference between the gate's
+    sampled pixels and their right-hand neighbours (left-hand in the last column), over twice the
+    sample's luma variance; about 1 for white noise, near 0 for a smooth scene."""
+    from rig.exposure import _LUMA_BGR, _luma_sample, _sample_flat
+
+    height, width = image_bgr.shape[:2]
+    flat = _sample_flat(height, width)
+    beside = np.where(flat % width == width - 1, flat - 1, flat + 1) if width > 1 else flat
+    luma = _luma_sample(image_bgr)
+    neighbour = (np.ascontiguousarray(image_bgr).reshape(-1, 3).take(beside, axis=0).astype(np.float32)
+                 @ _LUMA_BGR).astype(np.float64)
+    variance = float(luma.var())
+    return float(np.mean((luma - neighbour) ** 2)) / (2.0 * variance) if variance > 0 else 0.0
+
+
 def luma_mean(image_bgr: np.ndarray) -> float:
     """Mean BT.601 luma of a whole 8-bit BGR image."""
     return float((image_bgr.reshape(-1, 3).astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)).mean())
@@ -239,6 +256,7 @@ class Counts:
     gate: Counter = field(default_factory=Counter)
     impaired_luma_mean: list[float] = field(default_factory=list)
     covered_share: list[float] = field(default_factory=list)
+    fine_share: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -324,6 +342,7 @@ def count_gate(folder: str) -> dict:
     plain: Counter = Counter()
     newly: list[str] = []
     shares: list[float] = []
+    fine: list[float] = []
     frames = 0
     for path in paths:
         for frame in open_frames(path):
@@ -331,6 +350,7 @@ def count_gate(folder: str) -> dict:
             reason = g.rejects(frame.image_bgr)
             mean, std = luminance_stats(frame.image_bgr)
             shares.append(covered_share(frame.image_bgr))
+            fine.append(fine_share(frame.image_bgr))
             before = ("dark" if mean < g.min_mean else "bright" if mean > g.max_mean
                       else "flat" if std < g.min_std else None)
             shipped[reason or "passed"] += 1
@@ -339,7 +359,7 @@ def count_gate(folder: str) -> dict:
                 newly.append(f"{path.stem} seq {frame.seq} ({reason})")
     return {"folder": folder, "logs": len(paths), "frames": frames, "shipped_gate": dict(shipped),
             "mean_std_only": dict(plain), "newly_rejected": len(newly), "newly_rejected_frames": newly[:20],
-            "covered_share": _spread(shares)}
+            "covered_share": _spread(shares), "fine_share": _spread(fine)}
 
 
 def main() -> None:
@@ -404,6 +424,7 @@ def main() -> None:
             c.gate[gate.rejects(f.image_bgr) or "passed"] += 1
         c.impaired_luma_mean += [luma_mean(frames[k].image_bgr) for k in impaired]
         c.covered_share += [covered_share(frames[k].image_bgr) for k in (impaired or range(len(frames)))]
+        c.fine_share += [fine_share(frames[k].image_bgr) for k in (impaired or range(len(frames)))]
         if kind == "none" and not gate_cost:
             image = frames[0].image_bgr
             gate_cost.append(lambda: gate.rejects(image))
@@ -433,6 +454,7 @@ def main() -> None:
             "frames": c.frames, "frames_impaired": c.frames_impaired,
             "impaired_luma_mean": _spread(c.impaired_luma_mean),
             "covered_share": _spread(c.covered_share),
+            "fine_share": _spread(c.fine_share),
             "gate": dict(c.gate),
             "gate_on": on.summary(), "gate_off": off.summary()}
     cost = time_ms(gate_cost[0], repeats=200, warmup=20) if gate_cost else None

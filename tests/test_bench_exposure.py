@@ -18,6 +18,7 @@ from benchmarks.bench_exposure import (
     capture_metered,
     count_gate,
     cover_mask,
+    fine_share,
     impaired_radiance,
     luma_mean,
     night_camera,
@@ -102,6 +103,16 @@ def test_a_night_camera_adds_the_noise_of_the_gain_its_auto_exposure_applies():
     assert day > 0.5 and 12 < night / day < 20
 
 
+def test_the_fine_share_is_about_1_for_white_noise_and_near_0_for_a_smooth_scene():
+    rng = np.random.default_rng(0)
+    noise = rng.integers(0, 256, (80, 128, 3), dtype=np.uint8)
+    ramp = np.broadcast_to(np.linspace(0, 255, 128).astype(np.uint8)[None, :, None], (80, 128, 3))
+    assert fine_share(noise) == pytest.approx(1.0, abs=0.1)
+    assert 0.0 < fine_share(ramp) < 0.001
+    assert fine_share(np.full((8, 8, 3), 7, np.uint8)) == 0.0  # flat: no spread to share
+    assert fine_share(np.ascontiguousarray(noise[:, :1])) == 0.0  # one column: no neighbour beside it
+
+
 def test_metering_for_the_sun_darkens_the_frame_to_the_mean_asked_and_the_sun_stays_saturated():
     from replay.synthetic import drive_seed
     from replay.synthetic.camera import _LUT, Camera
@@ -139,6 +150,7 @@ def test_counting_the_gate_on_a_folder_of_logs(tmp_path):
     assert out["logs"] == 1 and out["frames"] == out["shipped_gate"]["passed"] == out["mean_std_only"]["passed"]
     assert out["newly_rejected"] == 0 and out["newly_rejected_frames"] == []
     assert 0.0 <= out["covered_share"]["min"] <= out["covered_share"]["max"] <= 0.25
+    assert 0.0 < out["fine_share"]["min"] <= out["fine_share"]["max"] < 0.05  # a drive's frames, not noise
 
 
 def test_a_tiny_run_reports_every_impairment_with_and_without_the_gate(tiny_model_dir, monkeypatch, capsys):
@@ -151,6 +163,7 @@ def test_a_tiny_run_reports_every_impairment_with_and_without_the_gate(tiny_mode
         passed = got["gate"].get("passed", 0)
         assert sum(got["gate"].values()) == 8
         assert 0.0 <= got["covered_share"]["min"] <= got["covered_share"]["max"] <= 1.0
+        assert 0.0 <= got["fine_share"]["min"] <= got["fine_share"]["max"]
         # One window a frame: every frame without the gate, those it let through with it.
         assert got["gate_off"]["windows"] == 8 and got["gate_on"]["windows"] == passed
         assert got["frames_impaired"] == (0 if kind in ("none", "sun_none") else
