@@ -67,7 +67,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import check_frames, float_in, int_in, machine, run, time_ms  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    SYNTH_JPEG_QUALITY,
+    check_frames,
+    float_in,
+    int_in,
+    machine,
+    run,
+    through_jpeg,
+    time_ms,
+)
 from rig.protocol import FLAG_VALID  # noqa: E402
 
 if TYPE_CHECKING:
@@ -76,7 +85,6 @@ if TYPE_CHECKING:
 # The fresh set (bench_standstill.py): never trained on (1000) nor chosen by (2500, 2000).
 DEFAULT_DRIVE_SEED = 3000
 TRAINING_DRIVE_SEED = 1000
-JPEG_QUALITY = 90  # the synthetic logs' (replay.native.LogWriter.write_frame)
 IMPAIRMENTS = ("none", "cap_lower_half", "cap_left_half", "blob_30", "blob_60")
 # Dusk and night: the light cut by that many stops, which the drive's auto exposure makes up in gain.
 NIGHT_IMPAIRMENTS = ("night_4", "night_6", "night_8")
@@ -186,16 +194,6 @@ def capture_metered(camera, radiance: np.ndarray, rng_key: list[int], target_mea
     return image
 
 
-def jpeg(image: np.ndarray) -> np.ndarray:
-    """``image`` through JPEG at the synthetic logs' quality."""
-    import cv2
-
-    ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-    decoded = cv2.imdecode(data, cv2.IMREAD_COLOR) if ok else None
-    assert decoded is not None, "OpenCV could not JPEG-encode and decode a rendered frame"
-    return decoded
-
-
 @dataclass
 class Rendered:
     """A drive rendered once: each pose's radiance and how much of the sun's disk it shows."""
@@ -241,7 +239,7 @@ def frames_of(r: Rendered, kind: str, metered_mean: float, impaired: list[int]) 
             if not kind.startswith("sun_") and kind != "none":
                 impaired.append(k)
         t_s = k / drive.fps
-        yield Frame(t_mono_s=t_s, seq=k, image_bgr=jpeg(image), intrinsics=drive.intrinsics,
+        yield Frame(t_mono_s=t_s, seq=k, image_bgr=through_jpeg(image), intrinsics=drive.intrinsics,
                     attitude=Attitude(pose.heading_rad, HeadingRef.TRUE, pose.pitch_rad, pose.roll_rad),
                     utc_ns=drive.params.utc_start_ns + int(round(t_s * 1e9)), gnss=None,
                     sun_enu_truth=drive.sun_enu)
@@ -461,7 +459,7 @@ def main() -> None:
     print(json.dumps({
         "benchmark": "exposure",
         "drives": {"drive_seed": args.drive_seed, "covers": args.drives, "sun_in_view": sunny,
-                   "frames": args.frames, "fps": fps, "jpeg_quality": JPEG_QUALITY,
+                   "frames": args.frames, "fps": fps, "jpeg_quality": SYNTH_JPEG_QUALITY,
                    "metered_mean": args.metered_mean},
         "window": {"n_frames": estimator.frames_per_window, "span_s": span_s},
         "crop_seed": args.crop_seed,

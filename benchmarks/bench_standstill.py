@@ -62,7 +62,15 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import check_frames, float_in, int_in, machine, run  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    SYNTH_JPEG_QUALITY,
+    check_frames,
+    float_in,
+    int_in,
+    machine,
+    run,
+    through_jpeg,
+)
 from rig.protocol import FLAG_VALID  # noqa: E402
 from rig.window import SAME_VIEW_MAX_RMS, SpreadWindowPolicy, T, view_rms  # noqa: E402
 
@@ -70,9 +78,6 @@ from rig.window import SAME_VIEW_MAX_RMS, SpreadWindowPolicy, T, view_rms  # noq
 # one (docs/model.md); 3000 is the "fresh" set, never trained on nor chosen by.
 DEFAULT_DRIVE_SEED = 3000
 TRAINING_DRIVE_SEED = 1000
-# The quality the synthetic logs' frames are written at (replay.native.LogWriter.write_frame), so
-# that the model sees what it was trained and measured on.
-JPEG_QUALITY = 90
 # Phase bounds in seconds: the window's span (4 s, rig/config.py) is when the last moving frame
 # leaves the window, so from then on every window is the one standing view.
 STOP_PHASES_S = (4.0, 10.0)
@@ -247,7 +252,7 @@ class RecordingPolicy(SpreadWindowPolicy):
 
 def drive_frames(drive, poses: Sequence[int], noise_keys: Sequence[tuple[int, ...]], radiance: dict,
                  effects: Sequence[FrameEffect | None] | None = None, *, dusk: bool = False,
-                 jpeg_quality: int = JPEG_QUALITY) -> Iterator:
+                 jpeg_quality: int = SYNTH_JPEG_QUALITY) -> Iterator:
     """The Frames of ``drive`` at ``poses`` (indices into its poses), one after another 1 / fps s
     apart, frame i's sensor noise from ``default_rng([drive seed, 3, *noise_keys[i]])``, through one
     camera (its exposure carried over) and JPEG. ``radiance`` caches each pose's render.
@@ -255,7 +260,6 @@ def drive_frames(drive, poses: Sequence[int], noise_keys: Sequence[tuple[int, ..
     draws a box; ``dusk`` darkens and adds noise to every frame (:data:`DUSK_STOPS`)."""
     import dataclasses
 
-    import cv2
     import numpy as np
 
     from replay.synthetic.camera import Camera
@@ -288,12 +292,9 @@ def drive_frames(drive, poses: Sequence[int], noise_keys: Sequence[tuple[int, ..
                                                             dy_px=effect.dy_px * scale))
             camera.gain *= effect.gain
         image = camera.capture(light, np.random.default_rng([drive.seed, 3, *key]))
-        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-        decoded = cv2.imdecode(jpeg, cv2.IMREAD_COLOR) if ok else None
-        assert decoded is not None, "OpenCV could not JPEG-encode and decode a rendered frame"
         pose = drive.poses[k]
         t_s = seq / drive.fps
-        yield Frame(t_mono_s=t_s, seq=seq, image_bgr=decoded,
+        yield Frame(t_mono_s=t_s, seq=seq, image_bgr=through_jpeg(image, jpeg_quality),
                     intrinsics=drive.intrinsics,
                     attitude=Attitude(pose.heading_rad, HeadingRef.TRUE, pose.pitch_rad, pose.roll_rad),
                     utc_ns=drive.params.utc_start_ns + int(round(t_s * 1e9)), gnss=None,
@@ -484,8 +485,8 @@ def main() -> None:
     ap.add_argument("--crossing", choices=sorted(CROSSINGS), help="standing, a shape crossing the view")
     ap.add_argument("--dusk", action="store_true",
                     help=f"every frame {-DUSK_STOPS:g} stops darker, with sensor noise {DUSK_NOISE_SQRT}")
-    ap.add_argument("--jpeg-quality", type=int_in(1, 100), default=JPEG_QUALITY,
-                    help=f"every frame's JPEG quality (default {JPEG_QUALITY}, the synthetic logs')")
+    ap.add_argument("--jpeg-quality", type=int_in(1, 100), default=SYNTH_JPEG_QUALITY,
+                    help=f"every frame's JPEG quality (default {SYNTH_JPEG_QUALITY}, the synthetic logs')")
     args = ap.parse_args()
     if args.drive_seed == TRAINING_DRIVE_SEED:
         ap.error(f"--drive-seed {TRAINING_DRIVE_SEED}: the training drives say nothing of a model's error; "

@@ -112,6 +112,21 @@ def time_ms(fn: Callable[[], object], repeats: int = 20, warmup: int = 3) -> dic
             "repeats": repeats}
 
 
+# The quality the synthetic logs' frames are written at (replay.native.LogWriter.write_frame), so
+# that a benchmark that renders its own frames shows the model what it was trained and measured on.
+SYNTH_JPEG_QUALITY = 90
+
+
+def through_jpeg(image_bgr: Any, quality: int = SYNTH_JPEG_QUALITY) -> Any:
+    """``image_bgr`` encoded as JPEG at ``quality`` and decoded again, as a log's frame comes back."""
+    import cv2
+
+    ok, data = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    decoded = cv2.imdecode(data, cv2.IMREAD_COLOR) if ok else None
+    assert decoded is not None, "OpenCV could not JPEG-encode and decode a rendered frame"
+    return decoded
+
+
 def comma_list(convert: Callable[[str], Any], what: str, valid: Callable[[list], bool] = bool) -> Callable:
     """An argparse type for a comma-separated list of ``what`` (e.g. ``0,1,2``), each made by
     ``convert`` and the list accepted by ``valid`` (default: not empty)."""

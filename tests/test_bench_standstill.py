@@ -82,7 +82,8 @@ def test_the_stop_streams_frames_are_the_drives_own_and_standing_ones_differ_by_
     import cv2
     import numpy as np
 
-    from benchmarks.bench_standstill import JPEG_QUALITY, drive_frames
+    from benchmarks.bench_standstill import drive_frames
+    from benchmarks.common import SYNTH_JPEG_QUALITY
     from replay.synthetic.drive import Drive, kitti_intrinsics
 
     drive = Drive(5, 6, intrinsics=kitti_intrinsics(0.25))
@@ -93,7 +94,8 @@ def test_the_stop_streams_frames_are_the_drives_own_and_standing_ones_differ_by_
     plain = list(drive.frames())
 
     def jpeg(image):
-        return cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])[1], cv2.IMREAD_COLOR)
+        return cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, SYNTH_JPEG_QUALITY])[1],
+                            cv2.IMREAD_COLOR)
 
     # Before the stop and at its first frame, the drive's frames (one render per pose, kept apart:
     # the renderer reuses its buffers, so a kept render that is not a copy turns into the last pose).
