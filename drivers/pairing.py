@@ -75,16 +75,16 @@ DEFAULT_MAX_GAP_S = 1.5
 DEFAULT_MAX_AGE_S = 1.5
 
 FINAL = ("interpolated", "exact", "gap", "before", "after", "stale", "mixed", "ahead", "unconfirmed")
-# How many samples before a frame's are judged again for glitches at each lookup: a glitch's
-# verdict depends on the sample kept before it, so on the verdicts before; a few suffice (a run of
-# samples that each jump is no glitch of one sample), and the history (512) is not judged each frame.
-_GLITCH_LOOKBACK = 4
 # A glitch may last several samples (multipath over two sentences of a 1 Hz compass): up to this
 # many in a row that went out and came back together are one, when the sample after them comes
 # within MAX_GLITCH_RUN_S of the sample before them. Longer, or slower, an excursion may be a
 # vehicle's (out 45 deg and back in 3 s is 30 deg/s each way, a hard swerve), and is kept.
 MAX_GLITCH_RUN = 3
 MAX_GLITCH_RUN_S = 3.0
+# How many samples before a frame's are judged again for glitches at each lookup: a glitch's
+# verdict depends on the sample kept before it, so on the verdicts before. A frame inside the
+# longest run must still see the sample before the run; the history (512) is not judged each frame.
+_GLITCH_LOOKBACK = MAX_GLITCH_RUN + 1
 # Which heading a frame takes where a source gives several references (HeadingRef.RELATIVE last:
 # its zero is the source's start, not north).
 _PREFERENCE = (HeadingRef.TRUE, HeadingRef.MAGNETIC, HeadingRef.RELATIVE)
