@@ -142,7 +142,10 @@ def test_a_camera_just_too_slow_to_fill_a_window_is_said(model, caplog, fps, hel
                        [Collect()], config=RigConfig(queue_size=100), clock=clock)
     box.append(pipe)
     with caplog.at_level(logging.WARNING, logger="rig.pipeline"):
-        stats = pipe.run(timeout_s=60)
+        # The timeout is on the rig's clock, which the frames move: 30 frames at 0.2 fps are 150 s
+        # of it. At 60 s the run ended early whenever its loop looked before the last frame was
+        # done (2 runs in 20 failed with 27 frames captured).
+        stats = pipe.run(timeout_s=60 + 30 / fps)
     said = [r.getMessage() for r in caplog.records if "partial window" in r.getMessage()]
     assert stats.estimates == 30 and len(said) == 1, said
     assert said[0].startswith(f"windows hold {held} of the model's 8 frames"), said
